@@ -1,0 +1,113 @@
+"""Command line: thin wrappers over the library.
+
+Exit codes: 0 success; 1 the solver failed (IPOPT's status is printed and recorded);
+2 bad input (one line naming the file, the field and the reason).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from casmag.errors import CasmagError
+
+EXIT_SOLVER_FAILED = 1
+EXIT_BAD_INPUT = 2
+
+
+def _fail(message: str, code: int) -> None:
+    click.echo(f"casmag: error: {message}", err=True)
+    sys.exit(code)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="casmag")
+def main() -> None:
+    """casmag: magnetic-field SLAM with a Gaussian-process map (CasADi + IPOPT)."""
+
+
+@main.command()
+@click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder (replaced atomically).",
+)
+@click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="KEY.PATH=VALUE",
+    help="Override a problem-file value (YAML syntax); repeatable.",
+)
+@click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing on success.")
+def run(
+    problem: Path, out_dir: Path, overrides: tuple[str, ...], no_figures: bool, quiet: bool
+) -> None:
+    """Solve PROBLEM (a YAML problem file) and write result.json, trajectory.csv and figures."""
+    from casmag.api import solve
+    from casmag.config import load_problem
+
+    try:
+        prob = load_problem(problem, overrides)
+        result = solve(prob)
+        result.save(out_dir, figures=not no_figures)
+    except CasmagError as exc:
+        _fail(str(exc), EXIT_BAD_INPUT)
+    except (ValueError, RuntimeError) as exc:
+        _fail(
+            f"{problem}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
+            EXIT_BAD_INPUT,
+        )
+    if not result.success:
+        _fail(
+            f"{problem}: IPOPT failed: status {result.status} after {result.iterations} iterations "
+            f"(recorded in {out_dir / 'result.json'})",
+            EXIT_SOLVER_FAILED,
+        )
+    if not quiet:
+        line = (
+            f"{result.info['name']}: {result.status}, {result.iterations} iterations, "
+            f"{result.solve_seconds:.2f} s solve ({result.build_seconds:.1f} s build)"
+        )
+        if result.rmse_before is not None:
+            line += (
+                f"; RMSE {result.rmse_before:.4f} -> {result.rmse_after:.4f} m, "
+                f"max {result.max_before:.4f} -> {result.max_after:.4f} m"
+            )
+        click.echo(line)
+        click.echo(f"wrote {out_dir}/")
+
+
+@main.command()
+@click.argument("paths", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option(
+    "--out",
+    "out_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Markdown file to write (atomically); standard output if omitted.",
+)
+def report(paths: tuple[Path, ...], out_file: Path | None) -> None:
+    """Tabulate saved results (result.json files, or folders searched for them)."""
+    from casmag.report import find_results, load_result, markdown_table
+
+    try:
+        table = markdown_table([load_result(p) for p in find_results(list(paths))])
+    except CasmagError as exc:
+        _fail(str(exc), EXIT_BAD_INPUT)
+    if out_file is None:
+        click.echo(table, nl=False)
+        return
+    out_file.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_file.with_name(f".{out_file.name}.tmp")
+    tmp.write_text(table)
+    tmp.replace(out_file)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

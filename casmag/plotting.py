@@ -1,0 +1,60 @@
+"""Figures (PNG, matplotlib's Agg canvas; no global pyplot state)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+if TYPE_CHECKING:
+    from casmag.result import Result
+
+
+def _save(fig: Figure, path: Path) -> None:
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=120)
+
+
+def trajectory_figure(result: Result, path: Path) -> None:
+    """Odometry-only (dashed), estimate (solid) and truth (triangles), as in the paper's
+    Figures 1-4, with the errors in the title."""
+    a = result.arrays
+    fig = Figure(figsize=(6.0, 5.6))
+    ax = fig.add_subplot()
+    ax.plot(*a["P_odometry"][:, :2].T, "--", color="tab:cyan", lw=1.4, label="odometry only")
+    if a.get("P_true") is not None:
+        ax.plot(*a["P_true"][:, :2].T, "^", color="tab:red", ms=4, mfc="none", label="truth")
+    ax.plot(*a["P_estimate"][:, :2].T, "-", color="tab:blue", lw=1.4, label="GP-SLAM")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    title = result.info.get("name", "")
+    if result.rmse_before is not None and result.rmse_after is not None:
+        title += (
+            f"\nRMSE {result.rmse_before:.4f} m -> {result.rmse_after:.4f} m, "
+            f"max {result.max_before:.4f} m -> {result.max_after:.4f} m"
+        )
+    ax.set_title(title, fontsize=9)
+    _save(fig, path)
+
+
+def cost_figure(result: Result, path: Path) -> None:
+    """Objective and constraint violation per IPOPT iteration (the paper's Figure 7)."""
+    fig = Figure(figsize=(6.0, 3.6))
+    ax = fig.add_subplot()
+    cost = result.cost_per_iteration
+    offset = min(cost)
+    ax.semilogy(range(len(cost)), [c - offset + 1e-12 for c in cost], "o-", ms=3)
+    ax.set_xlabel("IPOPT iteration")
+    ax.set_ylabel("cost - final cost")
+    ax.grid(alpha=0.3, which="both")
+    ax.set_title(
+        f"{result.info.get('name', '')}: {result.status}, {result.iterations} iterations",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    _save(fig, path)

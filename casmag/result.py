@@ -1,0 +1,107 @@
+"""The result of a GP-SLAM solve and how it is saved.
+
+A result holds ``info`` (what was solved), scalar statistics and arrays. It is saved as
+``result.json`` (everything but the arrays), ``trajectory.csv`` (the arrays) and figures,
+written into a temporary folder that replaces the output folder only once complete, so an
+interrupted or failed write never leaves a half-written output.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class Result:
+    """Outcome of one solve.
+
+    Errors are position errors in metres against the truth without alignment (None when the
+    data have no truth, or the solve failed). ``cost_blocks`` maps each named block to its
+    value at the initial guess ("before") and at the solution ("after").
+    """
+
+    info: dict[str, Any]
+    status: str
+    success: bool
+    iterations: int
+    build_seconds: float
+    solve_seconds: float
+    rmse_before: float | None
+    max_before: float | None
+    rmse_after: float | None
+    max_after: float | None
+    hyperparameters: dict[str, float]
+    hyperparameters_initial: dict[str, float]
+    odometry_bias: list[float] | None
+    odometry_bias_true: list[float] | None
+    cost_blocks: dict[str, dict[str, float]]
+    cost_per_iteration: list[float]
+    constraint_violation_per_iteration: list[float]
+    arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""
+        d = asdict(self)
+        d.pop("arrays")
+        d["units"] = {"errors": "m, no alignment", "seconds": "wall-clock s"}
+        return _finite(d)
+
+    def save(self, out_dir: str | Path, figures: bool = True) -> Path:
+        """Write result.json, trajectory.csv and (if figures) PNGs into out_dir atomically."""
+        out = Path(out_dir)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+        try:
+            (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+            if self.arrays:
+                write_trajectory_csv(self, tmp / "trajectory.csv")
+            if figures and self.arrays:
+                from casmag import plotting
+
+                plotting.trajectory_figure(self, tmp / "trajectory.png")
+                if self.cost_per_iteration:
+                    plotting.cost_figure(self, tmp / "cost.png")
+            if out.exists():
+                shutil.rmtree(out)
+            os.replace(tmp, out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return out
+
+
+def _finite(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+TRAJECTORY_COLUMNS = ("x", "y", "z")
+
+
+def write_trajectory_csv(result: Result, path: Path) -> None:
+    """One row per sample: index, odometry-only, estimate and (if known) true positions."""
+    a = result.arrays
+    dim = a["P_estimate"].shape[1]
+    cols, names = [np.arange(a["P_estimate"].shape[0])], ["k"]
+    for key, tag in (("P_odometry", "odo"), ("P_estimate", "est"), ("P_true", "true")):
+        if key in a and a[key] is not None:
+            cols.extend(a[key].T)
+            names.extend(f"{c}_{tag}" for c in TRAJECTORY_COLUMNS[:dim])
+    fmt = ["%d"] + ["%.9g"] * (len(names) - 1)
+    np.savetxt(
+        path, np.column_stack(cols), delimiter=",", header=",".join(names), comments="", fmt=fmt
+    )
