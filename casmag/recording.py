@@ -1,0 +1,498 @@
+"""Recordings: one CSV file per walk, read into arrays and written back.
+
+A recording has a header row and one data row per magnetometer sample. Columns (order free,
+names case-sensitive, whitespace around header names ignored):
+
+``t``
+    time [s], strictly increasing.
+motion input, exactly one group of :data:`MOTION_COLUMNS`
+    ``dx,dy`` or ``dx,dy,dz``: world-frame position increment since the previous row [m];
+    ``dfwd,dleft,dyaw``: body-frame displacement [m] and heading increment [rad] since the
+    previous row; ``dqw,dqx,dqy,dqz,dvx,dvy,dvz``: strapdown IMU increments over the interval
+    ending at the row (rotation quaternion, velocity increment [m/s]), sensor frame.
+    The first row's increments are ignored; only there may they be empty or NaN.
+``mx,my,mz``
+    magnetometer in the sensor frame, any consistent unit.
+optional truth, for evaluation only, in complete groups
+    ``x_true,y_true[,z_true]`` [m], ``yaw_true`` [rad], ``qw_true,qx_true,qy_true,qz_true``
+    (unit quaternion, w first).
+
+Every problem with a file raises :class:`~casmag.errors.DataError` as one line naming the
+file, the row (header = row 1, first data row = row 2) or column, and the reason.
+"""
+
+from __future__ import annotations
+
+import csv
+import difflib
+import os
+import secrets
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from casmag.errors import DataError, one_line
+from casmag.simulate import Dataset
+
+MOTION_COLUMNS: dict[str, tuple[str, ...]] = {
+    "translation2": ("dx", "dy"),
+    "translation3": ("dx", "dy", "dz"),
+    "planar": ("dfwd", "dleft", "dyaw"),
+    "imu": ("dqw", "dqx", "dqy", "dqz", "dvx", "dvy", "dvz"),
+}
+"""Column names of each motion input (``translation2``/``translation3`` are the 2-D/3-D forms
+of the ``translation`` input)."""
+
+TIME_COLUMN = "t"
+MAGNETOMETER_COLUMNS: tuple[str, ...] = ("mx", "my", "mz")
+POSITION_TRUTH_COLUMNS: tuple[str, ...] = ("x_true", "y_true", "z_true")
+YAW_TRUTH_COLUMN = "yaw_true"
+QUATERNION_TRUTH_COLUMNS: tuple[str, ...] = ("qw_true", "qx_true", "qy_true", "qz_true")
+QUATERNION_TOLERANCE = 1e-3
+"""Largest accepted | |q| - 1 | of a truth quaternion row."""
+
+# Motion input name -> (required columns, optional columns), in write order.
+_MOTION_GROUPS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "translation": (MOTION_COLUMNS["translation2"], ("dz",)),
+    "planar": (MOTION_COLUMNS["planar"], ()),
+    "imu": (MOTION_COLUMNS["imu"], ()),
+}
+_KNOWN_COLUMNS: tuple[str, ...] = (
+    TIME_COLUMN,
+    *MOTION_COLUMNS["translation3"],
+    *MOTION_COLUMNS["planar"],
+    *MOTION_COLUMNS["imu"],
+    *MAGNETOMETER_COLUMNS,
+    *POSITION_TRUTH_COLUMNS,
+    YAW_TRUTH_COLUMN,
+    *QUATERNION_TRUTH_COLUMNS,
+)
+_MIN_ROWS = 2
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One recording as float64 arrays.
+
+    path: the file it came from; t: (N,) times [s], strictly increasing; motion:
+    ``"translation"``, ``"planar"`` or ``"imu"``; increments: (N-1, k) motion columns of rows
+    2..N (the first row's are dropped), in the order of ``increment_names``; Y: (N, 3)
+    magnetometer (field units). Truth, None when the file has none: P_true (N, 2) or (N, 3)
+    positions [m], yaw_true (N,) heading [rad], q_true (N, 4) orientation quaternion (w, x,
+    y, z).
+    """
+
+    path: str
+    t: np.ndarray
+    motion: str
+    increments: np.ndarray
+    increment_names: tuple[str, ...]
+    Y: np.ndarray
+    P_true: np.ndarray | None = None
+    yaw_true: np.ndarray | None = None
+    q_true: np.ndarray | None = None
+
+    @property
+    def n_samples(self) -> int:
+        """Number of rows N (magnetometer samples)."""
+        return self.Y.shape[0]
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension: 2 or 3 for translation, 2 for planar, 3 for imu."""
+        if self.motion == "translation":
+            return self.increments.shape[1]
+        return 2 if self.motion == "planar" else 3
+
+    @property
+    def has_truth(self) -> bool:
+        """Whether any truth (positions, yaw or quaternions) was recorded."""
+        return any(x is not None for x in (self.P_true, self.yaw_true, self.q_true))
+
+    def to_dataset(self) -> Dataset:
+        """The translational data set: U = increments (N-1, d), Y (N, 3), anchor (d,).
+
+        The anchor is the first true position when the recording has one, else the origin.
+        Raises DataError for motion inputs the solver does not support yet (planar, imu).
+        """
+        if self.motion != "translation":
+            raise DataError(
+                one_line(
+                    f"{self.path}: motion input '{self.motion}' is not supported by this solver yet"
+                )
+            )
+        dim = self.dim
+        if self.P_true is not None and self.P_true.shape[1] != dim:
+            raise DataError(
+                one_line(
+                    f"{self.path}: true positions are {self.P_true.shape[1]}-D but the "
+                    f"translation input is {dim}-D"
+                )
+            )
+        anchor = self.P_true[0].copy() if self.P_true is not None else np.zeros(dim)
+        return Dataset(U=self.increments, Y=self.Y, anchor=anchor, P_true=self.P_true)
+
+
+# --------------------------------------------------------------------------- reading
+def _error(path: str, where: str, reason: str) -> DataError:
+    text = f"{path}: {where}: {reason}" if where else f"{path}: {reason}"
+    return DataError(one_line(text))
+
+
+def _names(columns: Sequence[str]) -> str:
+    return ", ".join(columns)
+
+
+def _read_text(path: str) -> str:
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            return f.read()
+    except UnicodeDecodeError as exc:
+        raise _error(path, "", f"cannot read file (not UTF-8 text: {exc.reason})") from None
+    except OSError as exc:
+        raise _error(path, "", f"cannot read file ({exc.strerror or exc})") from None
+
+
+def _parse_header(path: str, line: str) -> list[str]:
+    try:
+        fields = next(csv.reader([line]), [])
+    except csv.Error as exc:
+        raise _error(path, "row 1", f"cannot parse the header ({exc})") from None
+    if not line.strip():
+        raise _error(path, "row 1", "empty header row (expected column names)")
+    names = [name.strip() for name in fields]
+    seen: dict[str, int] = {}
+    for i, name in enumerate(names, start=1):
+        if not name:
+            raise _error(path, f"column {i}", "empty column name in the header")
+        if name in seen:
+            raise _error(
+                path, f"column '{name}'", f"duplicate column name (columns {seen[name]} and {i})"
+            )
+        seen[name] = i
+    for name in names:
+        if name not in _KNOWN_COLUMNS:
+            by_case = [c for c in _KNOWN_COLUMNS if c.lower() == name.lower()]
+            close = by_case or difflib.get_close_matches(name, _KNOWN_COLUMNS, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise _error(path, f"column '{name}'", f"unknown column{hint}")
+    return names
+
+
+def _motion_group(path: str, present: set[str]) -> tuple[str, tuple[str, ...]]:
+    """The motion input name and its columns in the file, checked for completeness."""
+    found = {
+        motion: [c for c in (*required, *optional) if c in present]
+        for motion, (required, optional) in _MOTION_GROUPS.items()
+    }
+    found = {motion: cols for motion, cols in found.items() if cols}
+    if not found:
+        raise _error(
+            path,
+            "",
+            "no motion input: expected one of dx,dy | dfwd,dleft,dyaw | dqw,...,dvz",
+        )
+    if len(found) > 1:
+        groups = " and ".join(f"{motion} ({_names(cols)})" for motion, cols in found.items())
+        raise _error(path, "", f"mixed motion inputs: {groups}; give exactly one")
+    motion, cols = next(iter(found.items()))
+    required, optional = _MOTION_GROUPS[motion]
+    missing = [c for c in required if c not in present]
+    if missing:
+        plural = "s" if len(missing) > 1 else ""
+        raise _error(
+            path,
+            "",
+            f"incomplete {motion} input: missing column{plural} {_names(missing)} "
+            f"(have {_names(cols)})",
+        )
+    return motion, tuple(c for c in (*required, *optional) if c in present)
+
+
+def _check_columns(path: str, names: list[str]) -> tuple[str, tuple[str, ...]]:
+    present = set(names)
+    if TIME_COLUMN not in present:
+        raise _error(path, "", f"missing column '{TIME_COLUMN}' (time)")
+    missing = [c for c in MAGNETOMETER_COLUMNS if c not in present]
+    if missing:
+        plural = "s" if len(missing) > 1 else ""
+        raise _error(path, "", f"missing magnetometer column{plural} {_names(missing)}")
+    motion, motion_cols = _motion_group(path, present)
+    # Truth groups: positions need x_true and y_true (z_true optional); quaternions all four.
+    groups = [
+        (POSITION_TRUTH_COLUMNS, POSITION_TRUTH_COLUMNS[:2]),
+        (QUATERNION_TRUTH_COLUMNS, QUATERNION_TRUTH_COLUMNS),
+    ]
+    for group, required in groups:
+        have = [c for c in group if c in present]
+        missing = [c for c in required if c not in present]
+        if have and missing:
+            plural = "s" if len(missing) > 1 else ""
+            raise _error(
+                path,
+                "",
+                f"incomplete truth group: missing column{plural} {_names(missing)} "
+                f"(have {_names(have)})",
+            )
+    if motion == "translation":
+        d_motion = len(motion_cols)
+        d_truth = sum(c in present for c in POSITION_TRUTH_COLUMNS)
+        if d_truth and d_truth != d_motion:
+            raise _error(
+                path,
+                "",
+                f"true positions are {d_truth}-D but the translation input is {d_motion}-D "
+                f"({_names(motion_cols)})",
+            )
+    return motion, motion_cols
+
+
+def _locate_bad_value(path: str, rows: list[list[str]], names: list[str]) -> DataError:
+    """The error for the first field float() rejects (called only when one does)."""
+    for i, fields in enumerate(rows):
+        for j, value in enumerate(fields):
+            try:
+                float(value)
+            except ValueError:
+                where = f"row {i + 2}, column '{names[j]}'"
+                if not value.strip():
+                    return _error(path, where, "empty value")
+                return _error(path, where, f"not a number ({value.strip()!r})")
+    return _error(path, "", "cannot convert the values to numbers")  # pragma: no cover
+
+
+def _parse_values(
+    path: str, rows: list[list[str]], names: list[str], motion_idx: list[int]
+) -> np.ndarray:
+    """(N, n_columns) float64 values; empty first-row motion fields become NaN."""
+    first = rows[0]
+    for j in motion_idx:
+        if not first[j].strip():
+            first[j] = "nan"
+    try:
+        A = np.array(rows, dtype=np.float64)
+    except ValueError:
+        raise _locate_bad_value(path, rows, names) from None
+    bad = ~np.isfinite(A)
+    bad[0, motion_idx] = np.isinf(A[0, motion_idx])  # NaN (or empty) allowed there only
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        kind = "NaN" if np.isnan(A[i, j]) else "infinite"
+        raise _error(path, f"row {i + 2}, column '{names[j]}'", f"value is {kind}")
+    return A
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read and validate a recording CSV file (see the module docstring for the format).
+
+    Raises DataError (one line: file, row or column, reason) for any problem with the file.
+    """
+    path = str(path)
+    text = _read_text(path)
+    lines = text.split("\n")
+    while lines and not lines[-1].strip():
+        lines.pop()
+    if not lines:
+        raise _error(path, "", "empty file (expected a header row and data rows)")
+    names = _parse_header(path, lines[0])
+    motion, motion_cols = _check_columns(path, names)
+    data_lines = lines[1:]
+    if len(data_lines) < _MIN_ROWS:
+        raise _error(
+            path,
+            "",
+            f"needs at least {_MIN_ROWS} rows of data (got {len(data_lines)})",
+        )
+
+    n_cols = len(names)
+    rows = [line.split(",") for line in data_lines]
+    lengths = np.fromiter(map(len, rows), dtype=np.int64, count=len(rows))
+    wrong = np.flatnonzero(lengths != n_cols)
+    if wrong.size:
+        i = int(wrong[0])
+        if not data_lines[i].strip():
+            raise _error(path, f"row {i + 2}", f"empty row (expected {n_cols} fields)")
+        raise _error(
+            path, f"row {i + 2}", f"has {lengths[i]} fields, expected {n_cols} (as the header)"
+        )
+
+    col = {name: j for j, name in enumerate(names)}
+    A = _parse_values(path, rows, names, [col[c] for c in motion_cols])
+
+    t = A[:, col[TIME_COLUMN]]
+    steps = np.diff(t)
+    not_increasing = np.flatnonzero(~(steps > 0))
+    if not_increasing.size:
+        k = int(not_increasing[0]) + 1
+        raise _error(
+            path,
+            f"row {k + 2}",
+            f"time {float(t[k])!r} is not after the previous row's {float(t[k - 1])!r} "
+            f"(column '{TIME_COLUMN}' must increase strictly)",
+        )
+
+    def columns(group: Sequence[str]) -> np.ndarray | None:
+        if not all(c in col for c in group):
+            return None
+        return np.ascontiguousarray(A[:, [col[c] for c in group]])
+
+    q_true = columns(QUATERNION_TRUTH_COLUMNS)
+    if q_true is not None:
+        off = np.abs(np.linalg.norm(q_true, axis=1) - 1.0)
+        bad = np.flatnonzero(~(off <= QUATERNION_TOLERANCE))
+        if bad.size:
+            i = int(bad[0])
+            raise _error(
+                path,
+                f"row {i + 2}",
+                f"truth quaternion ({_names(QUATERNION_TRUTH_COLUMNS)}) has norm "
+                f"{float(np.linalg.norm(q_true[i])):.6g}, expected 1 within "
+                f"{QUATERNION_TOLERANCE:g}",
+            )
+
+    position_cols = [c for c in POSITION_TRUTH_COLUMNS if c in col]
+    increments = columns(motion_cols)
+    assert increments is not None
+    return Recording(
+        path=path,
+        t=t.copy(),
+        motion=motion,
+        increments=increments[1:].copy(),
+        increment_names=motion_cols,
+        Y=columns(MAGNETOMETER_COLUMNS),
+        P_true=columns(position_cols) if position_cols else None,
+        yaw_true=A[:, col[YAW_TRUTH_COLUMN]].copy() if YAW_TRUTH_COLUMN in col else None,
+        q_true=q_true,
+    )
+
+
+# --------------------------------------------------------------------------- writing
+def _as_array(
+    path: str, name: str, value: Any, rows: int, widths: Sequence[int] | None
+) -> np.ndarray:
+    """value as a float64 array of shape (rows,) (widths None) or (rows, w), w in widths."""
+    A = np.asarray(value, dtype=np.float64)
+    if widths is None:
+        ok = A.shape == (rows,)
+        expected = f"({rows},)"
+    else:
+        ok = A.ndim == 2 and A.shape[0] == rows and A.shape[1] in widths
+        expected = " or ".join(f"({rows}, {w})" for w in widths)
+    if not ok:
+        raise _error(path, name, f"has shape {A.shape}, expected {expected}")
+    if not np.all(np.isfinite(A)):
+        raise _error(path, name, "contains NaN or infinite values")
+    return A
+
+
+def write_recording(
+    path: str | Path,
+    t: np.ndarray,
+    Y: np.ndarray,
+    *,
+    dxy: np.ndarray | None = None,
+    planar: np.ndarray | None = None,
+    imu: np.ndarray | None = None,
+    P_true: np.ndarray | None = None,
+    yaw_true: np.ndarray | None = None,
+    q_true: np.ndarray | None = None,
+) -> None:
+    """Write a recording CSV file that :func:`read_recording` reads back exactly.
+
+    t: (N,) strictly increasing times [s]; Y: (N, 3) magnetometer. Exactly one motion input,
+    given for steps 1..N-1 (the first row's increments are written as 0):
+    dxy (N-1, 2) or (N-1, 3) world-frame position increments [m] (columns dx, dy[, dz]);
+    planar (N-1, 3) body-frame dfwd, dleft [m] and dyaw [rad]; imu (N-1, 7) dqw..dqz, dvx..dvz.
+    Optional truth: P_true (N, 2) or (N, 3) [m], yaw_true (N,) [rad], q_true (N, 4) unit
+    quaternions (w, x, y, z). Values are written in shortest round-trip form. The file is
+    written atomically (a temporary file in the same folder, then renamed over ``path``).
+    Raises DataError for inconsistent inputs or when the file cannot be written.
+    """
+    path = str(path)
+    t = np.asarray(t, dtype=np.float64)
+    if t.ndim != 1 or t.shape[0] < _MIN_ROWS:
+        raise _error(path, "t", f"has shape {t.shape}, expected (N,) with N >= {_MIN_ROWS}")
+    n = t.shape[0]
+    t = _as_array(path, "t", t, n, None)
+    if not np.all(np.diff(t) > 0):
+        raise _error(path, "t", "times must increase strictly")
+
+    motions = {"dxy": dxy, "planar": planar, "imu": imu}
+    given = [name for name, value in motions.items() if value is not None]
+    if len(given) != 1:
+        raise _error(
+            path, "", f"give exactly one motion input of dxy, planar, imu (got {len(given)})"
+        )
+    kind = given[0]
+    widths = {"dxy": (2, 3), "planar": (3,), "imu": (7,)}[kind]
+    U = _as_array(path, kind, motions[kind], n - 1, widths)
+    if kind == "dxy":
+        motion_names = MOTION_COLUMNS["translation2" if U.shape[1] == 2 else "translation3"]
+    else:
+        motion_names = MOTION_COLUMNS[kind]
+
+    names: list[str] = [TIME_COLUMN, *motion_names, *MAGNETOMETER_COLUMNS]
+    blocks: list[np.ndarray] = [t[:, None], np.vstack([np.zeros((1, U.shape[1])), U])]
+    blocks.append(_as_array(path, "Y", Y, n, (3,)))
+    if P_true is not None:
+        P = _as_array(path, "P_true", P_true, n, (2, 3))
+        names += POSITION_TRUTH_COLUMNS[: P.shape[1]]
+        blocks.append(P)
+    if yaw_true is not None:
+        names.append(YAW_TRUTH_COLUMN)
+        blocks.append(_as_array(path, "yaw_true", yaw_true, n, None)[:, None])
+    if q_true is not None:
+        q = _as_array(path, "q_true", q_true, n, (4,))
+        off = np.abs(np.linalg.norm(q, axis=1) - 1.0)
+        if np.any(off > QUATERNION_TOLERANCE):
+            i = int(np.argmax(off > QUATERNION_TOLERANCE))
+            raise _error(path, "q_true", f"quaternion {i} is not unit norm")
+        names += QUATERNION_TRUTH_COLUMNS
+        blocks.append(q)
+
+    A = np.hstack(blocks)
+    body = "\n".join(",".join(map(repr, row)) for row in A.tolist())
+    _write_atomic(path, ",".join(names) + "\n" + body + "\n")
+
+
+def _write_atomic(path: str, text: str) -> None:
+    """Write text to a temporary file next to path, then rename it over path."""
+    folder = os.path.dirname(os.path.abspath(path))
+    tmp = os.path.join(folder, f".{os.path.basename(path)}.{secrets.token_hex(6)}.tmp")
+    try:
+        # os.open applies the umask, so the file gets the usual permissions.
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+            raise
+    except OSError as exc:
+        raise _error(path, "", f"cannot write file ({exc.strerror or exc})") from None
+
+
+def dataset_to_recording_arrays(dataset: Dataset, dt: float = 1.0) -> dict[str, np.ndarray]:
+    """Keyword arguments for :func:`write_recording` that store a translational data set.
+
+    Times are 0, dt, 2 dt, ... [s]; the increments U become ``dxy``; P_true is included when
+    the data set has it. (The anchor, M_true and bias_true are not stored; on reading, the
+    anchor is the first true position, or the origin without truth.)
+    """
+    if not dt > 0:
+        raise ValueError(f"dt must be positive (got {dt})")
+    arrays: dict[str, np.ndarray] = {
+        "t": np.arange(dataset.n_samples, dtype=np.float64) * dt,
+        "Y": np.asarray(dataset.Y, dtype=np.float64),
+        "dxy": np.asarray(dataset.U, dtype=np.float64),
+    }
+    if dataset.P_true is not None:
+        arrays["P_true"] = np.asarray(dataset.P_true, dtype=np.float64)
+    return arrays
