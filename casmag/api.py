@@ -25,7 +25,7 @@ def solve(problem: Problem | str | Path | dict[str, Any], data: Dataset | None =
     """
     problem = load_problem(problem)
     data = simulate_problem(problem) if data is None else data
-    sol, nlp, hyper = solve_translational(problem, data)
+    sol, nlp, hyper, field = solve_translational(problem, data)
 
     P_odo = data.dead_reckoning()
     P_est = sol.x["P"]
@@ -44,6 +44,7 @@ def solve(problem: Problem | str | Path | dict[str, Any], data: Dataset | None =
         "n_samples": data.n_samples,
         "kernel": problem.assumed_kernel,
         "gp_form": problem.spec.model.gp.form,
+        "num_basis": None if nlp.keep is None else nlp.keep[1].basis.num_basis,
         "estimated": sorted(problem.spec.model.estimate),
         "estimate_bias": problem.spec.model.odometry.estimate_bias,
         "hessian": problem.spec.solver.hessian,
@@ -81,7 +82,7 @@ def solve(problem: Problem | str | Path | dict[str, Any], data: Dataset | None =
             "P_odometry": P_odo,
             "P_estimate": P_est,
             "P_true": data.P_true,
-            "M_estimate": sol.x["M"],
+            "M_estimate": field,
             "Y": data.Y,
         },
     )

@@ -19,7 +19,14 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from casmag.errors import ProblemError
 
@@ -81,19 +88,26 @@ class SimulationSpec(_Strict):
 class GPSpec(_Strict):
     """GP prior on the field. ``null`` hyperparameters take the simulation's true values.
 
-    form: ``exact`` (dense kernel matrix over the samples, paper Eq. 6).
+    form: ``exact`` (dense kernel matrix over the samples, paper Eq. 6) or ``reduced_rank``
+    (Hilbert-space basis on a box around the initial trajectory, casmag.rrmap).
+    num_basis, margin: reduced-rank basis size and box margin [m] (null: frequencies up to
+    4 / l, margin 3 l). sigma_lin: prior standard deviation of a constant field added to the
+    reduced-rank map (null: no constant term).
     jitter: added to the kernel diagonal, relative to the prior variance k(0).
     logdet: include 0.5 log|K(P, theta)| in the objective; null (default) includes it only
     when sigma_f or lengthscale is estimated. On the base case with fixed hyperparameters,
     including it made positions no more accurate and the solve about 2.5 times slower.
     """
 
-    form: Literal["exact"] = "exact"
+    form: Literal["exact", "reduced_rank"] = "exact"
     kernel: KernelName | None = None
     sigma_f: PositiveFloat | None = None
     lengthscale: PositiveFloat | None = None
     jitter: Annotated[float, Field(ge=0, le=1)] = 1.0e-6
     logdet: bool | None = None
+    num_basis: Annotated[int, Field(ge=1, le=20_000)] | None = None
+    margin: PositiveFloat | None = None
+    sigma_lin: PositiveFloat | None = None
 
 
 class MagnetometerModelSpec(_Strict):
@@ -140,11 +154,16 @@ class ModelSpec(_Strict):
 
 
 class SolverSpec(_Strict):
-    """IPOPT settings. ``ipopt`` passes further options through unchanged."""
+    """IPOPT settings. ``ipopt`` passes further options through unchanged.
+
+    hessian: ``auto`` is ``exact`` for the exact GP and ``gauss-newton`` for the reduced-rank
+    map (its magnetometer block's Gauss-Newton Hessian formed with numpy, the other blocks'
+    exact Hessian from CasADi); ``limited-memory`` is IPOPT's L-BFGS.
+    """
 
     max_iter: Annotated[int, Field(ge=1, le=100_000)] = 200
     tol: PositiveFloat = 1.0e-6
-    hessian: Literal["exact", "limited-memory"] = "exact"
+    hessian: Literal["auto", "exact", "gauss-newton", "limited-memory"] = "auto"
     linear_solver: Literal["mumps", "ma27", "ma57", "ma86", "ma97"] = "mumps"
     print_level: Annotated[int, Field(ge=0, le=12)] = 0
     ipopt: dict[str, float | int | str] = {}
@@ -157,6 +176,33 @@ class ProblemSpec(_Strict):
     simulation: SimulationSpec = SimulationSpec()
     model: ModelSpec = ModelSpec()
     solver: SolverSpec = SolverSpec()
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ProblemSpec:
+        gp = self.model.gp
+        if self.solver.hessian == "gauss-newton" and gp.form != "reduced_rank":
+            raise ValueError("solver.hessian: gauss-newton needs model.gp.form: reduced_rank")
+        kernel = gp.kernel or self.simulation.field.kernel
+        if gp.form == "reduced_rank" and kernel == "div_free":
+            raise ValueError("model.gp.kernel: div_free has no reduced-rank form (se, curl_free)")
+        if "sigma_m" in self.model.estimate:
+            # The field unknowns can fit every sample exactly, so 0.5 |e|^2 / sigma_m^2 +
+            # 3 N log sigma_m falls without bound as sigma_m -> 0 (measured: 1e-233 after 78
+            # iterations). Estimating it needs the field integrated out (paper Eq. 5).
+            raise ValueError(
+                "model.estimate: sigma_m cannot be estimated in the joint MAP (the field "
+                "unknowns fit every sample, so the objective is unbounded as sigma_m -> 0); "
+                "set model.magnetometer.sigma_m"
+            )
+        if gp.form == "reduced_rank" and {"sigma_f", "lengthscale"} & set(self.model.estimate):
+            # Weights the data leave free drive 0.5 w^2 / S + 0.5 log S to -inf as S -> 0:
+            # the joint MAP over weights and hyperparameters is unbounded.
+            raise ValueError(
+                "model.estimate: sigma_f and lengthscale cannot be estimated with the reduced-rank "
+                "map yet (the joint MAP over weights and hyperparameters is unbounded); use "
+                "model.gp.form: exact, or estimate sigma_m only"
+            )
+        return self
 
 
 # --------------------------------------------------------------------------- resolved values

@@ -106,27 +106,59 @@ class NLPBuilder:
             raise ValueError(f"cost block {name!r} must be scalar, got {expr.shape}")
         self.blocks[name] = self.blocks[name] + expr if name in self.blocks else expr
 
-    def build(self, solver: SolverSpec, name: str = "casmag") -> NLP:
-        """Create the IPOPT solver once; returns an NLP that can be solved many times."""
+    def offset(self, name: str, of: str = "x") -> int:
+        """Position of a variable (of="x") or parameter (of="p") in its stacked vector."""
+        return (self._x if of == "x" else self._p).entries[name].offset
+
+    @property
+    def sizes(self) -> tuple[int, int]:
+        return self._x.size, self._p.size
+
+    def build(
+        self,
+        solver: SolverSpec,
+        name: str = "casmag",
+        gauss_newton: tuple[str, ca.Function] | None = None,
+    ) -> NLP:
+        """Create the IPOPT solver once; returns an NLP that can be solved many times.
+
+        gauss_newton: (block name, function (x, p, lam_f, lam_g) -> upper-triangular Hessian
+        of that block). IPOPT then gets that Hessian plus CasADi's exact Hessian of all other
+        blocks through ``hess_lag``.
+        """
         t0 = time.perf_counter()
         x, p = self._x.vector(), self._p.vector()
         f = sum(self.blocks.values(), ca.MX(0))
         nlp = {"x": x, "p": p, "f": f}
+        hessian = "exact" if solver.hessian in ("auto", "gauss-newton") else solver.hessian
         opts: dict[str, Any] = {
             "ipopt.max_iter": solver.max_iter,
             "ipopt.tol": solver.tol,
             "ipopt.print_level": solver.print_level,
             "ipopt.linear_solver": solver.linear_solver,
-            "ipopt.hessian_approximation": solver.hessian,
+            "ipopt.hessian_approximation": hessian,
             "ipopt.sb": "yes",  # no IPOPT banner
             "print_time": False,
         }
+        if gauss_newton is not None and hessian == "exact":
+            block, gn = gauss_newton
+            others = sum((e for n, e in self.blocks.items() if n != block), ca.MX(0))
+            lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 0)
+            H = ca.triu(ca.hessian(others, x)[0]) + gn(x, p, lam_f, lam_g)
+            opts["hess_lag"] = ca.Function(
+                "hess_lag",
+                [x, p, lam_f, lam_g],
+                [lam_f * H],
+                ["x", "p", "lam_f", "lam_g"],
+                ["triu_hess_gamma_x_x"],
+            )
         opts.update({f"ipopt.{k}": v for k, v in solver.ipopt.items()})
         ipopt = ca.nlpsol(name, "ipopt", nlp, opts)
         names = list(self.blocks)
         blocks = ca.Function(f"{name}_blocks", [x, p], [self.blocks[n] for n in names])
         return NLP(
             solver=ipopt,
+            keep=gauss_newton,
             block_names=names,
             blocks_fn=blocks,
             x_layout=self._x,
@@ -167,6 +199,7 @@ class NLP:
     lbx: np.ndarray
     ubx: np.ndarray
     build_seconds: float
+    keep: Any = None  # objects the solver calls back into (kept alive)
 
     def evaluate_blocks(self, x: np.ndarray, p: np.ndarray) -> dict[str, float]:
         values = self.blocks_fn(x, p)

@@ -30,6 +30,8 @@ from casmag.gp import ExactGPPrior
 from casmag.kernels import FIELD_DIM, get_kernel
 from casmag.motion import TranslationalOdometry
 from casmag.nlp import NLP, NLPBuilder, Solution
+from casmag.reduced_rank import Domain, HilbertBasis
+from casmag.rrmap import GaussNewtonHessian, MapLayout, field_and_jacobians, make_basis
 from casmag.simulate import Dataset
 
 HYPERPARAMETERS = ("sigma_f", "lengthscale", "sigma_m")
@@ -48,10 +50,23 @@ class Structure:
     jitter: float
     logdet: bool
     solver: str  # SolverSpec as JSON (hashable)
+    form: str = "exact"
+    basis: tuple | None = None  # reduced rank: (center, half_width, num_basis)
+    constant_field: bool = False
 
     @classmethod
     def of(cls, problem: Problem, data: Dataset) -> Structure:
         m = problem.spec.model
+        basis = None
+        if m.gp.form == "reduced_rank":
+            hb = make_basis(
+                problem.assumed_kernel,
+                data.dead_reckoning(),
+                problem.assumed_lengthscale,
+                m.gp.num_basis,
+                m.gp.margin,
+            )
+            basis = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
         return cls(
             n=data.n_samples,
             dim=data.dim,
@@ -64,7 +79,14 @@ class Structure:
             if m.gp.logdet is None
             else m.gp.logdet,
             solver=problem.spec.solver.model_dump_json(),
+            form=m.gp.form,
+            basis=basis,
+            constant_field=m.gp.sigma_lin is not None,
         )
+
+    def hilbert_basis(self) -> HilbertBasis:
+        center, half_width, num_basis = self.basis
+        return HilbertBasis(Domain(np.array(center), np.array(half_width)), num_basis)
 
 
 def _hyper(builder: NLPBuilder, name: str, estimated: bool) -> ca.MX:
@@ -78,7 +100,6 @@ def build_translational(s: Structure) -> NLP:
     """Build the translational GP-SLAM NLP for a structure (use :func:`cached_nlp`)."""
     b = NLPBuilder()
     P = b.variable("P", (s.n, s.dim))
-    M = b.variable("M", (s.n, FIELD_DIM))
     bias = b.variable("bias", (1, s.dim)) if s.estimate_bias else ca.MX.zeros(1, s.dim)
     sigma_f, ell, sigma_m = (_hyper(b, h, h in s.estimate) for h in HYPERPARAMETERS)
 
@@ -89,9 +110,10 @@ def build_translational(s: Structure) -> NLP:
     sigma_a = b.parameter("sigma_anchor", (1, 1))
 
     b.cost("odometry", TranslationalOdometry(s.dim).cost(P, U, bias, sigma_o))
+    if s.form == "reduced_rank":
+        return _build_reduced_rank(b, s, P, bias, Y, anchor, sigma_f, ell, sigma_m, sigma_a)
+    M = b.variable("M", (s.n, FIELD_DIM))
     b.cost("magnetometer", 0.5 * ca.sumsqr((Y - M) / sigma_m))
-    if "sigma_m" in s.estimate:
-        b.cost("magnetometer", s.n * FIELD_DIM * ca.log(sigma_m))
     prior = ExactGPPrior(get_kernel(s.kernel), s.n, s.dim, s.jitter)
     b.cost("gp_prior", 0.5 * prior.quadratic(P, M, sigma_f, ell))
     if s.logdet:
@@ -101,6 +123,97 @@ def build_translational(s: Structure) -> NLP:
         sigma_b = b.parameter("sigma_bias", (1, 1))
         b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
     return b.build(SolverSpec.model_validate_json(s.solver), name="casmag_translational")
+
+
+def _build_reduced_rank(
+    b: NLPBuilder,
+    s: Structure,
+    P: ca.MX,
+    bias: ca.MX,
+    Y: ca.MX,
+    anchor: ca.MX,
+    sigma_f: ca.MX,
+    ell: ca.MX,
+    sigma_m: ca.MX,
+    sigma_a: ca.MX,
+) -> NLP:
+    """Reduced-rank map: weights W (SE, (M, 3)) or w (curl-free, (M, 1)), optional constant
+    field c; magnetometer residuals mapped over the samples with the weights broadcast."""
+    basis = s.hilbert_basis()
+    M = basis.num_basis
+    W = b.variable("W", (M, FIELD_DIM) if s.kernel == "se" else (M, 1))
+    c = b.variable("c", (FIELD_DIM, 1)) if s.constant_field else ca.MX.zeros(FIELD_DIM, 1)
+    field = basis.field_sx(s.kernel, position_dim=s.dim)
+    x, y, sig = ca.SX.sym("x", s.dim), ca.SX.sym("y", FIELD_DIM), ca.SX.sym("sigma_m")
+    w_sx = ca.SX.sym("w", *W.shape)
+    c_sx = ca.SX.sym("c", FIELD_DIM)
+    resid = ca.Function("mag_residual", [x, y, w_sx, c_sx, sig], [(y - field(x, w_sx, c_sx)) / sig])
+    E = resid.map(s.n, "serial")(P.T, Y.T, W, c, sigma_m)
+    b.cost("magnetometer", 0.5 * ca.sumsqr(E))
+    S = basis.prior_variances(s.kernel, sigma_f, ell)  # (M, 1)
+    n_cols = W.shape[1]
+    b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2 / ca.repmat(S, 1, n_cols))))
+    if {"sigma_f", "lengthscale"} & set(s.estimate):
+        b.cost("gp_logdet", 0.5 * n_cols * ca.sum1(ca.log(S)))
+    if s.constant_field:
+        sigma_lin = b.parameter("sigma_lin", (1, 1))
+        b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
+    b.cost("anchor", 0.5 * ca.sumsqr((P[0, :] - anchor) / sigma_a))
+    if s.bias_prior:
+        sigma_b = b.parameter("sigma_bias", (1, 1))
+        b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
+    solver = SolverSpec.model_validate_json(s.solver)
+    gn = None
+    if solver.hessian in ("auto", "gauss-newton"):
+        n_x, n_p = b.sizes
+        layout = MapLayout(
+            n_x=n_x,
+            n_p=n_p,
+            P=b.offset("P"),
+            W=b.offset("W"),
+            c=b.offset("c") if s.constant_field else None,
+            Y=b.offset("Y", "p"),
+            sigma_m=b.offset("sigma_m", "p"),
+        )
+        gn = (
+            "magnetometer",
+            GaussNewtonHessian("mag_gauss_newton", basis, s.kernel, s.n, s.dim, layout),
+        )
+    return b.build(solver, name="casmag_translational_rr", gauss_newton=gn)
+
+
+def initial_weights(
+    s: Structure,
+    P: np.ndarray,
+    Y: np.ndarray,
+    sigma_m: float,
+    sigma_f: float,
+    lengthscale: float,
+    c0: np.ndarray,
+) -> np.ndarray:
+    """Ridge fit of the map weights to the data at the initial positions (the posterior mean
+    of the weights given P): (A^T A / sigma_m^2 + diag(1 / S))^-1 A^T (y - c0) / sigma_m^2."""
+    basis = s.hilbert_basis()
+    S = basis.prior_variances(s.kernel, sigma_f, lengthscale)
+    M = basis.num_basis
+    zero = np.zeros(M * FIELD_DIM if s.kernel == "se" else M)
+    _, A, _ = field_and_jacobians(basis, s.kernel, P, zero)
+    R = Y - c0
+    if s.kernel == "se":
+        G = A[0].T @ A[0] / sigma_m**2 + np.diag(1.0 / S)
+        return np.linalg.solve(G, A[0].T @ R / sigma_m**2)
+    G = sum(a.T @ a for a in A) / sigma_m**2 + np.diag(1.0 / S)
+    rhs = sum(A[q].T @ R[:, q] for q in range(FIELD_DIM)) / sigma_m**2
+    return np.linalg.solve(G, rhs).reshape(-1, 1)
+
+
+def field_estimate(s: Structure, sol: Solution) -> np.ndarray:
+    """(N, 3) estimated field at the estimated positions."""
+    if s.form != "reduced_rank":
+        return sol.x["M"]
+    basis = s.hilbert_basis()
+    m, _, _ = field_and_jacobians(basis, s.kernel, sol.x["P"], sol.x["W"].ravel(order="F"))
+    return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
 
 
 @lru_cache(maxsize=8)
@@ -129,7 +242,18 @@ def parameters_and_guess(
     }
     if s.bias_prior:
         params["sigma_bias"] = m.odometry.bias_prior_sigma
-    x0: dict[str, Any] = {"P": data.dead_reckoning(), "M": data.Y}
+    P0 = data.dead_reckoning()
+    x0: dict[str, Any] = {"P": P0}
+    if s.form == "reduced_rank":
+        c0 = data.Y.mean(axis=0) if s.constant_field else np.zeros(FIELD_DIM)
+        x0["W"] = initial_weights(
+            s, P0, data.Y, hyper["sigma_m"], hyper["sigma_f"], hyper["lengthscale"], c0
+        )
+        if s.constant_field:
+            x0["c"] = c0.reshape(-1, 1)
+            params["sigma_lin"] = m.gp.sigma_lin
+    else:
+        x0["M"] = data.Y
     if s.estimate_bias:
         x0["bias"] = np.zeros((1, s.dim))
     for h, value in hyper.items():
@@ -140,9 +264,11 @@ def parameters_and_guess(
     return params, x0
 
 
-def solve_translational(problem: Problem, data: Dataset) -> tuple[Solution, NLP, dict[str, float]]:
-    """Solve the problem on a data set. Returns the solution, the NLP and the final
-    hyperparameters (estimated or fixed)."""
+def solve_translational(
+    problem: Problem, data: Dataset
+) -> tuple[Solution, NLP, dict[str, float], np.ndarray]:
+    """Solve the problem on a data set. Returns the solution, the NLP, the final
+    hyperparameters (estimated or fixed) and the (N, 3) field estimate at the samples."""
     s = Structure.of(problem, data)
     nlp = cached_nlp(s)
     params, x0 = parameters_and_guess(problem, data, s)
@@ -151,4 +277,4 @@ def solve_translational(problem: Problem, data: Dataset) -> tuple[Solution, NLP,
         h: float(np.exp(sol.x[f"log_{h}"][0, 0])) if h in s.estimate else float(params[h])
         for h in HYPERPARAMETERS
     }
-    return sol, nlp, hyper
+    return sol, nlp, hyper, field_estimate(s, sol)
