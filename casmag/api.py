@@ -12,7 +12,7 @@ from casmag.config import Problem, load_problem
 from casmag.metrics import rmse_and_max
 from casmag.result import Result
 from casmag.simulate import Dataset, simulate_problem
-from casmag.slam import HYPERPARAMETERS, solve_translational
+from casmag.slam import HYPERPARAMETERS, field_on_grid, solve_translational
 
 
 def solve(problem: Problem | str | Path | dict[str, Any], data: Dataset | None = None) -> Result:
@@ -25,7 +25,7 @@ def solve(problem: Problem | str | Path | dict[str, Any], data: Dataset | None =
     """
     problem = load_problem(problem)
     data = simulate_problem(problem) if data is None else data
-    sol, nlp, hyper, field = solve_translational(problem, data)
+    sol, nlp, hyper, field, structure = solve_translational(problem, data)
 
     P_odo = data.dead_reckoning()
     P_est = sol.x["P"]
@@ -35,6 +35,11 @@ def solve(problem: Problem | str | Path | dict[str, Any], data: Dataset | None =
         if sol.success:
             after = rmse_and_max(P_est, data.P_true)
     bias = sol.x.get("bias")
+    grid_x = grid_y = field_grid = None
+    if sol.success:
+        grid_x, grid_y = _grid(P_est, problem.assumed_lengthscale)
+        pts = np.column_stack([grid_x.ravel(), grid_y.ravel()])
+        field_grid = field_on_grid(structure, sol, hyper, pts, problem.spec.model.gp.jitter)
     from casmag import __version__
 
     info = {
@@ -84,5 +89,14 @@ def solve(problem: Problem | str | Path | dict[str, Any], data: Dataset | None =
             "P_true": data.P_true,
             "M_estimate": field,
             "Y": data.Y,
+            "map_x": grid_x,
+            "map_y": grid_y,
+            "map_field": None if field_grid is None else field_grid.reshape(*grid_x.shape, 3),
         },
     )
+
+
+def _grid(P: np.ndarray, lengthscale: float, points: int = 90) -> tuple[np.ndarray, np.ndarray]:
+    """A square grid over the positions' bounding box plus one lengthscale."""
+    lo, hi = P[:, :2].min(axis=0) - lengthscale, P[:, :2].max(axis=0) + lengthscale
+    return np.meshgrid(np.linspace(lo[0], hi[0], points), np.linspace(lo[1], hi[1], points))

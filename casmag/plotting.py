@@ -58,3 +58,21 @@ def cost_figure(result: Result, path: Path) -> None:
     )
     fig.tight_layout()
     _save(fig, path)
+
+
+def map_figure(result: Result, path: Path) -> None:
+    """Estimated field magnitude over the area (GP posterior mean or reduced-rank map) with
+    the estimated path."""
+    a = result.arrays
+    fig = Figure(figsize=(6.4, 5.4))
+    ax = fig.add_subplot()
+    magnitude = (a["map_field"] ** 2).sum(axis=-1) ** 0.5
+    mesh = ax.pcolormesh(a["map_x"], a["map_y"], magnitude, shading="auto", cmap="viridis")
+    fig.colorbar(mesh, ax=ax, label="|m| (field units)")
+    ax.plot(*a["P_estimate"][:, :2].T, "-", color="white", lw=1.0, label="GP-SLAM path")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(f"{result.info.get('name', '')}: estimated field magnitude", fontsize=9)
+    _save(fig, path)

@@ -70,6 +70,8 @@ class Result:
                 plotting.trajectory_figure(self, tmp / "trajectory.png")
                 if self.cost_per_iteration:
                     plotting.cost_figure(self, tmp / "cost.png")
+                if self.arrays.get("map_field") is not None:
+                    plotting.map_figure(self, tmp / "map.png")
             if out.exists():
                 shutil.rmtree(out)
             os.replace(tmp, out)

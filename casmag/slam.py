@@ -216,6 +216,29 @@ def field_estimate(s: Structure, sol: Solution) -> np.ndarray:
     return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
 
 
+def field_on_grid(
+    s: Structure, sol: Solution, hyper: dict[str, float], grid: np.ndarray, jitter: float
+) -> np.ndarray:
+    """(G, 3) estimated field at grid points (G, d): the reduced-rank map itself, or for the
+    exact GP the posterior mean given the estimated field at the estimated positions,
+    K(grid, P) K(P, P)^-1 m."""
+    if s.form == "reduced_rank":
+        basis = s.hilbert_basis()
+        zero_c = np.zeros(FIELD_DIM)
+        m, _, _ = field_and_jacobians(basis, s.kernel, grid, sol.x["W"].ravel(order="F"))
+        return m + (sol.x["c"].ravel() if s.constant_field else zero_c)
+    kernel = get_kernel(s.kernel)
+    P, M = sol.x["P"], sol.x["M"]
+    sf, ell = hyper["sigma_f"], hyper["lengthscale"]
+    K = kernel.matrix(P, P, sf, ell)
+    K = K + jitter * kernel.variance(sf, ell) * np.eye(K.shape[0])
+    Ks = kernel.matrix(grid, P, sf, ell)
+    if kernel.output_dim == 1:
+        return Ks @ np.linalg.solve(K, M)
+    mean = Ks @ np.linalg.solve(K, M.ravel(order="F"))
+    return mean.reshape(FIELD_DIM, -1).T
+
+
 @lru_cache(maxsize=8)
 def cached_nlp(structure: Structure) -> NLP:
     """The built NLP for a structure, built once per process."""
@@ -266,9 +289,10 @@ def parameters_and_guess(
 
 def solve_translational(
     problem: Problem, data: Dataset
-) -> tuple[Solution, NLP, dict[str, float], np.ndarray]:
+) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure]:
     """Solve the problem on a data set. Returns the solution, the NLP, the final
-    hyperparameters (estimated or fixed) and the (N, 3) field estimate at the samples."""
+    hyperparameters (estimated or fixed), the (N, 3) field estimate at the samples and the
+    problem's structure."""
     s = Structure.of(problem, data)
     nlp = cached_nlp(s)
     params, x0 = parameters_and_guess(problem, data, s)
@@ -277,4 +301,4 @@ def solve_translational(
         h: float(np.exp(sol.x[f"log_{h}"][0, 0])) if h in s.estimate else float(params[h])
         for h in HYPERPARAMETERS
     }
-    return sol, nlp, hyper, field_estimate(s, sol)
+    return sol, nlp, hyper, field_estimate(s, sol), s

@@ -43,7 +43,7 @@ def test_run_writes_result_csv_and_figures(tmp_path):
         rows = list(csv.DictReader(fh))
     assert len(rows) == 12
     assert {"x_odo", "y_odo", "x_est", "y_est", "x_true", "y_true"} <= set(rows[0])
-    for png in ("trajectory.png", "cost.png"):
+    for png in ("trajectory.png", "cost.png", "map.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temporary folders left
 

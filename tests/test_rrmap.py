@@ -68,6 +68,8 @@ def test_reduced_rank_matches_exact_on_base_case():
     assert exact.success and r.success, (exact.status, r.status)
     diff = np.abs(r.arrays["P_estimate"] - exact.arrays["P_estimate"]).max()
     assert diff < 1e-3
+    # The field at the samples agrees to 0.2 % of sigma_f (measured 5e-5 on seeds 1 and 2).
+    assert np.abs(r.arrays["M_estimate"] - exact.arrays["M_estimate"]).max() < 2e-4
     assert r.rmse_after <= 0.005
 
 
