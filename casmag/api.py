@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,17 +16,23 @@ from casmag.simulate import Dataset, simulate_problem
 from casmag.slam import HYPERPARAMETERS, field_on_grid, solve_translational
 
 
-def solve(problem: Problem | str | Path | dict[str, Any], data: Dataset | None = None) -> Result:
+def solve(
+    problem: Problem | str | Path | dict[str, Any],
+    data: Dataset | None = None,
+    progress: Callable[[int, float, float, float], None] | None = None,
+) -> Result:
     """Solve a GP-SLAM problem and return its result.
 
     problem: a Problem, a YAML path or a dictionary (validated with :func:`load_problem`).
     data: the data set to use; simulated from the problem (with its seed) when omitted.
+    progress: called after every IPOPT iteration with (iteration, cost, max-norm of the
+    step, seconds since the solve started).
     A failed solve is returned with ``success = False`` and IPOPT's ``status``; its error
     fields are None, so a failure is never mistaken for a result.
     """
     problem = load_problem(problem)
     data = simulate_problem(problem) if data is None else data
-    sol, nlp, hyper, field, structure = solve_translational(problem, data)
+    sol, nlp, hyper, field, structure = solve_translational(problem, data, progress)
 
     P_odo = data.dead_reckoning()
     P_est = sol.x["P"]
@@ -49,7 +56,7 @@ def solve(problem: Problem | str | Path | dict[str, Any], data: Dataset | None =
         "n_samples": data.n_samples,
         "kernel": problem.assumed_kernel,
         "gp_form": problem.spec.model.gp.form,
-        "num_basis": None if nlp.keep is None else nlp.keep[1].basis.num_basis,
+        "num_basis": None if structure.basis is None else structure.basis[2],
         "estimated": sorted(problem.spec.model.estimate),
         "estimate_bias": problem.spec.model.odometry.estimate_bias,
         "hessian": problem.spec.solver.hessian,

@@ -22,6 +22,11 @@ def _fail(message: str, code: int) -> None:
     sys.exit(code)
 
 
+def _print_progress(k: int, cost: float, step: float, seconds: float) -> None:
+    # Unconstrained NLPs: the constraint violation is always 0, so the step is shown instead.
+    click.echo(f"  iter {k:4d}  cost {cost:.6e}  step {step:.2e}  {seconds:7.2f} s", err=True)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="casmag")
 def main() -> None:
@@ -45,7 +50,7 @@ def main() -> None:
     help="Override a problem-file value (YAML syntax); repeatable.",
 )
 @click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
-@click.option("--quiet", "-q", is_flag=True, help="Print nothing on success.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress lines, nothing on success.")
 def run(
     problem: Path, out_dir: Path, overrides: tuple[str, ...], no_figures: bool, quiet: bool
 ) -> None:
@@ -55,7 +60,7 @@ def run(
 
     try:
         prob = load_problem(problem, overrides)
-        result = solve(prob)
+        result = solve(prob, progress=None if quiet else _print_progress)
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         _fail(str(exc), EXIT_BAD_INPUT)

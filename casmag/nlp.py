@@ -10,7 +10,7 @@ warm starts), which is what sweeps and windowing rely on.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,6 +18,49 @@ import casadi as ca
 import numpy as np
 
 from casmag.config import SolverSpec
+
+
+class _Progress(ca.Callback):
+    """IPOPT iteration callback: hands (iteration, cost, step norm, seconds) to ``sink``
+    when one is set for the current solve; otherwise does nothing."""
+
+    def __init__(self, n_x: int, n_p: int):
+        ca.Callback.__init__(self)
+        self._sizes = {"x": n_x, "f": 1, "g": 0, "lam_x": n_x, "lam_g": 0, "lam_p": n_p}
+        self.sink: Callable[[int, float, float, float], None] | None = None
+        self._reset()
+        self.construct("casmag_progress", {})
+
+    def _reset(self) -> None:
+        self._k, self._x, self._t0 = 0, None, time.perf_counter()
+
+    def start(self, sink: Callable[[int, float, float, float], None] | None) -> None:
+        self.sink = sink
+        self._reset()
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "ret"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self._sizes[ca.nlpsol_out(i)], 1)
+
+    def eval(self, args: list[Any]) -> list[Any]:
+        if self.sink is not None:
+            x = np.asarray(args[0]).ravel()
+            step = 0.0 if self._x is None else float(np.max(np.abs(x - self._x)))
+            self.sink(self._k, float(args[1]), step, time.perf_counter() - self._t0)
+            self._x = x
+        self._k += 1
+        return [0]
 
 
 @dataclass(frozen=True)
@@ -153,12 +196,15 @@ class NLPBuilder:
                 ["triu_hess_gamma_x_x"],
             )
         opts.update({f"ipopt.{k}": v for k, v in solver.ipopt.items()})
+        progress = _Progress(self._x.size, self._p.size)
+        opts["iteration_callback"] = progress
         ipopt = ca.nlpsol(name, "ipopt", nlp, opts)
         names = list(self.blocks)
         blocks = ca.Function(f"{name}_blocks", [x, p], [self.blocks[n] for n in names])
         return NLP(
             solver=ipopt,
             keep=gauss_newton,
+            progress=progress,
             block_names=names,
             blocks_fn=blocks,
             x_layout=self._x,
@@ -200,6 +246,7 @@ class NLP:
     ubx: np.ndarray
     build_seconds: float
     keep: Any = None  # objects the solver calls back into (kept alive)
+    progress: _Progress | None = None
 
     def evaluate_blocks(self, x: np.ndarray, p: np.ndarray) -> dict[str, float]:
         values = self.blocks_fn(x, p)
@@ -211,16 +258,27 @@ class NLP:
         params: Mapping[str, Any],
         x0: Mapping[str, Any],
         lam_x0: np.ndarray | None = None,
+        progress: Callable[[int, float, float, float], None] | None = None,
     ) -> Solution:
-        """Solve for the given parameters from the initial guess x0 (every variable named)."""
+        """Solve for the given parameters from the initial guess x0 (every variable named).
+
+        progress: called after every IPOPT iteration with (iteration, cost, max-norm of the
+        step, seconds since the solve started).
+        """
         p = self.p_layout.pack(params)
         x0v = self.x_layout.pack(x0)
         args: dict[str, Any] = {"x0": x0v, "p": p, "lbx": self.lbx, "ubx": self.ubx}
         if lam_x0 is not None:
             args["lam_x0"] = lam_x0
         before = self.evaluate_blocks(x0v, p)
+        if self.progress is not None:
+            self.progress.start(progress)
         t0 = time.perf_counter()
-        out = self.solver(**args)
+        try:
+            out = self.solver(**args)
+        finally:
+            if self.progress is not None:
+                self.progress.start(None)
         seconds = time.perf_counter() - t0
         stats = self.solver.stats()
         xopt = np.asarray(out["x"]).ravel()

@@ -288,7 +288,7 @@ def parameters_and_guess(
 
 
 def solve_translational(
-    problem: Problem, data: Dataset
+    problem: Problem, data: Dataset, progress: Any = None
 ) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure]:
     """Solve the problem on a data set. Returns the solution, the NLP, the final
     hyperparameters (estimated or fixed), the (N, 3) field estimate at the samples and the
@@ -296,7 +296,7 @@ def solve_translational(
     s = Structure.of(problem, data)
     nlp = cached_nlp(s)
     params, x0 = parameters_and_guess(problem, data, s)
-    sol = nlp.solve(params, x0)
+    sol = nlp.solve(params, x0, progress=progress)
     hyper = {
         h: float(np.exp(sol.x[f"log_{h}"][0, 0])) if h in s.estimate else float(params[h])
         for h in HYPERPARAMETERS

@@ -96,3 +96,13 @@ def test_console_script_version():
     exe = Path(sys.executable).with_name("casmag")
     out = subprocess.run([str(exe), "--version"], capture_output=True, text=True, check=True)
     assert "0.1.0" in out.stdout
+
+
+def test_progress_lines_unless_quiet(tmp_path):
+    res = _run(["run", BASE, "--out", tmp_path / "a", *TINY])
+    assert res.exit_code == 0
+    lines = [line for line in res.stderr.splitlines() if line.strip().startswith("iter")]
+    r = json.loads((tmp_path / "a" / "result.json").read_text())
+    assert len(lines) == r["iterations"] + 1
+    quiet = _run(["run", BASE, "--out", tmp_path / "b", *TINY, "--quiet"])
+    assert quiet.exit_code == 0 and quiet.output == ""

@@ -134,3 +134,11 @@ def test_base_case_full_size():
     assert 0.04 <= r.rmse_before <= 0.10
     assert r.rmse_after <= 0.005
     assert r.iterations <= 100
+
+
+def test_progress_callback_sees_every_iteration():
+    calls = []
+    prob = casmag.load_problem({"seed": 2, "simulation": {"trajectory": {"samples": 12}}})
+    r = casmag.solve(prob, progress=lambda k, cost, step, s: calls.append((k, cost)))
+    assert [k for k, _ in calls] == list(range(r.iterations + 1))
+    np.testing.assert_allclose([c for _, c in calls], r.cost_per_iteration)
