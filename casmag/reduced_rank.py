@@ -389,6 +389,32 @@ class HilbertBasis:
                 out[sl, a] = g
         return out
 
+    def second_derivatives(self, X: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+        """d^2 phi / dx_a dx_b at X (N, p), p <= d (padded with zeros), for a <= b: each
+        (N, M). Used for the Jacobian of a curl-free field with respect to position."""
+        Xp = _pad(np.asarray(X, dtype=float), self.input_dim)
+        S, C, F = [], [], []
+        for k in range(self.input_dim):
+            freq = self._axis_freq[k]
+            arg = (Xp[:, k] - self.domain.lower[k])[:, None] * freq[None, :]
+            col = self.indices[:, k] - 1
+            S.append(np.take(np.sin(arg), col, axis=1))
+            C.append(np.take(np.cos(arg), col, axis=1))
+            F.append(freq[col])
+        out = {}
+        for a in range(self.input_dim):
+            for b in range(a, self.input_dim):
+                g = np.full(S[0].shape, self._scale)
+                for k in range(self.input_dim):
+                    if k == a == b:
+                        g = g * (-(F[k] ** 2) * S[k])
+                    elif k in (a, b):
+                        g = g * (F[k] * C[k])
+                    else:
+                        g = g * S[k]
+                out[(a, b)] = g
+        return out
+
     # ------------------------------------------------------------------ casadi
     def _sx_factors(self, x: ca.SX, cos: bool) -> tuple[list[Any], list[Any]]:
         S, C = [], []

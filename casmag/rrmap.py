@@ -66,33 +66,6 @@ def make_basis(
     return HilbertBasis(domain, num_basis)
 
 
-def _second_derivatives(basis: HilbertBasis, X: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
-    """d^2 phi / dx_a dx_b at X (N, p) for a <= b, each (N, M); p = X's dimension."""
-    Xp = np.zeros((X.shape[0], basis.input_dim))
-    Xp[:, : X.shape[1]] = X
-    S, C, F = [], [], []
-    for k in range(basis.input_dim):
-        freq = basis._axis_freq[k]
-        arg = (Xp[:, k] - basis.domain.lower[k])[:, None] * freq[None, :]
-        col = basis.indices[:, k] - 1
-        S.append(np.take(np.sin(arg), col, axis=1))
-        C.append(np.take(np.cos(arg), col, axis=1))
-        F.append(freq[col])
-    out = {}
-    for a in range(basis.input_dim):
-        for b in range(a, basis.input_dim):
-            g = np.full(S[0].shape, basis._scale)
-            for k in range(basis.input_dim):
-                if k == a == b:
-                    g = g * (-(F[k] ** 2) * S[k])
-                elif k in (a, b):
-                    g = g * (F[k] * C[k])
-                else:
-                    g = g * S[k]
-            out[(a, b)] = g
-    return out
-
-
 def field_and_jacobians(
     basis: HilbertBasis, kernel: str, P: np.ndarray, weights: np.ndarray
 ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
@@ -111,7 +84,7 @@ def field_and_jacobians(
     w = weights.ravel()
     grads = basis.grad_phi(P)
     G = [grads[:, b, :] for b in range(FIELD_DIM)]
-    H = _second_derivatives(basis, P)
+    H = basis.second_derivatives(P)
     D = np.empty((N, FIELD_DIM, d))
     for b in range(FIELD_DIM):
         for a in range(d):

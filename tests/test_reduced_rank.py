@@ -334,3 +334,18 @@ def test_default_num_basis_is_ball_count_and_grows() -> None:
     assert default_num_basis(dom, ELL, max_basis=100) == 100
     with pytest.raises(ValueError):
         default_num_basis(dom, ELL, 3)
+
+
+def test_second_derivatives_match_finite_differences_of_the_gradient():
+    rng = np.random.default_rng(5)
+    domain = Domain(np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.2, 0.8]))
+    basis = HilbertBasis(domain, 40)
+    X = rng.uniform(-0.5, 0.5, (6, 3))
+    H = basis.second_derivatives(X)
+    h = 1e-6
+    for a in range(3):
+        step = np.zeros(3)
+        step[a] = h
+        dG = (basis.grad_phi(X + step) - basis.grad_phi(X - step)) / (2 * h)  # (N, d, M)
+        for b in range(3):
+            np.testing.assert_allclose(H[(min(a, b), max(a, b))], dG[:, b, :], atol=1e-6)
