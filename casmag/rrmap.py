@@ -41,8 +41,8 @@ class MapLayout:
     """Where the map's unknowns and the data sit in the NLP's x and p vectors.
 
     P: offset of positions (N, d), column-major; W: offset of weights (SE: (M, 3)
-    column-major, curl-free: (M,)); c: offset of the constant field or None; Y: offset of
-    the magnetometer data (N, 3) in p; sigma_m: offset of sigma_m in p.
+    column-major, curl-free: (M,)); c: offset of the constant field or None; sigma_m: offset
+    of sigma_m in p.
     """
 
     n_x: int
@@ -50,7 +50,6 @@ class MapLayout:
     P: int
     W: int
     c: int | None
-    Y: int
     sigma_m: int
 
 

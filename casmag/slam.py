@@ -85,8 +85,14 @@ class Structure:
         )
 
     def hilbert_basis(self) -> HilbertBasis:
-        center, half_width, num_basis = self.basis
-        return HilbertBasis(Domain(np.array(center), np.array(half_width)), num_basis)
+        return _hilbert_basis(self.basis)
+
+
+@lru_cache(maxsize=8)
+def _hilbert_basis(key: tuple) -> HilbertBasis:
+    """The reduced-rank basis of a structure, built once per (center, half_width, M)."""
+    center, half_width, num_basis = key
+    return HilbertBasis(Domain(np.array(center), np.array(half_width)), num_basis)
 
 
 def _hyper(builder: NLPBuilder, name: str, estimated: bool) -> ca.MX:
@@ -172,7 +178,6 @@ def _build_reduced_rank(
             P=b.offset("P"),
             W=b.offset("W"),
             c=b.offset("c") if s.constant_field else None,
-            Y=b.offset("Y", "p"),
             sigma_m=b.offset("sigma_m", "p"),
         )
         gn = (
