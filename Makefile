@@ -6,9 +6,10 @@ STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
 .PHONY: help install demo test test-all lint clean
+.PHONY: table1 table2 table3 table4 table5 tables
 
 help: ## List the targets
-	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
+	@grep -E '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,6 +26,46 @@ demo: $(STAMP) ## Solve the paper's base case; writes results/demo/ (table, figu
 
 test: $(STAMP) ## Run the test suite (under 10 minutes)
 	$(PY) -m pytest -q
+
+# The paper's Tables 1-5 (problems/paper/table*.yaml): SEEDS seeds per row, runs saved under
+# $(PAPER)/runs/ (resumable: finished runs are skipped), tables and figures in $(PAPER)/.
+SEEDS  ?= 20
+PAPER  ?= results/paper
+TABLES := table1 table2 table3 table4 table5
+SWEEP  := $(VENV)/bin/casmag sweep --seeds $(SEEDS)
+
+define paper_report
+$(VENV)/bin/casmag report $(PAPER)/runs/$(1) --out $(PAPER)/$(1).md
+endef
+
+table1: $(STAMP) ## Paper Table 1 (true sigma_f), 20 seeds per row -> results/paper/table1.md
+	$(SWEEP) problems/paper/$@.yaml --out $(PAPER)/runs/$@
+	$(call paper_report,$@)
+
+table2: $(STAMP) ## Paper Table 2 (wrong sigma_f), 20 seeds per row -> results/paper/table2.md
+	$(SWEEP) problems/paper/$@.yaml --out $(PAPER)/runs/$@
+	$(call paper_report,$@)
+
+table3: $(STAMP) ## Paper Table 3 (true l), 20 seeds per row -> results/paper/table3.md
+	$(SWEEP) problems/paper/$@.yaml --out $(PAPER)/runs/$@
+	$(call paper_report,$@)
+
+table4: $(STAMP) ## Paper Table 4 (wrong l), 20 seeds per row -> results/paper/table4.md
+	$(SWEEP) problems/paper/$@.yaml --out $(PAPER)/runs/$@
+	$(call paper_report,$@)
+
+table5: $(STAMP) ## Paper Table 5 (odometry noise), 20 seeds per row -> results/paper/table5.md
+	$(SWEEP) problems/paper/$@.yaml --out $(PAPER)/runs/$@
+	$(call paper_report,$@)
+
+tables: $(STAMP) ## Paper Tables 1-5 in one parallel sweep -> results/paper/tables.md, figures/
+	$(SWEEP) $(TABLES:%=problems/paper/%.yaml) --out $(PAPER)/runs
+	$(call paper_report,table1)
+	$(call paper_report,table2)
+	$(call paper_report,table3)
+	$(call paper_report,table4)
+	$(call paper_report,table5)
+	$(VENV)/bin/casmag report $(PAPER)/runs --out $(PAPER)/tables.md
 
 lint: $(STAMP) ## ruff check and format check
 	$(VENV)/bin/ruff check casmag tests

@@ -10,10 +10,12 @@ import casadi as ca
 import numpy as np
 
 from casmag.config import Problem, load_problem
+from casmag.errors import ProblemError
 from casmag.metrics import rmse_and_max
 from casmag.result import Result
 from casmag.simulate import Dataset, simulate_problem
 from casmag.slam import HYPERPARAMETERS, field_on_grid, solve_translational
+from casmag.windowing import Stage, continued, solve_growing
 
 
 def solve(
@@ -32,10 +34,19 @@ def solve(
     """
     problem = load_problem(problem)
     data = simulate_problem(problem) if data is None else data
-    sol, nlp, hyper, field, structure = solve_translational(problem, data, progress)
+    ws = problem.spec.solver.warm_start
+    stages: list[Stage] = []
+    if ws.strategy == "growing" and data.n_samples > ws.first_samples:
+        sol, nlp, hyper, field, structure, solved, stages = solve_growing(problem, data, progress)
+    else:
+        sol, nlp, hyper, field, structure = solve_translational(problem, data, progress)
+        solved = data
 
     P_odo = data.dead_reckoning()
     P_est = sol.x["P"]
+    if solved.n_samples < data.n_samples:  # a growing stage failed: not a result
+        P_est = continued(P_est, P_odo)
+        field = np.vstack([field, np.full((data.n_samples - field.shape[0], 3), np.nan)])
     before = after = (None, None)
     if data.P_true is not None:
         before = rmse_and_max(P_odo, data.P_true)
@@ -46,7 +57,7 @@ def solve(
     if sol.success:
         grid_x, grid_y = _grid(P_est, problem.assumed_lengthscale)
         pts = np.column_stack([grid_x.ravel(), grid_y.ravel()])
-        field_grid = field_on_grid(structure, sol, hyper, pts, problem.spec.model.gp.jitter)
+        field_grid = field_on_grid(structure, sol, hyper, pts, problem.spec.model.gp.jitter, P_est)
     from casmag import __version__
 
     info = {
@@ -60,6 +71,8 @@ def solve(
         "estimated": sorted(problem.spec.model.estimate),
         "estimate_bias": problem.spec.model.odometry.estimate_bias,
         "hessian": problem.spec.solver.hessian,
+        "knot_every": problem.spec.model.trajectory.knot_every,
+        "warm_start": [st.to_dict() for st in stages],
         "linear_solver": problem.spec.solver.linear_solver,
         "casmag": __version__,
         "casadi": ca.__version__,
@@ -107,3 +120,131 @@ def _grid(P: np.ndarray, lengthscale: float, points: int = 90) -> tuple[np.ndarr
     """A square grid over the positions' bounding box plus one lengthscale."""
     lo, hi = P[:, :2].min(axis=0) - lengthscale, P[:, :2].max(axis=0) + lengthscale
     return np.meshgrid(np.linspace(lo[0], hi[0], points), np.linspace(lo[1], hi[1], points))
+
+
+# --------------------------------------------------------------------------- recordings
+KNOT_SECONDS = 1.0
+"""Default knot spacing of ``casmag slam`` [s]: one drift-correction knot per second."""
+
+ODOMETRY_NOISE_FRACTION = 0.02
+"""Default odometry noise of ``casmag slam``: 2 % of the median step length, per axis."""
+
+HYPER_PATHS = {
+    "sigma_f": ("model", "gp", "sigma_f"),
+    "lengthscale": ("model", "gp", "lengthscale"),
+    "sigma_m": ("model", "magnetometer", "sigma_m"),
+}
+
+
+def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def recording_problem(
+    data: Dataset,
+    times: np.ndarray,
+    name: str,
+    problem: str | Path | None = None,
+    overrides: tuple[str, ...] | list[str] = (),
+) -> tuple[Problem, dict[str, Any]]:
+    """The problem ``casmag slam`` solves on a recording, and how its values were chosen.
+
+    Defaults: reduced-rank squared-exponential map with a constant field; sigma_f,
+    lengthscale and sigma_m estimated from the data by the windowed marginal likelihood at
+    the dead-reckoned positions (casmag.hyper; the windows are short, so their drift is
+    small); odometry noise ODOMETRY_NOISE_FRACTION of the median step; one knot per
+    KNOT_SECONDS; growing warm starts. A problem file (its ``model`` and ``solver``
+    sections) overrides any of these; hyperparameters it leaves null are still estimated.
+    """
+    from casmag.config import read_yaml
+    from casmag.hyper import estimate_hyperparameters
+
+    user: dict[str, Any] = {}
+    source = name
+    if problem is not None:
+        user = read_yaml(Path(problem))
+        source = str(problem)
+        if "simulation" in user:
+            raise ProblemError(source, "simulation", "has no meaning for a recording; remove it")
+    dt = float(np.median(np.diff(times)))
+    steps = np.linalg.norm(data.U, axis=1)
+    sigma_o = max(ODOMETRY_NOISE_FRACTION * float(np.median(steps)), 1e-6)
+    base: dict[str, Any] = {
+        "seed": 0,
+        "name": name,
+        "description": f"GP-SLAM on the recording {name}",
+        "model": {
+            "gp": {"form": "reduced_rank", "kernel": "se"},
+            "trajectory": {"knot_every": max(1, round(KNOT_SECONDS / dt))},
+            "odometry": {"sigma": sigma_o, "estimate_bias": True},
+            "anchor": {"sigma": 1.0e-3},
+        },
+        "solver": {"warm_start": {"strategy": "growing"}},
+    }
+    merged = _merge(base, user)
+    kernel = merged["model"]["gp"].get("kernel") or "se"
+    merged["model"]["gp"]["kernel"] = kernel
+    how: dict[str, Any] = {
+        "odometry_sigma": "problem file"
+        if user.get("model", {}).get("odometry", {}).get("sigma") is not None
+        else f"{ODOMETRY_NOISE_FRACTION:g} x median step"
+    }
+    missing = [h for h, path in HYPER_PATHS.items() if _get(merged, path) is None]
+    if missing:
+        est = estimate_hyperparameters(data.dead_reckoning(), data.Y, kernel)
+        how["marginal_likelihood"] = {
+            "sigma_f": est.sigma_f,
+            "lengthscale": est.lengthscale,
+            "sigma_m": est.sigma_m,
+            "windows": est.n_windows,
+            "samples": est.n_samples,
+            "converged": est.converged,
+        }
+        for h in missing:
+            _set(merged, HYPER_PATHS[h], getattr(est, h))
+    if (
+        merged["model"]["gp"].get("sigma_lin") is None
+        and merged["model"]["gp"]["form"] == "reduced_rank"
+    ):
+        merged["model"]["gp"]["sigma_lin"] = float(np.abs(data.Y.mean(axis=0)).max() + data.Y.std())
+    how["estimated"] = missing
+    return load_problem(merged, overrides, source=source), how
+
+
+def _get(d: dict[str, Any], path: tuple[str, ...]) -> Any:
+    for key in path:
+        if not isinstance(d, dict) or key not in d:
+            return None
+        d = d[key]
+    return d
+
+
+def _set(d: dict[str, Any], path: tuple[str, ...], value: Any) -> None:
+    for key in path[:-1]:
+        d = d.setdefault(key, {})
+    d[path[-1]] = value
+
+
+def slam(
+    recording: str | Path,
+    problem: str | Path | None = None,
+    overrides: tuple[str, ...] | list[str] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+) -> Result:
+    """GP-SLAM on a recording (CSV, see casmag.recording) with the defaults of
+    :func:`recording_problem`. Without truth in the recording the RMSE fields are None."""
+    from casmag.recording import read_recording
+
+    rec = read_recording(recording)
+    data = rec.to_dataset()
+    prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
+    result = solve(prob, data, progress)
+    result.info["recording"] = str(recording)
+    result.info["defaults"] = how
+    return result

@@ -8,10 +8,15 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from casmag.errors import CasmagError
+from casmag.sweep import sweep_command
+
+if TYPE_CHECKING:
+    from casmag.result import Result
 
 EXIT_SOLVER_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -69,9 +74,14 @@ def run(
             f"{problem}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
             EXIT_BAD_INPUT,
         )
+    _finish(result, problem, out_dir, quiet)
+
+
+def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
+    """Exit 1 with IPOPT's status when the solve failed, else print the summary."""
     if not result.success:
         _fail(
-            f"{problem}: IPOPT failed: status {result.status} after {result.iterations} iterations "
+            f"{source}: IPOPT failed: status {result.status} after {result.iterations} iterations "
             f"(recorded in {out_dir / 'result.json'})",
             EXIT_SOLVER_FAILED,
         )
@@ -90,29 +100,84 @@ def run(
 
 
 @main.command()
+@click.argument("recording", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder (written atomically).",
+)
+@click.option(
+    "--problem",
+    "problem",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Problem file whose model and solver sections override the defaults.",
+)
+@click.option(
+    "--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override a problem key."
+)
+@click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress lines, nothing on success.")
+def slam(
+    recording: Path,
+    out_dir: Path,
+    problem: Path | None,
+    overrides: tuple[str, ...],
+    no_figures: bool,
+    quiet: bool,
+) -> None:
+    """GP-SLAM on RECORDING (CSV: t, motion increments, mx,my,mz, optional truth).
+
+    Defaults: reduced-rank map, hyperparameters from the data's marginal likelihood,
+    odometry noise 2 % of the median step, one trajectory knot per second, growing warm
+    starts. Writes result.json, trajectory.csv, trajectory.png, cost.png and map.png.
+    """
+    from casmag.api import slam as run_slam
+
+    try:
+        result = run_slam(
+            recording, problem, overrides, progress=None if quiet else _print_progress
+        )
+        result.save(out_dir, figures=not no_figures)
+    except CasmagError as exc:
+        _fail(str(exc), EXIT_BAD_INPUT)
+    except (ValueError, RuntimeError) as exc:
+        _fail(
+            f"{recording}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
+            EXIT_BAD_INPUT,
+        )
+    _finish(result, recording, out_dir, quiet)
+
+
+@main.command()
 @click.argument("paths", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option(
     "--out",
     "out_file",
     type=click.Path(dir_okay=False, path_type=Path),
-    help="Markdown file to write (atomically); standard output if omitted.",
+    help=(
+        "Markdown file to write; the same stem .csv and .tex and figures/*.png are written "
+        "beside it (all atomically). Markdown on standard output if omitted."
+    ),
 )
-def report(paths: tuple[Path, ...], out_file: Path | None) -> None:
-    """Tabulate saved results (result.json files, or folders searched for them)."""
-    from casmag.report import find_results, load_result, markdown_table
+@click.option("--no-figures", is_flag=True, help="Tables only.")
+def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool) -> None:
+    """Tabulate saved results (result.json files, or folders searched for them and for
+    sweep.json) in the paper's layout; never re-solves."""
+    from casmag.report import collect, markdown, write_report
 
     try:
-        table = markdown_table([load_result(p) for p in find_results(list(paths))])
+        tables = collect(list(paths))
+        if out_file is None:
+            click.echo(markdown(tables), nl=False)
+            return
+        write_report(tables, out_file, figures=not no_figures)
     except CasmagError as exc:
         _fail(str(exc), EXIT_BAD_INPUT)
-    if out_file is None:
-        click.echo(table, nl=False)
-        return
-    out_file.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_file.with_name(f".{out_file.name}.tmp")
-    tmp.write_text(table)
-    tmp.replace(out_file)
 
+
+main.add_command(sweep_command)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -42,26 +42,41 @@ class _Strict(BaseModel):
 
 # --------------------------------------------------------------------------- simulation
 class TrajectorySpec(_Strict):
-    """Planar Archimedean spiral walked at constant speed (paper Section 3.1).
+    """The true path, walked at constant speed with one magnetometer sample per pose.
 
-    samples: number of poses N (one magnetometer sample each); step: path length between
-    samples [m]; start_radius: radius of the first sample [m]; pitch: radial distance between
-    successive turns [m].
+    kind ``spiral``: planar Archimedean spiral (paper Section 3.1); start_radius: radius of
+    the first sample [m]; pitch: radial distance between successive turns [m].
+    kind ``walk``: a smooth random walk that loops inside a rectangle of side lengths
+    ``area`` [m] centred on the origin, its heading a random walk of ``heading_noise``
+    rad per square-root metre, turned back from within ``wall_margin`` of the edges; long
+    walks revisit every part of the area many times (loop closures).
+    samples: number of poses N; step: path length between samples [m].
     """
 
-    kind: Literal["spiral"] = "spiral"
-    samples: Annotated[int, Field(ge=3, le=100_000)] = 81
+    kind: Literal["spiral", "walk"] = "spiral"
+    samples: Annotated[int, Field(ge=3, le=1_000_000)] = 81
     step: PositiveFloat = 0.05
     start_radius: NonNegativeFloat = 0.05
     pitch: PositiveFloat = 0.05
+    area: Annotated[list[PositiveFloat], Field(min_length=2, max_length=2)] = [6.0, 6.0]
+    heading_noise: NonNegativeFloat = 0.6
+    wall_margin: NonNegativeFloat = 0.5
 
 
 class FieldSpec(_Strict):
-    """The true field, drawn from the GP prior with these hyperparameters."""
+    """The true field, drawn from the GP prior with these hyperparameters.
+
+    method ``exact``: a joint Gaussian draw at the samples (O(N^3), for N up to a few
+    thousand); ``fourier``: random Fourier features (``features`` cosines with frequencies
+    drawn from the kernel's spectral density), a smooth field defined everywhere, for long
+    walks. ``fourier`` supports the se and curl_free kernels.
+    """
 
     kernel: KernelName = "se"
     sigma_f: PositiveFloat = 0.1
     lengthscale: PositiveFloat = 0.1
+    method: Literal["exact", "fourier"] = "exact"
+    features: Annotated[int, Field(ge=10, le=100_000)] = 2000
 
 
 class OdometrySimSpec(_Strict):
@@ -91,7 +106,7 @@ class GPSpec(_Strict):
     form: ``exact`` (dense kernel matrix over the samples, paper Eq. 6) or ``reduced_rank``
     (Hilbert-space basis on a box around the initial trajectory, casmag.rrmap).
     num_basis, margin: reduced-rank basis size and box margin [m] (null: frequencies up to
-    4 / l, margin 3 l). sigma_lin: prior standard deviation of a constant field added to the
+    5 / l, margin 3 l). sigma_lin: prior standard deviation of a constant field added to the
     reduced-rank map (null: no constant term).
     jitter: added to the kernel diagonal, relative to the prior variance k(0).
     logdet: include 0.5 log|K(P, theta)| in the objective; null (default) includes it only
@@ -135,11 +150,24 @@ class AnchorSpec(_Strict):
     sigma: PositiveFloat = 1.0e-4
 
 
+class TrajectoryModelSpec(_Strict):
+    """How the estimated trajectory is represented (casmag.knots).
+
+    knot_every: the positions are the dead reckoning plus a drift correction that is free at
+    a knot every this many samples and linear in between. 1 (default) gives every sample
+    its own position, the paper's formulation; larger values shrink the problem for long
+    recordings (``casmag slam`` uses about one knot per second).
+    """
+
+    knot_every: Annotated[int, Field(ge=1, le=100_000)] = 1
+
+
 class ModelSpec(_Strict):
     """What the MAP problem assumes. ``estimate`` lists hyperparameters to estimate
     (log-parameterised, initialised at the values given or defaulted above)."""
 
     gp: GPSpec = GPSpec()
+    trajectory: TrajectoryModelSpec = TrajectoryModelSpec()
     magnetometer: MagnetometerModelSpec = MagnetometerModelSpec()
     odometry: OdometryModelSpec = OdometryModelSpec()
     anchor: AnchorSpec = AnchorSpec()
@@ -151,6 +179,23 @@ class ModelSpec(_Strict):
         if len(set(value)) != len(value):
             raise ValueError("lists a hyperparameter twice")
         return value
+
+
+class WarmStartSpec(_Strict):
+    """How the initial trajectory of the full problem is found (casmag.windowing).
+
+    strategy ``none``: the dead reckoning. ``growing``: solve the first ``first_samples``
+    samples, then prefixes ``growth`` times longer up to all samples; each stage starts from
+    the previous stage's trajectory (extended by the odometry) with the odometry bias
+    estimated so far removed, and fits its map box around that start. A long recording's
+    dead reckoning can drift by several lengthscales, which a single batch does not recover
+    from, and it would inflate the map's box (and so the basis) with it.
+    """
+
+    strategy: Literal["none", "growing"] = "none"
+    first_samples: Annotated[int, Field(ge=10)] = 4000
+    growth: Annotated[float, Field(gt=1)] = 4.0
+    stage_max_iter: Annotated[int, Field(ge=1)] = 25
 
 
 class SolverSpec(_Strict):
@@ -167,6 +212,7 @@ class SolverSpec(_Strict):
     linear_solver: Literal["mumps", "ma27", "ma57", "ma86", "ma97"] = "mumps"
     print_level: Annotated[int, Field(ge=0, le=12)] = 0
     ipopt: dict[str, float | int | str] = {}
+    warm_start: WarmStartSpec = WarmStartSpec()
 
 
 class ProblemSpec(_Strict):
@@ -183,6 +229,11 @@ class ProblemSpec(_Strict):
         if self.solver.hessian == "gauss-newton" and gp.form != "reduced_rank":
             raise ValueError("solver.hessian: gauss-newton needs model.gp.form: reduced_rank")
         kernel = gp.kernel or self.simulation.field.kernel
+        field = self.simulation.field
+        if field.method == "fourier" and field.kernel == "div_free":
+            raise ValueError(
+                "simulation.field.method: fourier supports the se and curl_free kernels"
+            )
         if gp.form == "reduced_rank" and kernel == "div_free":
             raise ValueError("model.gp.kernel: div_free has no reduced-rank form (se, curl_free)")
         if "sigma_m" in self.model.estimate:

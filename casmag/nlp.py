@@ -131,6 +131,12 @@ class NLPBuilder:
         self._lbx: dict[str, float] = {}
         self._ubx: dict[str, float] = {}
         self.blocks: dict[str, ca.MX] = {}
+        self._callbacks: list[ca.Callback] = []
+
+    def retain(self, callback: ca.Callback) -> ca.Callback:
+        """Keep a Python callback alive as long as the built NLP (CasADi holds no reference)."""
+        self._callbacks.append(callback)
+        return callback
 
     def variable(
         self, name: str, shape: tuple[int, int], lb: float = -np.inf, ub: float = np.inf
@@ -148,6 +154,14 @@ class NLPBuilder:
         if expr.shape != (1, 1):
             raise ValueError(f"cost block {name!r} must be scalar, got {expr.shape}")
         self.blocks[name] = self.blocks[name] + expr if name in self.blocks else expr
+
+    def x_vector(self) -> ca.MX:
+        """The variables declared so far, stacked (a prefix of the final x)."""
+        return self._x.vector()
+
+    def p_vector(self) -> ca.MX:
+        """The parameters declared so far, stacked (a prefix of the final p)."""
+        return self._p.vector()
 
     def offset(self, name: str, of: str = "x") -> int:
         """Position of a variable (of="x") or parameter (of="p") in its stacked vector."""
@@ -204,6 +218,7 @@ class NLPBuilder:
         return NLP(
             solver=ipopt,
             keep=gauss_newton,
+            callbacks=list(self._callbacks),
             progress=progress,
             block_names=names,
             blocks_fn=blocks,
@@ -246,6 +261,7 @@ class NLP:
     ubx: np.ndarray
     build_seconds: float
     keep: Any = None  # objects the solver calls back into (kept alive)
+    callbacks: list[Any] = field(default_factory=list)  # numpy blocks (kept alive)
     progress: _Progress | None = None
 
     def evaluate_blocks(self, x: np.ndarray, p: np.ndarray) -> dict[str, float]:
@@ -273,6 +289,8 @@ class NLP:
         before = self.evaluate_blocks(x0v, p)
         if self.progress is not None:
             self.progress.start(progress)
+        if self.keep is not None and hasattr(self.keep[1], "reset"):
+            self.keep[1].reset()
         t0 = time.perf_counter()
         try:
             out = self.solver(**args)

@@ -415,6 +415,32 @@ class HilbertBasis:
                 out[(a, b)] = g
         return out
 
+    def derivatives(
+        self, X: np.ndarray, orders: list[tuple[int, ...]]
+    ) -> dict[tuple[int, ...], np.ndarray]:
+        """Partial derivatives of every basis function at X (N, p), p <= d (padded with zeros).
+
+        orders: multi-indices (o_1, ..., o_d) of derivative orders per axis; returns each as
+        (N, M). Uses d^o/dx^o sin(f x) = f^o sin(f x + o pi / 2), so any order costs one
+        product over the axes.
+        """
+        Xp = _pad(np.asarray(X, dtype=float), self.input_dim)
+        tables: dict[tuple[int, int], np.ndarray] = {}
+        out = {}
+        for order in orders:
+            if len(order) != self.input_dim or min(order) < 0:
+                raise ValueError(f"derivative orders {order} do not fit a {self.input_dim}-D basis")
+            g = np.full((Xp.shape[0], self.num_basis), self._scale)
+            for k, o in enumerate(order):
+                if (k, o) not in tables:
+                    freq = self._axis_freq[k]
+                    arg = (Xp[:, k] - self.domain.lower[k])[:, None] * freq[None, :]
+                    vals = freq[None, :] ** o * np.sin(arg + o * math.pi / 2)
+                    tables[k, o] = np.take(vals, self.indices[:, k] - 1, axis=1)
+                g = g * tables[k, o]
+            out[tuple(order)] = g
+        return out
+
     # ------------------------------------------------------------------ casadi
     def _sx_factors(self, x: ca.SX, cos: bool) -> tuple[list[Any], list[Any]]:
         S, C = [], []

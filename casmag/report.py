@@ -1,18 +1,42 @@
-"""Tables from saved results (never re-solves).
+"""Tables and figures from saved results (never re-solves).
 
-Reads ``result.json`` files and writes the paper's layout: a "Before SLAM" row and one
-"After SLAM, <name>" row per result, with RMSE [m] and Max Error [m] (no alignment).
+Reads what ``casmag run`` and ``casmag sweep`` saved: ``result.json`` and ``trajectory.csv``
+per run, ``map.png`` where figures were saved, and a sweep's ``sweep.json`` (its rows,
+labels and seeds, and which of the paper's tables it reproduces). Writes the paper's layout:
+a "Before SLAM" row and one "After SLAM, <setting>" row per setting, with RMSE [m] and
+Max Error [m] (no alignment) as mean, sample standard deviation and worst case over the
+seeds, the paper's own numbers beside them and the ratio ours/paper; as markdown, CSV and
+LaTeX, with figures in the paper's style.
+
+Runs whose IPOPT solve failed are counted per row (with their statuses) and left out of the
+statistics, never averaged in; runs that raised an error or were never run are counted too.
 """
 
 from __future__ import annotations
 
+import csv
+import io
 import json
+import math
+import os
+import shutil
+import statistics
+import tempfile
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from casmag.errors import DataError
+from casmag.paper import TABLES, PaperRow, PaperTable
+
+# Where the paper's GP-SLAM made the trajectory worse, ours must stay within this factor of
+# the odometry-only RMSE.
+NEVER_WORSE = 1.05
+_REQUIRED = ("status", "success", "rmse_before", "max_before", "rmse_after", "max_after", "info")
 
 
+# --------------------------------------------------------------------------- reading
 def find_results(paths: list[Path]) -> list[Path]:
     """result.json files: the paths themselves, or found recursively under folders."""
     found: list[Path] = []
@@ -29,44 +53,838 @@ def find_results(paths: list[Path]) -> list[Path]:
 
 
 def load_result(path: Path) -> dict[str, Any]:
+    """A result.json, checked for the fields the tables need."""
     try:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise DataError(f"{path}: cannot read result ({exc})") from None
-    for key in (
-        "status",
-        "success",
-        "rmse_before",
-        "max_before",
-        "rmse_after",
-        "max_after",
-        "info",
-    ):
+    if not isinstance(data, dict):
+        raise DataError(f"{path}: a result must be a JSON object")
+    for key in _REQUIRED:
         if key not in data:
             raise DataError(f"{path}: field {key!r} is missing")
+    for key in ("rmse_before", "max_before", "rmse_after", "max_after"):
+        value = data[key]
+        if value is not None and (not isinstance(value, (int, float)) or isinstance(value, bool)):
+            raise DataError(f"{path}: field {key!r}: expected a number or null, got {value!r}")
+    if data["success"] and data["rmse_after"] is None:
+        raise DataError(f"{path}: field 'rmse_after': null in a successful result")
     return data
 
 
-def _m(value: float | None) -> str:
-    return "n/a" if value is None else f"{value:.4f}"
+@dataclass
+class Run:
+    """One saved run: its folder, seed, result.json contents, or the error it raised."""
+
+    path: Path
+    seed: int | None
+    data: dict[str, Any] | None = None
+    error: str | None = None
+
+    @property
+    def solved(self) -> bool:
+        return self.data is not None and bool(self.data["success"])
+
+    @property
+    def failed(self) -> bool:
+        return self.data is not None and not self.data["success"]
 
 
-def markdown_table(results: list[dict[str, Any]]) -> str:
-    """The paper's layout. Before SLAM comes from the first result (all share the data when
-    they differ only in the model); failed solves show their IPOPT status instead of numbers."""
-    lines = [
-        "|  | RMSE [m] | Max Error [m] | IPOPT iterations | status |",
-        "|---|---|---|---|---|",
-    ]
-    first = results[0]
-    lines.append(f"| Before SLAM | {_m(first['rmse_before'])} | {_m(first['max_before'])} |  |  |")
-    for r in results:
-        name = r["info"].get("name", "")
-        if r["success"]:
-            row = f"| After SLAM, {name} | {_m(r['rmse_after'])} | {_m(r['max_after'])} |"
+@dataclass
+class Row:
+    """A setting: its runs over seeds, and the paper's row it reproduces (if any)."""
+
+    key: str
+    label: str
+    runs: list[Run]
+    expected: int
+    paper: PaperRow | None = None
+
+
+@dataclass
+class Table:
+    """A group of rows: one sweep (``name`` from its manifest) or loose results."""
+
+    name: str
+    title: str | None
+    rows: list[Row]
+    paper: PaperTable | None = None
+    source: str | None = None
+    seeds: list[int] = field(default_factory=list)
+
+
+def _read_manifest(path: Path) -> dict[str, Any]:
+    from casmag.sweep import read_manifest
+
+    return read_manifest(path)
+
+
+def _sweep_table(manifest_path: Path) -> Table:
+    m = _read_manifest(manifest_path)
+    folder = manifest_path.parent
+    paper = TABLES.get(m.get("paper") or "")
+    if m.get("paper") and paper is None:
+        raise DataError(f"{manifest_path}: paper: {m['paper']!r} is not a paper table")
+    rows = []
+    for r in m["rows"]:
+        runs = []
+        row_dir = folder / r["key"]
+        for run_dir in sorted(row_dir.glob("seed-*")) if row_dir.is_dir() else []:
+            try:
+                seed = int(run_dir.name.split("-", 1)[1])
+            except ValueError:
+                continue
+            if (run_dir / "result.json").is_file():
+                runs.append(Run(run_dir, seed, data=load_result(run_dir / "result.json")))
+            elif (run_dir / "error.json").is_file():
+                try:
+                    err = json.loads((run_dir / "error.json").read_text()).get("error", "error")
+                except (OSError, json.JSONDecodeError, AttributeError):
+                    err = "error (unreadable error.json)"
+                runs.append(Run(run_dir, seed, error=str(err)))
+        paper_row = None
+        if paper is not None and r.get("paper_key"):
+            try:
+                paper_row = paper.row(r["paper_key"])
+            except KeyError:
+                raise DataError(
+                    f"{manifest_path}: rows.{r['key']}.paper_key: not a row of the paper's "
+                    f"Table {paper.number}"
+                ) from None
+        expected = len(set(m["seeds"]) | {run.seed for run in runs})
+        rows.append(Row(r["key"], r["label"], runs, expected, paper_row))
+    return Table(
+        name=m["name"],
+        title=m.get("title"),
+        rows=rows,
+        paper=paper,
+        source=m.get("source"),
+        seeds=[int(s) for s in m["seeds"]],
+    )
+
+
+def collect(paths: list[Path]) -> list[Table]:
+    """Tables from paths: one per sweep folder (``sweep.json``) found, plus one table of the
+    remaining results, one row per problem name (its seeds aggregated)."""
+    tables: list[Table] = []
+    loose: list[Path] = []
+    for p in paths:
+        if p.is_file():
+            loose.append(p)
+        elif p.is_dir():
+            manifests = sorted(p.rglob("sweep.json"))
+            sweep_dirs = [m.parent for m in manifests]
+            tables.extend(_sweep_table(m) for m in manifests)
+            loose.extend(
+                f
+                for f in sorted(p.rglob("result.json"))
+                if not any(d in f.parents for d in sweep_dirs)
+            )
         else:
-            row = f"| After SLAM, {name} | failed | failed |"
-        lines.append(f"{row} {r['iterations']} | {r['status']} |")
-    lines.append("")
-    lines.append("Position errors against truth, no alignment.")
-    return "\n".join(lines) + "\n"
+            raise DataError(f"{p}: no such file or folder")
+    if loose:
+        by_name: dict[str, list[Run]] = {}
+        for f in loose:
+            data = load_result(f)
+            name = str(data["info"].get("name", f.parent.name))
+            seed = data["info"].get("seed")
+            by_name.setdefault(name, []).append(Run(f.parent, seed, data=data))
+        rows = [Row(n, n, runs, len(runs)) for n, runs in by_name.items()]
+        tables.append(Table("results", None, rows))
+    if not tables or not any(r.runs for t in tables for r in t.rows):
+        raise DataError(f"{', '.join(map(str, paths))}: no result.json found")
+    return tables
+
+
+# --------------------------------------------------------------------------- statistics
+@dataclass(frozen=True)
+class Stats:
+    """Mean, sample standard deviation (None for one value) and worst (largest) of n values."""
+
+    n: int
+    mean: float | None
+    std: float | None
+    worst: float | None
+
+    @classmethod
+    def of(cls, values: list[float]) -> Stats:
+        if not values:
+            return cls(0, None, None, None)
+        std = statistics.stdev(values) if len(values) > 1 else None
+        return cls(len(values), statistics.fmean(values), std, max(values))
+
+
+@dataclass(frozen=True)
+class RowSummary:
+    """Everything a table row shows, from a Row's runs."""
+
+    row: Row
+    rmse_before: Stats
+    max_before: Stats
+    rmse_after: Stats
+    max_after: Stats
+    solved: int
+    failed: Counter
+    errors: int
+    missing: int
+    iterations: float | None
+
+    @classmethod
+    def of(cls, row: Row) -> RowSummary:
+        with_data = [r.data for r in row.runs if r.data is not None]
+        solved = [r.data for r in row.runs if r.solved]
+
+        def values(runs: list[dict[str, Any]], key: str) -> list[float]:
+            return [float(d[key]) for d in runs if d.get(key) is not None]
+
+        iters = [float(d["iterations"]) for d in with_data if d.get("iterations") is not None]
+        return cls(
+            row=row,
+            rmse_before=Stats.of(values(with_data, "rmse_before")),
+            max_before=Stats.of(values(with_data, "max_before")),
+            rmse_after=Stats.of(values(solved, "rmse_after")),
+            max_after=Stats.of(values(solved, "max_after")),
+            solved=len(solved),
+            failed=Counter(str(r.data["status"]) for r in row.runs if r.failed),
+            errors=sum(r.error is not None for r in row.runs),
+            missing=max(row.expected - len(row.runs), 0),
+            iterations=statistics.fmean(iters) if iters else None,
+        )
+
+    @property
+    def complete(self) -> bool:
+        """Every expected seed solved successfully."""
+        return self.solved == self.row.expected and self.solved > 0
+
+    def runs_text(self) -> str:
+        text = f"{self.solved}/{self.row.expected}"
+        notes = [f"{s} x{n}" for s, n in sorted(self.failed.items())]
+        if self.errors:
+            notes.append(f"error x{self.errors}")
+        if self.missing:
+            notes.append(f"not run x{self.missing}")
+        return text + (f" ({', '.join(notes)})" if notes else "")
+
+    def target(self) -> tuple[float, str] | None:
+        """The value our mean RMSE after must not exceed, and how it was set: the paper's
+        RMSE where its GP-SLAM improved on odometry, else 1.05 x our mean RMSE before."""
+        paper = self.row.paper
+        if paper is None:
+            return None
+        if paper.improved:
+            return paper.rmse_after, "paper"
+        if self.rmse_before.mean is None:
+            return None
+        return NEVER_WORSE * self.rmse_before.mean, f"{NEVER_WORSE:g} x before"
+
+    def target_met(self) -> bool | None:
+        t = self.target()
+        if t is None:
+            return None
+        return self.complete and self.rmse_after.mean is not None and self.rmse_after.mean <= t[0]
+
+
+def _shared_before(summaries: list[RowSummary]) -> bool:
+    """Whether every row has the same odometry-only errors seed by seed (the settings
+    differ only in the field or the model), so one "Before SLAM" row serves them all."""
+    seen: dict[int | None, tuple[float, float]] = {}
+    for s in summaries:
+        for run in s.row.runs:
+            if run.data is None or run.data["rmse_before"] is None:
+                continue
+            value = (float(run.data["rmse_before"]), float(run.data["max_before"]))
+            prev = seen.setdefault(run.seed, value)
+            if any(
+                not math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+                for a, b in zip(prev, value, strict=True)
+            ):
+                return False
+    return (
+        bool(seen)
+        and len({s.row.paper.rmse_before if s.row.paper else None for s in summaries}) == 1
+    )
+
+
+# --------------------------------------------------------------------------- table lines
+@dataclass(frozen=True)
+class Line:
+    """One printed row: label, kind ("before" or "after"), our statistics, the paper's."""
+
+    label: str
+    kind: str
+    summary: RowSummary
+    rmse: Stats
+    max: Stats
+    paper_rmse: float | None
+    paper_max: float | None
+
+
+def table_lines(table: Table) -> list[Line]:
+    """The paper's layout: one shared "Before SLAM" line when every row has the same
+    odometry, else a "Before SLAM" line ahead of each "After SLAM" line (Table 5)."""
+    summaries = [RowSummary.of(r) for r in table.rows]
+    lines: list[Line] = []
+    shared = _shared_before(summaries)
+    if shared:
+        s = max(summaries, key=lambda x: x.rmse_before.n)
+        p = s.row.paper
+        lines.append(
+            Line(
+                "Before SLAM",
+                "before",
+                s,
+                s.rmse_before,
+                s.max_before,
+                p.rmse_before if p else None,
+                p.max_before if p else None,
+            )
+        )
+    for s in summaries:
+        p = s.row.paper
+        if not shared:
+            lines.append(
+                Line(
+                    f"Before SLAM, {s.row.label}",
+                    "before",
+                    s,
+                    s.rmse_before,
+                    s.max_before,
+                    p.rmse_before if p else None,
+                    p.max_before if p else None,
+                )
+            )
+        lines.append(
+            Line(
+                f"After SLAM, {s.row.label}",
+                "after",
+                s,
+                s.rmse_after,
+                s.max_after,
+                p.rmse_after if p else None,
+                p.max_after if p else None,
+            )
+        )
+    return lines
+
+
+def _m(value: float | None, digits: int = 4) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}"
+
+
+def _ratio(ours: float | None, paper: float | None) -> str:
+    if ours is None or paper is None or paper == 0:
+        return "n/a"
+    return f"{ours / paper:.2f}"
+
+
+def _target_text(line: Line) -> str:
+    if line.kind != "after":
+        return ""
+    t = line.summary.target()
+    if t is None:
+        return ""
+    met = line.summary.target_met()
+    verdict = "yes" if met else "no"
+    if not line.summary.complete:
+        verdict = "no (not every seed solved)"
+    return f"<= {t[0]:.4f} ({t[1]}): {verdict}"
+
+
+def _heading(table: Table) -> str:
+    if table.paper is not None:
+        return f"Table {table.paper.number}: {table.title or table.paper.caption}"
+    return table.title or table.name
+
+
+def markdown_table(table: Table, figures: dict[str, str] | None = None) -> str:
+    """One table in markdown; with ``figures`` ({kind: relative path}) links to them."""
+    has_paper = table.paper is not None
+    lines = table_lines(table)
+    out = [f"### {_heading(table)}", ""]
+    if has_paper:
+        out.append(f"Varies: {table.paper.varies}. Source: `{table.source}`.")
+        out.append("")
+    if has_paper:
+        head = [
+            "",
+            "RMSE [m] mean",
+            "std",
+            "worst",
+            "paper",
+            "ours/paper",
+            "Max Error [m] mean",
+            "std",
+            "worst",
+            "paper",
+            "ours/paper",
+            "solved",
+            "iterations",
+            "target: mean RMSE",
+        ]
+    else:
+        head = [
+            "",
+            "RMSE [m] mean",
+            "std",
+            "worst",
+            "Max Error [m] mean",
+            "std",
+            "worst",
+            "solved",
+            "iterations",
+        ]
+    out.append("| " + " | ".join(head) + " |")
+    out.append("|" + "---|" * len(head))
+    for ln in lines:
+        s = ln.summary
+        runs = s.runs_text() if ln.kind == "after" else ""
+        iters = _m(s.iterations, 1) if ln.kind == "after" else ""
+        cells = [ln.label, _m(ln.rmse.mean), _m(ln.rmse.std), _m(ln.rmse.worst)]
+        if has_paper:
+            cells += [_m(ln.paper_rmse, 3), _ratio(ln.rmse.mean, ln.paper_rmse)]
+        cells += [_m(ln.max.mean), _m(ln.max.std), _m(ln.max.worst)]
+        if has_paper:
+            cells += [_m(ln.paper_max, 3), _ratio(ln.max.mean, ln.paper_max)]
+        cells += [runs, iters]
+        if has_paper:
+            cells.append(_target_text(ln))
+        out.append("| " + " | ".join(cells) + " |")
+    out.append("")
+    seeds = _seed_text(table)
+    note = (
+        "Position errors in metres against the truth, no alignment; mean, sample standard "
+        f"deviation and worst case over the solved seeds{seeds}. Runs whose IPOPT solve failed "
+        "are counted under 'solved' with their status and left out of the statistics; "
+        "'iterations' is the mean IPOPT iteration count."
+    )
+    if has_paper:
+        note += (
+            " The paper reports one run per row. Target: our mean RMSE after at or below the "
+            "paper's where its GP-SLAM improved on odometry, else at most "
+            f"{NEVER_WORSE:g} x our mean RMSE before; a row with unsolved seeds does not meet it."
+        )
+    out.append(note)
+    if figures:
+        out.append("")
+        for kind, rel in figures.items():
+            out.append(f"![{table.name} {kind}]({rel})")
+    out.append("")
+    return "\n".join(out)
+
+
+def _seed_text(table: Table) -> str:
+    seeds = sorted(table.seeds)
+    if not seeds:
+        return ""
+    if seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 1:
+        return f" ({len(seeds)} seeds per row, {seeds[0]}-{seeds[-1]})"
+    return f" (seeds {', '.join(map(str, seeds))})"
+
+
+def markdown(tables: list[Table], figures: dict[str, dict[str, str]] | None = None) -> str:
+    figures = figures or {}
+    return "\n".join(markdown_table(t, figures.get(t.name)) for t in tables)
+
+
+CSV_COLUMNS = (
+    "table",
+    "row",
+    "line",
+    "label",
+    "runs_expected",
+    "runs_solved",
+    "runs_failed",
+    "runs_error",
+    "runs_missing",
+    "failed_statuses",
+    "rmse_mean",
+    "rmse_std",
+    "rmse_worst",
+    "max_mean",
+    "max_std",
+    "max_worst",
+    "paper_rmse",
+    "paper_max",
+    "rmse_ratio",
+    "max_ratio",
+    "iterations_mean",
+    "target_rmse",
+    "target_met",
+)
+
+
+def _num(value: float | None) -> str:
+    return "" if value is None else f"{value:.6g}"
+
+
+def csv_text(tables: list[Table]) -> str:
+    """Every printed line of every table, machine-readable (metres, full precision)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    for t in tables:
+        for ln in table_lines(t):
+            s = ln.summary
+            target = s.target() if ln.kind == "after" else None
+            met = s.target_met() if ln.kind == "after" else None
+            w.writerow(
+                [
+                    t.name,
+                    "" if ln.label == "Before SLAM" else s.row.key,
+                    ln.kind,
+                    ln.label,
+                    s.row.expected,
+                    s.solved,
+                    sum(s.failed.values()),
+                    s.errors,
+                    s.missing,
+                    ";".join(f"{k}:{n}" for k, n in sorted(s.failed.items())),
+                    _num(ln.rmse.mean),
+                    _num(ln.rmse.std),
+                    _num(ln.rmse.worst),
+                    _num(ln.max.mean),
+                    _num(ln.max.std),
+                    _num(ln.max.worst),
+                    _num(ln.paper_rmse),
+                    _num(ln.paper_max),
+                    _num(
+                        None
+                        if not ln.paper_rmse or ln.rmse.mean is None
+                        else ln.rmse.mean / ln.paper_rmse
+                    ),
+                    _num(
+                        None
+                        if not ln.paper_max or ln.max.mean is None
+                        else ln.max.mean / ln.paper_max
+                    ),
+                    _num(s.iterations) if ln.kind == "after" else "",
+                    _num(target[0]) if target else "",
+                    "" if met is None else str(met).lower(),
+                ]
+            )
+    return buf.getvalue()
+
+
+_LATEX_ESCAPES = {
+    "\\": r"\textbackslash{}",
+    "&": r"\&",
+    "%": r"\%",
+    "#": r"\#",
+    "_": r"\_",
+    "$": r"\$",
+    "{": r"\{",
+    "}": r"\}",
+    "~": r"\~{}",
+    "^": r"\^{}",
+}
+
+
+def _latex_label(text: str) -> str:
+    out = "".join(_LATEX_ESCAPES.get(c, c) for c in text)
+    out = out.replace(r"sigma\_f", r"$\sigma_f$").replace("<=", r"$\le$")
+    if out.startswith(("l = ", "l=")):
+        out = "$l$" + out[1:]
+    return out.replace(", l = ", ", $l$ = ")
+
+
+def latex_table(table: Table) -> str:
+    """One table as a LaTeX ``table`` (plain tabular, no extra packages): mean +- std and
+    worst per error, the paper's value and the ratio ours/paper."""
+    has_paper = table.paper is not None
+    cols = "l" + ("rrrr" if has_paper else "rr") * 2 + "r"
+    head = [r"RMSE [m]", "worst"] + (["paper", "ratio"] if has_paper else [])
+    head += ["Max Error [m]", "worst"] + (["paper", "ratio"] if has_paper else []) + ["solved"]
+    out = [
+        r"\begin{table}[htbp]",
+        r"\centering",
+        rf"\begin{{tabular}}{{{cols}}}",
+        r"\hline",
+        " & " + " & ".join(head) + r" \\",
+        r"\hline",
+    ]
+
+    def pm(st: Stats) -> str:
+        if st.mean is None:
+            return "n/a"
+        return f"{st.mean:.4f}" + ("" if st.std is None else rf" $\pm$ {st.std:.4f}")
+
+    for ln in table_lines(table):
+        cells = [_latex_label(ln.label), pm(ln.rmse), _m(ln.rmse.worst)]
+        if has_paper:
+            cells += [_m(ln.paper_rmse, 3), _ratio(ln.rmse.mean, ln.paper_rmse)]
+        cells += [pm(ln.max), _m(ln.max.worst)]
+        if has_paper:
+            cells += [_m(ln.paper_max, 3), _ratio(ln.max.mean, ln.paper_max)]
+        cells.append(_latex_label(ln.summary.runs_text()) if ln.kind == "after" else "")
+        out.append(" & ".join(cells) + r" \\")
+    caption = _latex_label(_heading(table)) + (
+        ". Mean $\\pm$ sample standard deviation and worst case over the solved seeds"
+        + _latex_label(_seed_text(table))
+        + "; position errors against truth, no alignment."
+    )
+    out += [r"\hline", r"\end{tabular}", rf"\caption{{{caption}}}", rf"\label{{tab:{table.name}}}"]
+    out += [r"\end{table}", ""]
+    return "\n".join(out)
+
+
+def latex(tables: list[Table]) -> str:
+    return "\n".join(latex_table(t) for t in tables)
+
+
+# --------------------------------------------------------------------------- figures
+def representative(row: Row) -> Run | None:
+    """The run a figure shows for a row: the solved seed with the median RMSE after (the
+    lower of the two middle ones), else the first run with a trajectory."""
+    solved = sorted((r for r in row.runs if r.solved), key=lambda r: r.data["rmse_after"])
+    if solved:
+        return solved[(len(solved) - 1) // 2]
+    for r in sorted(row.runs, key=lambda r: (r.seed is None, r.seed)):
+        if (r.path / "trajectory.csv").is_file():
+            return r
+    return None
+
+
+def read_trajectory(path: Path) -> dict[str, Any]:
+    """trajectory.csv as columns (numpy arrays) by name."""
+    import numpy as np
+
+    try:
+        with path.open() as fh:
+            header = fh.readline().strip().split(",")
+        values = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: cannot read trajectory ({exc})") from None
+    if values.shape[1] != len(header):
+        raise DataError(f"{path}: {values.shape[1]} values per row for {len(header)} columns")
+    cols = dict(zip(header, values.T, strict=True))
+    for name in ("x_odo", "y_odo", "x_est", "y_est"):
+        if name not in cols:
+            raise DataError(f"{path}: column {name!r} is missing")
+    return cols
+
+
+def _short(table: Table) -> str:
+    return f"Table {table.paper.number}" if table.paper is not None else table.name
+
+
+def _tex(text: str) -> str:
+    """A label for matplotlib: sigma_f as mathtext."""
+    return text.replace("sigma_f", r"$\sigma_f$")
+
+
+def _grid_shape(n: int) -> tuple[int, int]:
+    ncols = 1 if n == 1 else 2 if n <= 4 else 3
+    return math.ceil(n / ncols), ncols
+
+
+def _panel_title(row: Row, run: Run) -> str:
+    title = f"{_tex(row.label)} (seed {run.seed})"
+    if run.solved:
+        d = run.data
+        return title + f"\nRMSE {d['rmse_before']:.3f} -> {d['rmse_after']:.4f} m"
+    if run.data is not None:
+        return title + f"\nfailed: {run.data['status']}"
+    return title + "\nerror"
+
+
+def trajectories_figure(table: Table, path: Path) -> bool:
+    """Per row, odometry only (cyan dashed), GP-SLAM (blue solid) and truth (red triangles)
+    of the representative seed, as the paper's Figures 1-4. False if nothing to draw."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    panels = [(row, representative(row)) for row in table.rows]
+    panels = [(row, run) for row, run in panels if run is not None]
+    panels = [(row, run) for row, run in panels if (run.path / "trajectory.csv").is_file()]
+    if not panels:
+        return False
+    nrows, ncols = _grid_shape(len(panels))
+    fig = Figure(figsize=(4.2 * ncols, 4.0 * nrows))
+    for i, (row, run) in enumerate(panels):
+        ax = fig.add_subplot(nrows, ncols, i + 1)
+        c = read_trajectory(run.path / "trajectory.csv")
+        ax.plot(c["x_odo"], c["y_odo"], "--", color="c", lw=1.2, label="odometry only")
+        ax.plot(c["x_est"], c["y_est"], "-", color="b", lw=1.2, label="GP-SLAM")
+        if "x_true" in c:
+            ax.plot(c["x_true"], c["y_true"], "^", color="r", ms=3, mfc="none", label="truth")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(_panel_title(row, run), fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("x [m]", fontsize=8)
+        ax.set_ylabel("y [m]", fontsize=8)
+        if i == 0:
+            ax.legend(fontsize=7, loc="best")
+    fig.suptitle(_tex(_heading(table)), fontsize=9)
+    fig.tight_layout()
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=110)
+    return True
+
+
+def cost_figure(table: Table, path: Path) -> bool:
+    """Cost minus final cost per IPOPT iteration of each row's representative seed (the
+    paper's Figure 7). False if no run recorded its cost."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.4, 4.0))
+    ax = fig.add_subplot()
+    drawn = False
+    for row in table.rows:
+        run = representative(row)
+        cost = (run.data or {}).get("cost_per_iteration") if run else None
+        if not cost:
+            continue
+        cost = [float(c) for c in cost if c is not None]
+        final = min(cost)
+        ax.semilogy([c - final + 1e-12 for c in cost], "o-", ms=2.5, lw=1, label=_tex(row.label))
+        drawn = True
+    if not drawn:
+        return False
+    ax.set_xlabel("IPOPT iteration")
+    ax.set_ylabel("cost - final cost")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    ax.set_title(f"{_short(table)}: cost per IPOPT iteration (median seed of each row)", fontsize=9)
+    fig.tight_layout()
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=110)
+    return True
+
+
+def rmse_figure(table: Table, path: Path) -> bool:
+    """RMSE after of every solved seed per row (dots) and their mean (blue bar), the paper's
+    value (red cross) and our mean RMSE before (grey bar): the spread behind the table."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    summaries = [RowSummary.of(r) for r in table.rows]
+    if not any(s.solved for s in summaries):
+        return False
+    fig = Figure(figsize=(max(4.0, 1.3 * len(summaries) + 1.5), 4.0))
+    ax = fig.add_subplot()
+    for i, s in enumerate(summaries):
+        ys = [float(r.data["rmse_after"]) for r in s.row.runs if r.solved]
+        xs = [i + 0.15 * ((k % 5) - 2) / 2 for k in range(len(ys))]
+        ax.plot(xs, ys, "o", color="b", ms=3, alpha=0.7, label="ours, per seed" if i == 0 else None)
+        if s.rmse_after.mean is not None:
+            ax.hlines(
+                s.rmse_after.mean,
+                i - 0.25,
+                i + 0.25,
+                color="b",
+                lw=1.5,
+                label="ours, after (mean)" if i == 0 else None,
+            )
+        if s.rmse_before.mean is not None:
+            ax.hlines(
+                s.rmse_before.mean,
+                i - 0.3,
+                i + 0.3,
+                color="0.5",
+                lw=2,
+                label="ours, before (mean)" if i == 0 else None,
+            )
+        if s.row.paper is not None:
+            ax.plot(
+                [i],
+                [s.row.paper.rmse_after],
+                "x",
+                color="r",
+                ms=8,
+                mew=2,
+                label="paper, after" if i == 0 else None,
+            )
+    ax.set_yscale("log")
+    ax.set_xticks(
+        range(len(summaries)), [_tex(s.row.label) for s in summaries], fontsize=7, rotation=15
+    )
+    ax.set_ylabel("RMSE after [m]")
+    ax.grid(alpha=0.3, which="both", axis="y")
+    ax.legend(fontsize=7)
+    ax.set_title(f"{_short(table)}: RMSE after SLAM per seed", fontsize=9)
+    fig.tight_layout()
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=110)
+    return True
+
+
+def map_figure(table: Table, path: Path) -> bool:
+    """The saved field-map images (``map.png``, estimated field magnitude with the estimated
+    path) of the first seed of each row that has one, side by side."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.image import imread
+
+    panels = []
+    for row in table.rows:
+        runs = sorted(
+            (r for r in row.runs if (r.path / "map.png").is_file()),
+            key=lambda r: (r.seed is None, r.seed),
+        )
+        if runs:
+            panels.append((row, runs[0]))
+    if not panels:
+        return False
+    nrows, ncols = _grid_shape(len(panels))
+    fig = Figure(figsize=(4.4 * ncols, 3.9 * nrows))
+    for i, (row, run) in enumerate(panels):
+        ax = fig.add_subplot(nrows, ncols, i + 1)
+        try:
+            ax.imshow(imread(run.path / "map.png"))
+        except (OSError, ValueError, SyntaxError) as exc:
+            raise DataError(f"{run.path / 'map.png'}: cannot read image ({exc})") from None
+        ax.set_axis_off()
+        ax.set_title(f"{_tex(row.label)} (seed {run.seed})", fontsize=8)
+    fig.suptitle(f"{_short(table)}: estimated field magnitude (first seed of each row)", fontsize=9)
+    fig.tight_layout()
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=110)
+    return True
+
+
+FIGURES = {
+    "trajectories": trajectories_figure,
+    "rmse": rmse_figure,
+    "cost": cost_figure,
+    "map": map_figure,
+}
+
+
+# --------------------------------------------------------------------------- writing
+def write_report(tables: list[Table], out_file: Path, figures: bool = True) -> list[Path]:
+    """Write ``out_file`` (markdown) and, beside it, the same stem as .csv and .tex, and the
+    figures in ``figures/`` next to it (``<table>_<kind>.png``). Everything is written to
+    temporary files first and renamed into place only once all of it is complete."""
+    if out_file.suffix != ".md":
+        raise DataError(f"{out_file}: --out must end in .md (.csv and .tex are written beside it)")
+    out_dir = out_file.parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_file.stem}.", dir=out_dir))
+    try:
+        fig_dir = out_dir / "figures"
+        links: dict[str, dict[str, str]] = {}
+        staged: list[tuple[Path, Path]] = []
+        if figures:
+            for t in tables:
+                for kind, draw in FIGURES.items():
+                    name = f"{t.name}_{kind}.png"
+                    if draw(t, tmp / name):
+                        staged.append((tmp / name, fig_dir / name))
+                        rel = os.path.relpath(fig_dir / name, out_dir)
+                        links.setdefault(t.name, {})[kind] = rel
+        texts = {
+            ".md": markdown(tables, links),
+            ".csv": csv_text(tables),
+            ".tex": latex(tables),
+        }
+        for suffix, text in texts.items():
+            (tmp / f"table{suffix}").write_text(text)
+            staged.append((tmp / f"table{suffix}", out_file.with_suffix(suffix)))
+        if staged and figures:
+            fig_dir.mkdir(exist_ok=True)
+        for src, dst in staged:
+            os.replace(src, dst)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return [dst for _, dst in staged]

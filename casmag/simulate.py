@@ -5,13 +5,13 @@ pose; a 3-component field drawn from the GP prior at the true positions; odometr
 with a constant bias and white noise; a magnetometer with white noise. The assumptions the
 paper's text left open are documented in problems/README.md.
 
-Random streams: one seed gives three independent streams (field, odometry, magnetometer), so
+Random streams: one seed gives independent streams (field, odometry, magnetometer, path), so
 changing, say, the odometry noise level leaves the drawn field unchanged.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -48,6 +48,28 @@ class Dataset:
         """(N, d) positions from integrating the odometry from the anchor (bias not removed)."""
         return np.vstack([self.anchor, self.anchor + np.cumsum(self.U, axis=0)])
 
+    def prefix(self, n: int) -> Dataset:
+        """The first n samples (and their n - 1 odometry steps)."""
+        if not 2 <= n <= self.n_samples:
+            raise ValueError(f"prefix length {n} outside [2, {self.n_samples}]")
+        return replace(
+            self,
+            U=self.U[: n - 1],
+            Y=self.Y[:n],
+            P_true=None if self.P_true is None else self.P_true[:n],
+            M_true=None if self.M_true is None else self.M_true[:n],
+        )
+
+    def debiased(self, bias: np.ndarray) -> Dataset:
+        """The same data with a per-step bias subtracted from every odometry increment (the
+        true bias, when known, is reduced by the same amount)."""
+        bias = np.asarray(bias, dtype=float).ravel()
+        return replace(
+            self,
+            U=self.U - bias,
+            bias_true=None if self.bias_true is None else self.bias_true - bias,
+        )
+
 
 def spiral(spec: TrajectorySpec) -> np.ndarray:
     """(N, 2) positions [m] on r = r0 + pitch * theta / (2 pi), spaced ``step`` along the arc."""
@@ -69,6 +91,71 @@ def spiral(spec: TrajectorySpec) -> np.ndarray:
     return np.column_stack([np.interp(target, s, xy[:, 0]), np.interp(target, s, xy[:, 1])])
 
 
+def walk(spec: TrajectorySpec, rng: np.random.Generator) -> np.ndarray:
+    """(N, 2) positions [m] of a smooth random walk looping inside ``spec.area``.
+
+    The heading is a random walk (``heading_noise`` rad per square-root metre); within
+    ``wall_margin`` of an edge it turns towards the centre, at most 0.5 rad per step.
+    """
+    half = np.asarray(spec.area, dtype=float) / 2.0
+    inner = np.maximum(half - spec.wall_margin, 1e-9)
+    n, step = spec.samples, spec.step
+    kicks = spec.heading_noise * np.sqrt(step) * rng.standard_normal(n)
+    P = np.empty((n, 2))
+    p = np.zeros(2)
+    psi = rng.uniform(-np.pi, np.pi)
+    for i in range(n):
+        P[i] = p
+        psi += kicks[i]
+        if np.any(np.abs(p) > inner):
+            home = np.arctan2(-p[1], -p[0])
+            turn = np.angle(np.exp(1j * (home - psi)))
+            psi += np.clip(turn, -0.5, 0.5)
+        p = p + step * np.array([np.cos(psi), np.sin(psi)])
+    return P
+
+
+def fourier_field(
+    X: np.ndarray,
+    kernel_name: str,
+    sigma_f: float,
+    lengthscale: float,
+    features: int,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """(N, 3) field from random Fourier features, a draw that approximates the GP prior.
+
+    se: each component sigma_f sqrt(2 / F) sum_k a_k cos(omega_k . x + b_k) with omega_k ~
+    N(0, I / l^2), a_k ~ N(0, 1), b_k ~ U(0, 2 pi). curl_free: l times the gradient of such a
+    scalar potential drawn over three dimensions (planar X lie at z = 0), whose covariance is
+    the curl-free kernel sigma_f^2 (I - r r^T / l^2) exp(-|r|^2 / (2 l^2)).
+    """
+    N, d = X.shape
+    X3 = np.column_stack([X, np.zeros((N, 3 - d))]) if d < 3 else X
+    scale = sigma_f * np.sqrt(2.0 / features)
+    out = np.zeros((N, FIELD_DIM))
+    chunk = 8192
+    if kernel_name == "se":
+        omega = rng.standard_normal((FIELD_DIM, features, 3)) / lengthscale
+        b = rng.uniform(0, 2 * np.pi, (FIELD_DIM, features))
+        a = rng.standard_normal((FIELD_DIM, features))
+        for s in range(0, N, chunk):
+            xs = X3[s : s + chunk]
+            for c in range(FIELD_DIM):
+                out[s : s + chunk, c] = scale * np.cos(xs @ omega[c].T + b[c]) @ a[c]
+        return out
+    if kernel_name == "curl_free":
+        omega = rng.standard_normal((features, 3)) / lengthscale
+        b = rng.uniform(0, 2 * np.pi, features)
+        a = rng.standard_normal(features)
+        for s in range(0, N, chunk):
+            xs = X3[s : s + chunk]
+            # grad of cos(omega . x + b) is -omega sin(omega . x + b)
+            out[s : s + chunk] = -lengthscale * scale * (np.sin(xs @ omega.T + b) * a) @ omega
+        return out
+    raise ValueError(f"fourier fields support se and curl_free, not {kernel_name!r}")
+
+
 def draw_field(
     X: np.ndarray, kernel_name: str, sigma_f: float, lengthscale: float, rng: np.random.Generator
 ) -> np.ndarray:
@@ -87,8 +174,17 @@ def simulate(spec: SimulationSpec, seed: int) -> Dataset:
     rng_field, rng_odo, rng_mag = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)
     )
-    P = spiral(spec.trajectory)
-    M = draw_field(P, spec.field.kernel, spec.field.sigma_f, spec.field.lengthscale, rng_field)
+    rng_path = np.random.default_rng(np.random.SeedSequence(seed).spawn(4)[3])
+    P = (
+        spiral(spec.trajectory)
+        if spec.trajectory.kind == "spiral"
+        else walk(spec.trajectory, rng_path)
+    )
+    f = spec.field
+    if f.method == "fourier":
+        M = fourier_field(P, f.kernel, f.sigma_f, f.lengthscale, f.features, rng_field)
+    else:
+        M = draw_field(P, f.kernel, f.sigma_f, f.lengthscale, rng_field)
     bias = np.asarray(spec.odometry.bias, dtype=float)
     dP = np.diff(P, axis=0)
     U = dP + bias + spec.odometry.noise * rng_odo.standard_normal(dP.shape)

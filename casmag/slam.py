@@ -1,12 +1,14 @@
 """The translational GP-SLAM MAP problem (paper Section 3.1, Eq. 3 and 5-8) as one NLP.
 
-Unknowns: positions P (N, d), the field M (N, 3) at the samples, optionally a per-step
-odometry bias b (1, d) and the log-hyperparameters log sigma_f, log l, log sigma_m.
-Named cost blocks (negative log-densities):
+Unknowns: the positions P (N, d) as dead reckoning Q plus a drift correction C (K, d) at
+knots, P = Q + A C (casmag.knots; one knot per sample by default, which is the paper's
+formulation), the field M (N, 3) at the samples (exact GP) or basis weights W (reduced
+rank), optionally a per-step odometry bias b (1, d) and the log-hyperparameters
+log sigma_f, log l. Named cost blocks (negative log-densities):
 
-- ``odometry``: 0.5 sum_k |(p_{k+1} - p_k - (u_k - b)) / sigma_o|^2
+- ``odometry``: 0.5 sum_k |(p_{k+1} - p_k - (u_k - b)) / sigma_o|^2, which on the knots is
+  0.5 sum_j |c_{j+1} - c_j + k_j b|^2 / (k_j sigma_o^2)
 - ``magnetometer``: 0.5 sum_k |(y_k - m_k) / sigma_m|^2 (Eq. 3 with R = I)
-  [+ 3 N log sigma_m when sigma_m is estimated]
 - ``gp_prior``: 0.5 m^T K(P)^-1 m (Eq. 6)
 - ``gp_logdet``: 0.5 log|K(P)| (Eq. 6), when sigma_f or l is estimated
 - ``anchor``: 0.5 |(p_0 - a) / sigma_a|^2
@@ -28,10 +30,17 @@ import numpy as np
 from casmag.config import Problem, SolverSpec
 from casmag.gp import ExactGPPrior
 from casmag.kernels import FIELD_DIM, get_kernel
-from casmag.motion import TranslationalOdometry
+from casmag.knots import Knots
 from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.reduced_rank import Domain, HilbertBasis
-from casmag.rrmap import GaussNewtonHessian, MapLayout, field_and_jacobians, make_basis
+from casmag.rrmap import (
+    GaussNewtonHessian,
+    MagnetometerCost,
+    MapLayout,
+    MapModel,
+    field_and_jacobians,
+    make_basis,
+)
 from casmag.simulate import Dataset
 
 HYPERPARAMETERS = ("sigma_f", "lengthscale", "sigma_m")
@@ -53,15 +62,18 @@ class Structure:
     form: str = "exact"
     basis: tuple | None = None  # reduced rank: (center, half_width, num_basis)
     constant_field: bool = False
+    knot_every: int = 1
 
     @classmethod
-    def of(cls, problem: Problem, data: Dataset) -> Structure:
+    def of(cls, problem: Problem, data: Dataset, positions: np.ndarray | None = None) -> Structure:
+        """The structure of a problem on a data set; a reduced-rank map's box is fitted
+        around ``positions`` (default: the dead reckoning)."""
         m = problem.spec.model
         basis = None
         if m.gp.form == "reduced_rank":
             hb = make_basis(
                 problem.assumed_kernel,
-                data.dead_reckoning(),
+                data.dead_reckoning() if positions is None else positions,
                 problem.assumed_lengthscale,
                 m.gp.num_basis,
                 m.gp.margin,
@@ -82,10 +94,15 @@ class Structure:
             form=m.gp.form,
             basis=basis,
             constant_field=m.gp.sigma_lin is not None,
+            knot_every=m.trajectory.knot_every,
         )
 
     def hilbert_basis(self) -> HilbertBasis:
         return _hilbert_basis(self.basis)
+
+    @property
+    def knots(self) -> Knots:
+        return Knots(self.n, self.knot_every)
 
 
 @lru_cache(maxsize=8)
@@ -105,19 +122,21 @@ def _hyper(builder: NLPBuilder, name: str, estimated: bool) -> ca.MX:
 def build_translational(s: Structure) -> NLP:
     """Build the translational GP-SLAM NLP for a structure (use :func:`cached_nlp`)."""
     b = NLPBuilder()
-    P = b.variable("P", (s.n, s.dim))
+    knots = s.knots
+    C = b.variable("C", (knots.count, s.dim))
     bias = b.variable("bias", (1, s.dim)) if s.estimate_bias else ca.MX.zeros(1, s.dim)
     sigma_f, ell, sigma_m = (_hyper(b, h, h in s.estimate) for h in HYPERPARAMETERS)
 
-    U = b.parameter("U", (s.n - 1, s.dim))
+    Q = b.parameter("Q", (s.n, s.dim))
     Y = b.parameter("Y", (s.n, FIELD_DIM))
     anchor = b.parameter("anchor", (1, s.dim))
     sigma_o = b.parameter("sigma_o", (1, 1))
     sigma_a = b.parameter("sigma_anchor", (1, 1))
 
-    b.cost("odometry", TranslationalOdometry(s.dim).cost(P, U, bias, sigma_o))
+    P = Q + (C if s.knot_every == 1 else ca.mtimes(knots.casadi_matrix(), C))
+    b.cost("odometry", knots.odometry_cost(C, bias, sigma_o))
     if s.form == "reduced_rank":
-        return _build_reduced_rank(b, s, P, bias, Y, anchor, sigma_f, ell, sigma_m, sigma_a)
+        return _build_reduced_rank(b, s, P, bias, anchor, sigma_f, ell, sigma_a)
     M = b.variable("M", (s.n, FIELD_DIM))
     b.cost("magnetometer", 0.5 * ca.sumsqr((Y - M) / sigma_m))
     prior = ExactGPPrior(get_kernel(s.kernel), s.n, s.dim, s.jitter)
@@ -136,54 +155,60 @@ def _build_reduced_rank(
     s: Structure,
     P: ca.MX,
     bias: ca.MX,
-    Y: ca.MX,
     anchor: ca.MX,
     sigma_f: ca.MX,
     ell: ca.MX,
-    sigma_m: ca.MX,
     sigma_a: ca.MX,
 ) -> NLP:
     """Reduced-rank map: weights W (SE, (M, 3)) or w (curl-free, (M, 1)), optional constant
-    field c; magnetometer residuals mapped over the samples with the weights broadcast."""
+    field c. The magnetometer block, its gradient and its Hessian are numpy callbacks
+    (casmag.rrmap) over the samples, which keeps the build O(1) in N."""
     basis = s.hilbert_basis()
     M = basis.num_basis
     W = b.variable("W", (M, FIELD_DIM) if s.kernel == "se" else (M, 1))
-    c = b.variable("c", (FIELD_DIM, 1)) if s.constant_field else ca.MX.zeros(FIELD_DIM, 1)
-    field = basis.field_sx(s.kernel, position_dim=s.dim)
-    x, y, sig = ca.SX.sym("x", s.dim), ca.SX.sym("y", FIELD_DIM), ca.SX.sym("sigma_m")
-    w_sx = ca.SX.sym("w", *W.shape)
-    c_sx = ca.SX.sym("c", FIELD_DIM)
-    resid = ca.Function("mag_residual", [x, y, w_sx, c_sx, sig], [(y - field(x, w_sx, c_sx)) / sig])
-    E = resid.map(s.n, "serial")(P.T, Y.T, W, c, sigma_m)
-    b.cost("magnetometer", 0.5 * ca.sumsqr(E))
+    c = b.variable("c", (FIELD_DIM, 1)) if s.constant_field else None
+    sigma_lin = b.parameter("sigma_lin", (1, 1)) if s.constant_field else None
+    sigma_b = b.parameter("sigma_bias", (1, 1)) if s.bias_prior else None
+    # Every variable and parameter is declared: the numpy blocks see the full vectors.
+    n_x, n_p = b.sizes
+    model = MapModel(
+        basis,
+        s.kernel,
+        s.knots,
+        s.dim,
+        MapLayout(
+            n_x=n_x,
+            n_p=n_p,
+            C=b.offset("C"),
+            Q=b.offset("Q", "p"),
+            Y=b.offset("Y", "p"),
+            W=b.offset("W"),
+            c=b.offset("c") if s.constant_field else None,
+            sigma_m=b.offset("sigma_m", "p"),
+        ),
+    )
+    mag = b.retain(MagnetometerCost("magnetometer", model))
+    b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
     S = basis.prior_variances(s.kernel, sigma_f, ell)  # (M, 1)
     n_cols = W.shape[1]
     b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2 / ca.repmat(S, 1, n_cols))))
     if {"sigma_f", "lengthscale"} & set(s.estimate):
         b.cost("gp_logdet", 0.5 * n_cols * ca.sum1(ca.log(S)))
     if s.constant_field:
-        sigma_lin = b.parameter("sigma_lin", (1, 1))
         b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
     b.cost("anchor", 0.5 * ca.sumsqr((P[0, :] - anchor) / sigma_a))
     if s.bias_prior:
-        sigma_b = b.parameter("sigma_bias", (1, 1))
         b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
     solver = SolverSpec.model_validate_json(s.solver)
+    if solver.linear_solver == "mumps" and "mumps_pivot_order" not in solver.ipopt:
+        # METIS keeps the dense knot-weight border from filling the knot chain: one
+        # factorisation of a 4,000-knot x 650-weight arrow took 1.35 s against 7.0 s with
+        # MUMPS's default ordering (and AMD, AMF, PORD, QAMD).
+        solver = solver.model_copy(update={"ipopt": {**solver.ipopt, "mumps_pivot_order": 5}})
     gn = None
-    if solver.hessian in ("auto", "gauss-newton"):
-        n_x, n_p = b.sizes
-        layout = MapLayout(
-            n_x=n_x,
-            n_p=n_p,
-            P=b.offset("P"),
-            W=b.offset("W"),
-            c=b.offset("c") if s.constant_field else None,
-            sigma_m=b.offset("sigma_m", "p"),
-        )
-        gn = (
-            "magnetometer",
-            GaussNewtonHessian("mag_gauss_newton", basis, s.kernel, s.n, s.dim, layout),
-        )
+    if solver.hessian != "limited-memory":
+        mode = {"auto": "hybrid"}.get(solver.hessian, solver.hessian)
+        gn = ("magnetometer", GaussNewtonHessian("mag_hessian", model, mode=mode))
     return b.build(solver, name="casmag_translational_rr", gauss_newton=gn)
 
 
@@ -212,20 +237,30 @@ def initial_weights(
     return np.linalg.solve(G, rhs).reshape(-1, 1)
 
 
-def field_estimate(s: Structure, sol: Solution) -> np.ndarray:
-    """(N, 3) estimated field at the estimated positions."""
+def positions(s: Structure, sol: Solution, dead_reckoning: np.ndarray) -> np.ndarray:
+    """(N, d) estimated positions: the dead reckoning plus the knot corrections."""
+    return s.knots.positions(dead_reckoning, sol.x["C"])
+
+
+def field_estimate(s: Structure, sol: Solution, P: np.ndarray) -> np.ndarray:
+    """(N, 3) estimated field at the estimated positions P."""
     if s.form != "reduced_rank":
         return sol.x["M"]
     basis = s.hilbert_basis()
-    m, _, _ = field_and_jacobians(basis, s.kernel, sol.x["P"], sol.x["W"].ravel(order="F"))
+    m, _, _ = field_and_jacobians(basis, s.kernel, P, sol.x["W"].ravel(order="F"))
     return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
 
 
 def field_on_grid(
-    s: Structure, sol: Solution, hyper: dict[str, float], grid: np.ndarray, jitter: float
+    s: Structure,
+    sol: Solution,
+    hyper: dict[str, float],
+    grid: np.ndarray,
+    jitter: float,
+    P: np.ndarray,
 ) -> np.ndarray:
     """(G, 3) estimated field at grid points (G, d): the reduced-rank map itself, or for the
-    exact GP the posterior mean given the estimated field at the estimated positions,
+    exact GP the posterior mean given the estimated field at the estimated positions P,
     K(grid, P) K(P, P)^-1 m."""
     if s.form == "reduced_rank":
         basis = s.hilbert_basis()
@@ -233,7 +268,7 @@ def field_on_grid(
         m, _, _ = field_and_jacobians(basis, s.kernel, grid, sol.x["W"].ravel(order="F"))
         return m + (sol.x["c"].ravel() if s.constant_field else zero_c)
     kernel = get_kernel(s.kernel)
-    P, M = sol.x["P"], sol.x["M"]
+    M = sol.x["M"]
     sf, ell = hyper["sigma_f"], hyper["lengthscale"]
     K = kernel.matrix(P, P, sf, ell)
     K = K + jitter * kernel.variance(sf, ell) * np.eye(K.shape[0])
@@ -251,10 +286,11 @@ def cached_nlp(structure: Structure) -> NLP:
 
 
 def parameters_and_guess(
-    problem: Problem, data: Dataset, s: Structure
+    problem: Problem, data: Dataset, s: Structure, initial_positions: np.ndarray | None = None
 ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Parameter values and the initial guess (dead reckoning, measured field, zero bias,
-    hyperparameters at their assumed values)."""
+    """Parameter values and the initial guess: the dead reckoning (or the knot corrections
+    closest to ``initial_positions``), the field fitted there, zero bias, hyperparameters at
+    their assumed values."""
     m = problem.spec.model
     hyper = {
         "sigma_f": problem.assumed_sigma_f,
@@ -262,7 +298,7 @@ def parameters_and_guess(
         "sigma_m": problem.assumed_sigma_m,
     }
     params: dict[str, Any] = {
-        "U": data.U,
+        "Q": data.dead_reckoning(),
         "Y": data.Y,
         "anchor": data.anchor.reshape(1, -1),
         "sigma_o": problem.assumed_sigma_odometry,
@@ -270,8 +306,13 @@ def parameters_and_guess(
     }
     if s.bias_prior:
         params["sigma_bias"] = m.odometry.bias_prior_sigma
-    P0 = data.dead_reckoning()
-    x0: dict[str, Any] = {"P": P0}
+    Q = params["Q"]
+    if initial_positions is None:
+        P0, C0 = Q, np.zeros((s.knots.count, s.dim))
+    else:
+        C0 = s.knots.fit(Q, initial_positions)
+        P0 = s.knots.positions(Q, C0)
+    x0: dict[str, Any] = {"C": C0}
     if s.form == "reduced_rank":
         c0 = data.Y.mean(axis=0) if s.constant_field else np.zeros(FIELD_DIM)
         x0["W"] = initial_weights(
@@ -293,17 +334,21 @@ def parameters_and_guess(
 
 
 def solve_translational(
-    problem: Problem, data: Dataset, progress: Any = None
+    problem: Problem,
+    data: Dataset,
+    progress: Any = None,
+    initial_positions: np.ndarray | None = None,
 ) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure]:
-    """Solve the problem on a data set. Returns the solution, the NLP, the final
-    hyperparameters (estimated or fixed), the (N, 3) field estimate at the samples and the
-    problem's structure."""
-    s = Structure.of(problem, data)
+    """Solve the problem on a data set. Returns the solution (``sol.x["P"]`` holds the
+    estimated positions), the NLP, the final hyperparameters (estimated or fixed), the
+    (N, 3) field estimate at the samples and the problem's structure."""
+    s = Structure.of(problem, data, initial_positions)
     nlp = cached_nlp(s)
-    params, x0 = parameters_and_guess(problem, data, s)
+    params, x0 = parameters_and_guess(problem, data, s, initial_positions)
     sol = nlp.solve(params, x0, progress=progress)
     hyper = {
         h: float(np.exp(sol.x[f"log_{h}"][0, 0])) if h in s.estimate else float(params[h])
         for h in HYPERPARAMETERS
     }
-    return sol, nlp, hyper, field_estimate(s, sol), s
+    sol.x["P"] = positions(s, sol, params["Q"])
+    return sol, nlp, hyper, field_estimate(s, sol, sol.x["P"]), s

@@ -6,12 +6,13 @@ from pathlib import Path
 
 import pytest
 import yaml
+from problem_files import TRANSLATIONAL
 
 from casmag import Problem, load_problem
 from casmag.errors import ProblemError
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-PROBLEM_FILES = sorted(REPO_ROOT.glob("problems/**/*.yaml"))
+PROBLEM_FILES = TRANSLATIONAL
 
 
 def _write(tmp_path: Path, name: str, data) -> Path:

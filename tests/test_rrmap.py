@@ -15,11 +15,15 @@ from casmag.slam import Structure, cached_nlp, parameters_and_guess
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _small(kernel, constant=True, n=10):
+def _small(kernel, constant=True, n=10, knot_every=1, hessian="auto"):
     data = {
         "seed": 4,
         "simulation": {"trajectory": {"samples": n}, "field": {"kernel": kernel}},
-        "model": {"gp": {"form": "reduced_rank", "num_basis": 24}},
+        "model": {
+            "gp": {"form": "reduced_rank", "num_basis": 24},
+            "trajectory": {"knot_every": knot_every},
+        },
+        "solver": {"hessian": hessian},
     }
     if constant:
         data["model"]["gp"]["sigma_lin"] = 0.5
@@ -28,10 +32,13 @@ def _small(kernel, constant=True, n=10):
 
 @pytest.mark.parametrize("kernel", ["se", "curl_free"])
 @pytest.mark.parametrize("constant", [False, True])
-def test_gauss_newton_hessian_matches_casadi_reference(kernel, constant):
-    """triu(J^T J) of the magnetometer residuals, J from CasADi on a reference residual
-    written here, equals the numpy callback at a random point."""
-    prob = _small(kernel, constant)
+@pytest.mark.parametrize("knot_every", [1, 3])
+@pytest.mark.parametrize("hessian", ["gauss-newton", "exact"])
+def test_map_hessian_matches_casadi_reference(kernel, constant, knot_every, hessian):
+    """The numpy callback at a random point equals CasADi's on a reference residual written
+    here (positions interpolated between knots): triu(J^T J) for gauss-newton, the exact
+    Hessian of 0.5 |e|^2 for exact."""
+    prob = _small(kernel, constant, n=11, knot_every=knot_every, hessian=hessian)
     data = simulate_problem(prob)
     s = Structure.of(prob, data)
     nlp = cached_nlp(s)
@@ -51,13 +58,58 @@ def test_gauss_newton_hessian_matches_casadi_reference(kernel, constant):
     c = v["c"] if constant else ca.DM.zeros(FIELD_DIM)
     sigma = params["sigma_m"]
     Y = data.Y
-    res = [(Y[k] - field(v["P"][k, :].T, v["W"], c)) / sigma for k in range(data.n_samples)]
-    J = ca.jacobian(ca.vertcat(*res), xs)
-    ref = ca.Function("ref", [xs], [ca.triu(ca.mtimes(J.T, J))])(x)
+    knots = s.knots
+    A = knots.matrix.toarray()
+    P = ca.DM(params["Q"]) + ca.mtimes(ca.DM(A), v["C"])
+    res = [(Y[k] - field(P[k, :].T, v["W"], c)) / sigma for k in range(data.n_samples)]
+    e = ca.vertcat(*res)
+    if hessian == "exact":
+        H = ca.hessian(0.5 * ca.sumsqr(e), xs)[0]
+    else:
+        J = ca.jacobian(e, xs)
+        H = ca.mtimes(J.T, J)
+    f = 0.5 * ca.sumsqr(e)
+    ref = ca.Function("ref", [xs], [ca.triu(H), f, ca.gradient(f, xs)])
+    H_ref, f_ref, g_ref = ref(x)
     got = gn(x, p, 1.0, ca.DM.zeros(0, 1))
     np.testing.assert_allclose(
-        np.array(ca.densify(got)), np.array(ca.densify(ref)), rtol=1e-9, atol=1e-9
+        np.array(ca.densify(got)), np.array(ca.densify(H_ref)), rtol=1e-9, atol=1e-9
     )
+    # The numpy magnetometer block and its gradient, as CasADi differentiates it in the NLP.
+    xm, pm = ca.MX.sym("x", x.size), ca.MX.sym("p", p.size)
+    block = gn.model
+    from casmag.rrmap import MagnetometerCost
+
+    mag = MagnetometerCost("mag_test", block)
+    fg = ca.Function("fg", [xm, pm], [mag(xm, pm), ca.gradient(mag(xm, pm), xm)])
+    f_got, g_got = fg(x, p)
+    assert float(f_got) == pytest.approx(float(f_ref), rel=1e-10)
+    np.testing.assert_allclose(np.array(g_got).ravel(), np.array(g_ref).ravel(), atol=1e-8)
+
+
+def test_hybrid_hessian_switches_to_exact_when_the_cost_stalls():
+    """auto: Gauss-Newton at the first evaluation and while the magnetometer cost falls by
+    20 % or more per evaluation, the exact Hessian after; reset() starts over."""
+    prob = _small("se", constant=False, n=11, knot_every=1, hessian="auto")
+    data = simulate_problem(prob)
+    s = Structure.of(prob, data)
+    nlp = cached_nlp(s)
+    H = nlp.keep[1]
+    assert H.mode == "hybrid"
+    params, x0 = parameters_and_guess(prob, data, s)
+    x, p = nlp.x_layout.pack(x0), nlp.p_layout.pack(params)
+    H.reset()
+    first = H.values(x, p)
+    again = H.values(x, p)  # same cost: stalled
+    H.reset()
+    H.mode = "gauss-newton"
+    gn = H.values(x, p)
+    H.mode = "exact"
+    exact = H.values(x, p)
+    H.mode = "hybrid"
+    np.testing.assert_array_equal(first, gn)
+    np.testing.assert_array_equal(again, exact)
+    assert not np.array_equal(gn, exact)
 
 
 def test_reduced_rank_matches_exact_on_base_case():

@@ -4,13 +4,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from problem_files import TRANSLATIONAL
 
 import casmag
 from casmag.simulate import simulate_problem, spiral
 from casmag.slam import cached_nlp
 
 ROOT = Path(__file__).resolve().parents[1]
-PROBLEM_FILES = sorted((ROOT / "problems").rglob("*.yaml"))
+PROBLEM_FILES = TRANSLATIONAL
 
 
 def _problem(**sections):

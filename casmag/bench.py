@@ -1,0 +1,188 @@
+"""Benchmarks: ``python -m casmag.bench scale`` (``make bench-scale``).
+
+Each configuration runs in its own process, so the peak memory reported is that run's
+(``ru_maxrss``), and the results are collected into ``results/bench/scale.json`` (written to
+a temporary name, then renamed) with a PNG of time per iteration and RMSE against N.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import click
+
+ROOT = Path(__file__).resolve().parents[1]
+WALK = ROOT / "problems" / "bench" / "walk.yaml"
+SCALE_SIZES = (1000, 4000, 16000, 64000)
+EXACT_SIZES = (250, 500)
+
+
+def run_one(samples: int, form: str, knot_every: int | None) -> dict[str, Any]:
+    """Simulate the walk with ``samples`` samples and solve it; figures measured here."""
+    import numpy as np
+
+    import casmag
+    from casmag.simulate import simulate_problem
+
+    overrides = [f"simulation.trajectory.samples={samples}", f"model.gp.form={form}"]
+    if knot_every is not None:
+        overrides.append(f"model.trajectory.knot_every={knot_every}")
+    if form == "exact":
+        overrides.append("model.gp.kernel=se")
+    problem = casmag.load_problem(WALK, overrides)
+    t0 = time.perf_counter()
+    data = simulate_problem(problem)
+    t_sim = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    result = casmag.solve(problem, data)
+    wall = time.perf_counter() - t0
+    stages = result.info.get("warm_start") or []
+    iters = sum(s["iterations"] for s in stages[:-1]) + result.iterations
+    solve_s = sum(s["solve_seconds"] for s in stages[:-1]) + result.solve_seconds
+    err = None
+    if result.success:
+        err = float(np.abs(result.arrays["P_estimate"] - data.P_true).max())
+    return {
+        "samples": samples,
+        "form": form,
+        "knot_every": problem.spec.model.trajectory.knot_every,
+        "num_basis": result.info["num_basis"],
+        "status": result.status,
+        "success": result.success,
+        "wall_seconds": wall,
+        "simulate_seconds": t_sim,
+        "build_seconds_last_stage": result.build_seconds,
+        "iterations_total": iters,
+        "iterations_last_stage": result.iterations,
+        "solve_seconds_total": solve_s,
+        "seconds_per_iteration": solve_s / max(1, iters),
+        "seconds_per_iteration_last_stage": result.solve_seconds / max(1, result.iterations),
+        "stages": stages,
+        "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        "rmse_before": result.rmse_before,
+        "rmse_after": result.rmse_after,
+        "max_before": result.max_before,
+        "max_after": result.max_after,
+        "max_error_check": err,
+        "bias_estimate": result.odometry_bias,
+        "bias_true": result.odometry_bias_true,
+    }
+
+
+def _spawn(args: list[str]) -> dict[str, Any]:
+    cmd = [sys.executable, "-m", "casmag.bench", "one", *args]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+    if out.returncode != 0 or not lines:
+        tail = (out.stderr.strip().splitlines() or ["no output"])[-1]
+        return {"args": args, "status": f"crashed: {tail}", "success": False}
+    return json.loads(lines[-1])
+
+
+def _write_json(path: Path, data: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def _figure(runs: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    rr = [r for r in runs if r.get("form") == "reduced_rank" and r.get("success")]
+    fig = Figure(figsize=(10, 4))
+    ax1, ax2 = fig.subplots(1, 2)
+    n = [r["samples"] for r in rr]
+    ax1.loglog(n, [r["seconds_per_iteration_last_stage"] for r in rr], "o-", label="s / iteration")
+    ax1.loglog(n, [r["wall_seconds"] for r in rr], "s-", label="wall s (all stages)")
+    if rr:
+        ref = rr[0]["seconds_per_iteration_last_stage"] / n[0]
+        ax1.loglog(n, [ref * k for k in n], "k:", label="linear in N")
+    ax1.set_xlabel("samples N")
+    ax1.set_ylabel("seconds")
+    ax1.legend()
+    ax1.grid(True, which="both", alpha=0.3)
+    ax2.loglog(n, [r["rmse_before"] for r in rr], "o--", label="odometry only")
+    ax2.loglog(n, [r["rmse_after"] for r in rr], "o-", label="GP-SLAM")
+    ax2.set_xlabel("samples N")
+    ax2.set_ylabel("position RMSE [m]")
+    ax2.legend()
+    ax2.grid(True, which="both", alpha=0.3)
+    fig.suptitle("Reduced-rank GP-SLAM on a looping 6 m x 6 m walk (10 Hz)")
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.png")
+    fig.savefig(tmp, dpi=110)
+    os.replace(tmp, path)
+
+
+@click.group()
+def main() -> None:
+    """casmag benchmarks."""
+
+
+@main.command()
+@click.argument("samples", type=int)
+@click.option("--form", default="reduced_rank", type=click.Choice(["reduced_rank", "exact"]))
+@click.option("--knot-every", type=int, default=None)
+def one(samples: int, form: str, knot_every: int | None) -> None:
+    """Run one configuration and print its figures as one JSON line."""
+    click.echo(json.dumps(run_one(samples, form, knot_every)))
+
+
+@main.command()
+@click.option("--out", "out_dir", default=str(ROOT / "results" / "bench"), type=click.Path())
+@click.option("--sizes", default=",".join(map(str, SCALE_SIZES)), help="Comma-separated N.")
+@click.option("--exact-sizes", default=",".join(map(str, EXACT_SIZES)), help="N for exact GP.")
+def scale(out_dir: str, sizes: str, exact_sizes: str) -> None:
+    """Reduced-rank GP-SLAM on the walk at each N, and exact against reduced rank at small N
+    (one knot per sample for both). Writes OUT/scale.json and OUT/scale.png."""
+    runs = []
+    for n in [int(v) for v in exact_sizes.split(",") if v]:
+        for form in ("exact", "reduced_rank"):
+            click.echo(f"N = {n} {form} (one knot per sample) ...", err=True)
+            runs.append(
+                {
+                    "comparison": "exact_vs_reduced_rank",
+                    **_spawn([str(n), "--form", form, "--knot-every", "1"]),
+                }
+            )
+            click.echo(f"  {_summary(runs[-1])}", err=True)
+    for n in [int(v) for v in sizes.split(",") if v]:
+        click.echo(f"N = {n} reduced_rank ...", err=True)
+        runs.append({"comparison": "scale", **_spawn([str(n)])})
+        click.echo(f"  {_summary(runs[-1])}", err=True)
+    out = Path(out_dir)
+    import casadi
+
+    meta = {
+        "problem": str(WALK.relative_to(ROOT)),
+        "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
+        "casadi": casadi.__version__,
+    }
+    _write_json(out / "scale.json", {"meta": meta, "runs": runs})
+    _figure([r for r in runs if r["comparison"] == "scale"], out / "scale.png")
+    click.echo(f"wrote {out / 'scale.json'} and {out / 'scale.png'}", err=True)
+
+
+def _summary(r: dict[str, Any]) -> str:
+    if not r.get("success"):
+        return f"FAILED: {r.get('status')}"
+    return (
+        f"{r['status']}: {r['iterations_total']} it, {r['wall_seconds']:.1f} s wall, "
+        f"{r['seconds_per_iteration_last_stage']:.2f} s/it, {r['peak_rss_gib']:.2f} GiB, "
+        f"RMSE {r['rmse_before']:.4f} -> {r['rmse_after']:.4f} m"
+    )
+
+
+if __name__ == "__main__":
+    main()

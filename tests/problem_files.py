@@ -1,0 +1,20 @@
+"""The shipped problem files, by kind, for the tests that load or run every one of them."""
+
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+PROBLEMS = ROOT / "problems"
+
+
+def _kind(path: Path) -> str:
+    if "imu" in path.relative_to(PROBLEMS).parts:
+        return "imu"
+    return "table" if "rows" in yaml.safe_load(path.read_text()) else "translational"
+
+
+ALL = sorted(PROBLEMS.rglob("*.yaml"))
+# Translational problem files (casmag run): not the IMU problems (tests/test_imu.py) and not
+# the table files, which list rows of overrides of a problem file (tests/test_sweep.py).
+TRANSLATIONAL = [p for p in ALL if _kind(p) == "translational"]

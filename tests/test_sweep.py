@@ -1,0 +1,293 @@
+"""Sweeps: table files, planning, the local process pool, resuming, and a Dask cluster."""
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from casmag.cli import main
+from casmag.paper import TABLES
+from casmag.sweep import (
+    THREAD_VARIABLES,
+    SweepAborted,
+    load_sweep,
+    local_map,
+    parse_grid,
+    run_task,
+    worker_environment,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+BASE = ROOT / "problems/paper/base.yaml"
+TABLE_FILES = sorted((ROOT / "problems/paper").glob("table*.yaml"))
+TINY = ["--set", "simulation.trajectory.samples=12"]
+
+
+def _invoke(args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def _table(tmp_path, text, name="t.yaml"):
+    path = tmp_path / name
+    path.write_text(f"problem: {BASE}\n" + text)
+    return path
+
+
+TWO_ROWS = """rows:
+  - key: a
+    set: {model.gp.sigma_f: 0.1}
+  - key: b
+    label: sigma_f twice
+    set: {model.gp.sigma_f: 0.2}
+"""
+
+
+# --------------------------------------------------------------------------- table files
+def test_paper_table_files_cover_every_paper_row():
+    names = {p.stem for p in TABLE_FILES}
+    assert names == {"table1", "table2", "table3", "table4", "table5"}
+    for path in TABLE_FILES:
+        plan = load_sweep(path, "unused", seeds=20)
+        paper = TABLES[plan.paper]
+        assert [r.paper_key for r in plan.rows] == list(paper.keys)
+        assert [r.label for r in plan.rows] == [r.label for r in paper.rows]
+        assert plan.seeds == list(range(1, 21))
+        # Every row is a different problem.
+        assert len({r.fingerprint for r in plan.rows}) == len(plan.rows)
+
+
+def test_table5_settings_are_the_papers_scaled_to_5cm_steps():
+    plan = load_sweep(ROOT / "problems/paper/table5.yaml", "unused", seeds=1)
+    for row, noise in zip(plan.rows, (1e-4, 5e-4, 1e-3), strict=True):
+        sim = row.problem["simulation"]
+        assert sim["field"]["lengthscale"] == 0.4
+        assert sim["odometry"]["bias"] == [3e-3, 3e-3]
+        assert sim["odometry"]["noise"] == noise
+        assert sim["trajectory"]["step"] == 0.05
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        (TWO_ROWS.replace("label:", "lable:"), "t.yaml: rows.1.lable: unknown key"),
+        (
+            TWO_ROWS.replace("model.gp.sigma_f: 0.2", "model.gp.sigmaf: 0.2"),
+            "t.yaml: rows.1.set: model.gp.sigmaf: unknown key",
+        ),
+        (
+            TWO_ROWS.replace("model.gp.sigma_f: 0.2", "model.gp.sigma_f: -1"),
+            "t.yaml: rows.1.set: model.gp.sigma_f",
+        ),
+        (TWO_ROWS.replace("key: b", "key: a"), "t.yaml: rows: row key 'a' is used twice"),
+        (TWO_ROWS.replace("key: b", "key: b/c"), "t.yaml: rows.1.key"),
+        ("paper: table9\n" + TWO_ROWS, "t.yaml: paper: 'table9' is not a paper table"),
+        ("paper: table1\n" + TWO_ROWS, "t.yaml: rows.0.key: 'a' is not a row of the paper's"),
+        ("rows: []\n", "t.yaml: rows"),
+    ],
+)
+def test_bad_table_file_one_line_exit_2_nothing_written(tmp_path, text, needle):
+    out = tmp_path / "out"
+    res = _invoke(["sweep", _table(tmp_path, text), "--out", out, "--seeds", 1])
+    assert res.exit_code == 2, res.output
+    lines = [line for line in res.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and needle in lines[0], res.output
+    assert not out.exists()
+
+
+def test_missing_problem_file_and_bad_options(tmp_path):
+    path = tmp_path / "t.yaml"
+    path.write_text("problem: nowhere.yaml\nrows:\n  - key: a\n")
+    res = _invoke(["sweep", path, "--out", tmp_path / "o"])
+    assert res.exit_code == 2 and "t.yaml: problem: no such file 'nowhere.yaml'" in res.output
+    for grid, needle in [
+        ("model.gp.sigmaf=1,2", "--grid: model.gp.sigmaf: unknown key"),
+        ("model.gp.sigma_f=1,,2", "--grid: model.gp.sigma_f: empty value"),
+        ("model.gp.sigma_f=1,1", "lists a value twice"),
+        ("novalue", "override must look like"),
+    ]:
+        res = _invoke(["sweep", BASE, "--out", tmp_path / "o", "--grid", grid])
+        assert res.exit_code == 2 and needle in res.output, (grid, res.output)
+    res = _invoke(["sweep", BASE, "--out", tmp_path / "o", "--set", "seed=x"])
+    assert res.exit_code == 2 and "--set: seed" in res.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_parse_grid_keeps_lists_whole():
+    assert parse_grid("simulation.odometry.bias=[1e-3, 1e-3],[3e-3,3e-3]") == (
+        "simulation.odometry.bias",
+        ["[1e-3, 1e-3]", "[3e-3,3e-3]"],
+    )
+    assert parse_grid("model.gp.sigma_f=0.1, 1.0") == ("model.gp.sigma_f", ["0.1", "1.0"])
+
+
+def test_grid_times_rows_and_seeds(tmp_path):
+    plan = load_sweep(
+        _table(tmp_path, TWO_ROWS),
+        tmp_path / "o",
+        seeds=3,
+        first_seed=5,
+        grid=["simulation.field.lengthscale=0.1,0.2"],
+    )
+    assert [r.key for r in plan.rows] == [
+        "a__simulation.field.lengthscale=0.1",
+        "a__simulation.field.lengthscale=0.2",
+        "b__simulation.field.lengthscale=0.1",
+        "b__simulation.field.lengthscale=0.2",
+    ]
+    assert plan.rows[3].label == "sigma_f twice, simulation.field.lengthscale = 0.2"
+    assert plan.rows[3].problem["simulation"]["field"]["lengthscale"] == 0.2
+    assert plan.rows[3].problem["model"]["gp"]["sigma_f"] == 0.2
+    tasks = list(plan.tasks("first"))
+    assert len(tasks) == 12 and plan.seeds == [5, 6, 7]
+    assert {t.seed for t in tasks if t.figures} == {5}
+    assert tasks[0].out_dir == str(tmp_path / "o" / plan.rows[0].key / "seed-0005")
+
+
+# --------------------------------------------------------------------------- running
+def test_workers_are_single_threaded_and_parent_environment_restored():
+    before = {k: os.environ.get(k) for k in THREAD_VARIABLES}
+    seen = []
+    local_map(worker_environment, [0, 1], 2, seen.append)
+    assert seen == [dict.fromkeys(THREAD_VARIABLES, "1")] * 2
+    assert {k: os.environ.get(k) for k in THREAD_VARIABLES} == before
+
+
+def test_a_dead_worker_aborts_the_pool():
+    with pytest.raises(SweepAborted, match="a worker process died"):
+        local_map(os._exit, [3], 1, lambda _: None)
+
+
+def test_sweep_local_pool_resumes_and_counts(tmp_path):
+    table = _table(tmp_path, TWO_ROWS)
+    out = tmp_path / "out"
+    res = _invoke(["sweep", table, "--out", out, "--seeds", 2, "-j", 2, *TINY])
+    assert res.exit_code == 0, res.output
+    assert "4 runs: 0 already saved, 4 solved, 0 failed, 0 errors" in res.output
+    manifest = json.loads((out / "sweep.json").read_text())
+    assert manifest["seeds"] == [1, 2]
+    assert [r["key"] for r in manifest["rows"]] == ["a", "b"]
+    results = {}
+    for row in ("a", "b"):
+        for seed in (1, 2):
+            r = json.loads((out / row / f"seed-{seed:04d}" / "result.json").read_text())
+            assert r["success"] and r["info"]["seed"] == seed
+            results[row, seed] = r
+    assert (out / "a" / "seed-0001" / "trajectory.png").is_file()  # figures: first seed only
+    assert not (out / "a" / "seed-0002" / "trajectory.png").exists()
+    assert results["a", 1]["rmse_before"] != results["a", 2]["rmse_before"]  # seeds differ
+    assert results["a", 1]["rmse_before"] == results["b", 1]["rmse_before"]  # same odometry
+
+    # Resume: nothing re-solved; a removed run and a new seed are solved.
+    kept = (out / "a" / "seed-0001" / "result.json").stat().st_mtime_ns
+    (out / "b" / "seed-0002" / "result.json").unlink()
+    res = _invoke(["sweep", table, "--out", out, "--seeds", 3, "-j", 1, "-q", *TINY])
+    assert res.exit_code == 0 and res.output == ""
+    assert (out / "a" / "seed-0001" / "result.json").stat().st_mtime_ns == kept
+    assert (out / "b" / "seed-0002" / "result.json").is_file()
+    assert (out / "b" / "seed-0003" / "result.json").is_file()
+    res = _invoke(["sweep", table, "--out", out, "--seeds", 2, *TINY])
+    assert "6 runs: 6 already saved, 0 solved" in res.output  # seeds 1-3 are kept
+    assert json.loads((out / "sweep.json").read_text())["seeds"] == [1, 2, 3]
+
+    # Changed settings under the same folder are refused, unless --rerun.
+    res = _invoke(
+        ["sweep", table, "--out", out, "--seeds", 1, *TINY, "--set", "model.gp.jitter=1e-5"]
+    )
+    assert res.exit_code == 2
+    assert "sweep.json: rows.a: was solved with different settings" in res.output
+    assert (out / "a" / "seed-0001" / "result.json").stat().st_mtime_ns == kept
+
+
+def test_solver_failures_are_saved_and_counted(tmp_path):
+    out = tmp_path / "out"
+    args = ["sweep", BASE, "--out", out, "--seeds", 2, "-j", 1, "--figures", "none", *TINY]
+    res = _invoke([*args, "--set", "solver.max_iter=1"])
+    assert res.exit_code == 0, res.output
+    assert "2 solved" not in res.output
+    assert "0 solved, 2 failed, 0 errors" in res.output
+    assert "Maximum_Iterations_Exceeded x2" in res.output
+    r = json.loads((out / "base" / "seed-0001" / "result.json").read_text())
+    assert r["success"] is False and r["rmse_after"] is None
+
+
+def test_a_run_that_raises_leaves_error_json_and_is_retried(tmp_path):
+    from casmag.sweep import _record
+
+    plan = load_sweep(
+        BASE, tmp_path / "out", seeds=1, overrides=["simulation.trajectory.samples=12"]
+    )
+    task = next(plan.tasks("none"))
+    broken = type(task)(**{**task.__dict__, "problem": {**task.problem, "model": {"gp": 1}}})
+    outcome = run_task(broken)
+    assert outcome.status == "error" and "model.gp" in outcome.error
+    _record(outcome)
+    err = json.loads((Path(task.out_dir) / "error.json").read_text())
+    assert err["seed"] == 1 and "model.gp" in err["error"]
+    # The folder has no result.json, so the sweep solves it again (and replaces error.json).
+    res = _invoke(["sweep", BASE, "--out", tmp_path / "out", "--seeds", 1, "-j", 1, *TINY])
+    assert res.exit_code == 0 and "1 solved" in res.output, res.output
+    assert (Path(task.out_dir) / "result.json").is_file()
+    assert not (Path(task.out_dir) / "error.json").exists()
+
+
+def test_several_files_share_one_pool_one_folder_each(tmp_path):
+    t1 = _table(tmp_path, TWO_ROWS, "first.yaml")
+    t2 = _table(tmp_path, "rows:\n  - key: c\n", "second.yaml")
+    out = tmp_path / "out"
+    res = _invoke(["sweep", t1, t2, "--out", out, "--seeds", 1, "--figures", "none", *TINY])
+    assert res.exit_code == 0, res.output
+    assert "3 runs: 0 already saved, 3 solved" in res.output
+    assert (out / "first" / "b" / "seed-0001" / "result.json").is_file()
+    assert (out / "second" / "c" / "seed-0001" / "result.json").is_file()
+
+
+# --------------------------------------------------------------------------- Dask
+def test_dask_local_cluster_on_loopback_matches_local_pool(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    table = _table(tmp_path, TWO_ROWS)
+    args = ["sweep", table, "--seeds", 2, "--figures", "first", *TINY]
+    res = _invoke([*args, "--out", tmp_path / "local", "-j", 1])
+    assert res.exit_code == 0, res.output
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=2,
+        host="127.0.0.1",
+        dashboard_address=None,
+        processes=True,
+    ) as cluster:
+        address = cluster.scheduler_address
+        assert address.startswith("tcp://127.0.0.1:")
+        res = _invoke([*args, "--out", tmp_path / "dask", "--scheduler", address])
+    assert res.exit_code == 0, res.output
+    assert "4 runs: 0 already saved, 4 solved" in res.output
+    for row in ("a", "b"):
+        for seed in (1, 2):
+            run = f"{row}/seed-{seed:04d}/result.json"
+            local = json.loads((tmp_path / "local" / run).read_text())
+            remote = json.loads((tmp_path / "dask" / run).read_text())
+            assert remote["success"] and remote["iterations"] == local["iterations"]
+            assert remote["rmse_after"] == pytest.approx(local["rmse_after"], rel=1e-9)
+    # Saved by the client, with the figures of the first seed.
+    assert (tmp_path / "dask" / "a" / "seed-0001" / "map.png").is_file()
+
+
+def test_unreachable_scheduler_is_bad_input(tmp_path, monkeypatch):
+    monkeypatch.setattr("casmag.sweep.CONNECT_TIMEOUT", "1s")
+    res = _invoke(
+        ["sweep", BASE, "--out", tmp_path / "o", "--seeds", 1, "--scheduler", "tcp://127.0.0.1:9"]
+    )
+    assert res.exit_code == 2
+    assert "--scheduler tcp://127.0.0.1:9: cannot connect" in res.output
+
+
+def test_every_paper_table_file_runs_at_tiny_size(tmp_path):
+    """Smoke run: every row of every table file solves (12 samples, one seed)."""
+    out = tmp_path / "out"
+    res = _invoke(["sweep", *TABLE_FILES, "--out", out, "--seeds", 1, "--figures", "none", *TINY])
+    assert res.exit_code == 0, res.output
+    n_rows = sum(len(t.rows) for t in TABLES.values())
+    assert f"{n_rows} runs: 0 already saved, {n_rows} solved, 0 failed, 0 errors" in res.output
+    for path in TABLE_FILES:
+        assert (out / path.stem / "sweep.json").is_file()
