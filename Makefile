@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-all lint clean
+.PHONY: help install demo test test-all lint clean bench-scale imu
 .PHONY: table1 table2 table3 table4 table5 tables
 
 help: ## List the targets
@@ -73,3 +73,10 @@ lint: $(STAMP) ## ruff check and format check
 
 clean: ## Remove the environment and caches
 	rm -rf $(VENV) .pytest_cache .ruff_cache build *.egg-info
+
+bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
+	$(PY) -m casmag.bench scale --out results/bench
+
+imu: $(STAMP) ## Solve every IMU problem; writes results/imu/<name>/ (about 10 minutes)
+	@for f in problems/imu/*.yaml; do n=$$(basename $$f .yaml); \
+	  $(VENV)/bin/casmag imu $$f --out results/imu/$$n --quiet; echo "$$n: exit $$?"; done

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import click
 
 from casmag.errors import CasmagError
+from casmag.imucli import imu_command
 from casmag.sweep import sweep_command
 
 if TYPE_CHECKING:
@@ -178,6 +179,7 @@ def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool) -> 
 
 
 main.add_command(sweep_command)
+main.add_command(imu_command)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -1,0 +1,408 @@
+"""IMU problem files (``problems/imu/*.yaml``): schema, validation and loading.
+
+A file has a top-level integer ``seed`` and the sections ``simulation`` (scenario, IMU
+errors, magnetometer, physical field), ``model`` (what the MAP problem assumes) and
+``solver`` (IPOPT, the same settings as translational problems). Every key is validated
+before anything is built; a bad file raises :class:`~casmag.errors.ProblemError` naming the
+file, the dotted key and the reason, on one line. Units are in the key names' docs: angles
+in degrees, rates in deg/s, accelerations in m/s^2, field in a.u. (Earth = 1).
+
+Model noise settings left ``null`` take the simulation's true values.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from casmag.config import SolverSpec, apply_overrides, read_yaml
+from casmag.errors import ProblemError
+
+PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegativeFloat = Annotated[float, Field(ge=0)]
+Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+# --------------------------------------------------------------------------- scenarios
+class _Motion(_Strict):
+    """Common to every scenario: speed [m/s] (slower in tight curves), static [s] at rest
+    before and after, corner_radius [m] of the hand's rounding, attitude_deg (roll, pitch,
+    yaw) of the device [deg], wobble_deg amplitudes of smooth random roll, pitch, yaw [deg]."""
+
+    speed: PositiveFloat = 0.12
+    static: NonNegativeFloat = 1.0
+    corner_radius: NonNegativeFloat = 0.02
+    attitude_deg: Vector3 = [0.0, 0.0, 0.0]
+    wobble_deg: Vector3 = [3.0, 3.0, 8.0]
+
+
+class RectangleScenario(_Motion):
+    """A rectangle of ``size`` [m] (x, y) traced ``loops`` times on a plane."""
+
+    kind: Literal["rectangle"]
+    size: Annotated[list[PositiveFloat], Field(min_length=2, max_length=2)] = [0.4, 0.25]
+    loops: Annotated[int, Field(ge=1, le=50)] = 4
+
+
+class SpiralScenario(_Motion):
+    """An Archimedean spiral out for ``turns`` turns and back in between its own turns:
+    start_radius [m], pitch [m] between outward turns."""
+
+    kind: Literal["spiral"]
+    start_radius: NonNegativeFloat = 0.02
+    pitch: PositiveFloat = 0.05
+    turns: Annotated[float, Field(gt=0, le=30)] = 3.0
+
+
+class HandwritingScenario(_Motion):
+    """A word written with a pen-held device, ``passes`` times over itself: height [m] of
+    one em (x-height is half), lift [m] of the pen on the way back between passes."""
+
+    kind: Literal["handwriting"]
+    speed: PositiveFloat = 0.05
+    corner_radius: NonNegativeFloat = 0.003
+    word: str = "casmag"
+    height: PositiveFloat = 0.06
+    passes: Annotated[int, Field(ge=1, le=10)] = 2
+    lift: NonNegativeFloat = 0.01
+
+    @model_validator(mode="after")
+    def _letters(self) -> HandwritingScenario:
+        from casmag.imusim import HANDWRITING_LETTERS
+
+        bad = sorted(set(self.word) - set(HANDWRITING_LETTERS))
+        if not self.word or bad:
+            raise ValueError(
+                f"word must use the letters {HANDWRITING_LETTERS!r}"
+                + (f", not {''.join(bad)!r}" if bad else "")
+            )
+        return self
+
+
+Scenario = Annotated[
+    RectangleScenario | SpiralScenario | HandwritingScenario, Field(discriminator="kind")
+]
+
+
+class ImuSimSpec(_Strict):
+    """The IMU: rate [Hz]; white-noise densities gyro [deg/s/sqrt(Hz)] and acc
+    [m/s^2/sqrt(Hz)]; constant biases gyro [deg/s] and acc [m/s^2]; bias random walks gyro
+    [deg/s/sqrt(s)] and acc [m/s^2/sqrt(s)] (paper Eq. 2); levelling_seconds [s] at rest at
+    the start whose mean specific force gives the initial roll and pitch. Defaults: an
+    industrial MEMS IMU of the MTi-300 class."""
+
+    rate: Annotated[float, Field(gt=0, le=2000)] = 100.0
+    gyro_noise_density: NonNegativeFloat = 0.01
+    acc_noise_density: NonNegativeFloat = 6.0e-4
+    gyro_bias: Vector3 = [0.05, -0.08, 0.12]
+    acc_bias: Vector3 = [0.02, -0.015, 0.03]
+    gyro_bias_walk: NonNegativeFloat = 3.0e-4
+    acc_bias_walk: NonNegativeFloat = 2.0e-5
+    levelling_seconds: PositiveFloat = 0.5
+
+
+class DipoleSpec(_Strict):
+    """A magnetic dipole: position [m] in the local frame, moment [a.u. m^3] (the on-axis
+    field at distance r is 2 |moment| / r^3 a.u.)."""
+
+    name: str = ""
+    position: Vector3
+    moment: Vector3
+
+
+class FieldSimSpec(_Strict):
+    """The physical field: Earth's field of magnitude earth_intensity [a.u.] with the given
+    inclination and declination [deg], plus dipoles."""
+
+    earth_intensity: NonNegativeFloat = 1.0
+    inclination_deg: Annotated[float, Field(ge=-90, le=90)] = 67.0
+    declination_deg: Annotated[float, Field(ge=-180, le=180)] = 2.0
+    dipoles: list[DipoleSpec] = []
+
+
+class MagnetometerSimSpec(_Strict):
+    """Magnetometer white noise per component [a.u.], sampled with the IMU."""
+
+    noise: NonNegativeFloat = 0.004
+
+
+class ImuSimulationSpec(_Strict):
+    scenario: Scenario
+    imu: ImuSimSpec = ImuSimSpec()
+    magnetometer: MagnetometerSimSpec = MagnetometerSimSpec()
+    field: FieldSimSpec = FieldSimSpec()
+
+
+# --------------------------------------------------------------------------- model
+class ImuModelSpec(_Strict):
+    """IMU noise the model assumes (null: the simulation's), in the simulation's units.
+
+    bias: ``random_walk`` (a bias per keyframe, Eq. 2) or ``constant`` (one per run).
+    gyro_bias_prior [deg/s], acc_bias_prior [m/s^2]: standard deviation of a zero-mean prior
+    on the initial biases. Bias random-walk strengths cannot be estimated in the joint MAP
+    (0.5 |db|^2 / s^2 + n log s falls without bound as the walk flattens and s -> 0): set them.
+    """
+
+    gyro_noise_density: PositiveFloat | None = None
+    acc_noise_density: PositiveFloat | None = None
+    gyro_bias_walk: PositiveFloat | None = None
+    acc_bias_walk: PositiveFloat | None = None
+    bias: Literal["random_walk", "constant"] = "random_walk"
+    gyro_bias_prior: PositiveFloat = 0.5
+    acc_bias_prior: PositiveFloat = 0.1
+
+
+class InitialStateSpec(_Strict):
+    """Priors on the first keyframe: position [m] and velocity [m/s] standard deviations
+    (known start, at rest), tilt and heading [deg] about the levelled initial attitude (the
+    heading defines the local frame)."""
+
+    position_sigma: PositiveFloat = 1.0e-4
+    velocity_sigma: PositiveFloat = 1.0e-3
+    tilt_sigma_deg: PositiveFloat = 1.0
+    yaw_sigma_deg: PositiveFloat = 0.01
+
+
+class ZeroPositionSpec(_Strict):
+    """Weak zero-position update (the paper's "within a one metre sphere"): every keyframe
+    position gets a prior N(centre, sigma^2 I) [m]; null switches it off. centre: ``start``
+    (the known first position) or ``free`` (an unknown centre, estimated)."""
+
+    sigma: PositiveFloat | None = 1.0
+    centre: Literal["start", "free"] = "start"
+
+
+class ImuGPSpec(_Strict):
+    """The field map.
+
+    form: ``reduced_rank`` (Hilbert-space basis on a 3-D box around the IMU-only
+    trajectory), ``exact`` (dense GP over the keyframes; a few hundred at most), or ``none``
+    (no magnetometer: the IMU-only adjustment). sigma_f, lengthscale [m]: a value, or
+    ``estimate`` for the windowed marginal likelihood (paper Eq. 5) on the IMU-only
+    trajectory with the magnetometer rotated into the local frame. sigma_lin: prior standard
+    deviation of a constant field [a.u.] (Earth's). num_basis, margin [m]: as for
+    translational problems (null: frequencies up to 5 / l, at most max_num_basis, margin
+    3 l). The cost of an iteration grows as keyframes x num_basis^2 (the dense weight block
+    and its border in the KKT factorisation): measured 0.9 s at 238 x 773, 13 s at about
+    350 x 2000. max_lengthscale [m]: upper limit on an estimated lengthscale.
+
+    curvature (true, false or auto): add the magnetometer's second-order terms in
+    orientation and position-weight to its Gauss-Newton Hessian
+    (``casmag.imuslam.RotatedFieldGaussNewton``); ``auto``: only when the field varies
+    little (sigma_f / l below 5 sigma_m for curl-free, sigma_f below 5 sigma_m for se),
+    where Gauss-Newton converges linearly along the accelerometer-bias/tilt direction
+    (measured, outdoor one loop: 66 iterations without, 23 with); in a strongly varying
+    field the terms slow convergence from afar (rectangle: 47 iterations without, over 90
+    with) and are left out.
+
+    anneal: factors on sigma_m of successive GP-SLAM passes, each starting from the previous
+    one (a softer magnetometer first widens the basin of the global optimum): measured on
+    the spiral, a single pass stopped in a local minimum (RMSE 0.025 m, cost 485; started
+    from the truth the same problem reaches 0.0019 m, cost 298), passes [4, 1] reach
+    0.0019 m in 34 + 55 iterations.
+
+    refine: further GP-SLAM passes, each with the hyperparameters re-estimated on the
+    previous pass's trajectory (only when some are ``estimate``); default 0: measured on the
+    spiral (single pass before it), it moved the lengthscale from 0.12 to 0.20 m (the value
+    from the true path) but the position RMSE from 0.025 to 0.038 m.
+    """
+
+    form: Literal["reduced_rank", "exact", "none"] = "reduced_rank"
+    kernel: Literal["se", "curl_free"] = "curl_free"
+    sigma_f: PositiveFloat | Literal["estimate"] = "estimate"
+    lengthscale: PositiveFloat | Literal["estimate"] = "estimate"
+    sigma_lin: PositiveFloat = 2.0
+    num_basis: Annotated[int, Field(ge=1, le=5000)] | None = None
+    margin: PositiveFloat | None = None
+    jitter: Annotated[float, Field(ge=0, le=1)] = 1.0e-6
+    max_lengthscale: PositiveFloat = 5.0
+    curvature: bool | Literal["auto"] = "auto"
+    refine: Annotated[int, Field(ge=0, le=5)] = 0
+    anneal: Annotated[list[PositiveFloat], Field(min_length=1, max_length=6)] = [4.0, 1.0]
+    max_num_basis: Annotated[int, Field(ge=1, le=5000)] = 900
+
+
+class MagnetometerModelSpec(_Strict):
+    """Magnetometer noise sigma_m [a.u.] the model assumes (null: truth)."""
+
+    sigma_m: PositiveFloat | None = None
+
+
+class ImuProblemModelSpec(_Strict):
+    """keyframe_rate [Hz]: states are kept at this rate, the IMU increments between them
+    composed (the IMU rate must be a whole multiple); the magnetometer is used at keyframes."""
+
+    keyframe_rate: PositiveFloat = 10.0
+    imu: ImuModelSpec = ImuModelSpec()
+    initial: InitialStateSpec = InitialStateSpec()
+    zero_position: ZeroPositionSpec = ZeroPositionSpec()
+    gp: ImuGPSpec = ImuGPSpec()
+    magnetometer: MagnetometerModelSpec = MagnetometerModelSpec()
+
+
+class ImuProblemSpec(_Strict):
+    seed: int
+    name: str | None = None
+    description: str | None = None
+    simulation: ImuSimulationSpec
+    model: ImuProblemModelSpec = ImuProblemModelSpec()
+    solver: SolverSpec = SolverSpec()
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ImuProblemSpec:
+        sim = self.simulation
+        if sim.imu.levelling_seconds > sim.scenario.static:
+            raise ValueError(
+                f"simulation.imu.levelling_seconds: the attitude is levelled while at rest, so "
+                f"it must not exceed simulation.scenario.static ({sim.scenario.static:g} s), "
+                f"got {sim.imu.levelling_seconds:g} s"
+            )
+        ratio = self.simulation.imu.rate / self.model.keyframe_rate
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(
+                "model.keyframe_rate: must divide simulation.imu.rate "
+                f"({self.simulation.imu.rate:g}"
+                f" Hz) a whole number of times, got {self.model.keyframe_rate:g} Hz"
+            )
+        if self.solver.hessian == "gauss-newton" and self.model.gp.form != "reduced_rank":
+            raise ValueError("solver.hessian: gauss-newton needs model.gp.form: reduced_rank")
+        return self
+
+
+# --------------------------------------------------------------------------- resolved
+@dataclass(frozen=True)
+class ImuProblem:
+    """A validated IMU problem and where it came from, with model values resolved (SI units:
+    rad, rad/s, m/s^2)."""
+
+    spec: ImuProblemSpec
+    source: str = "<dict>"
+
+    @property
+    def name(self) -> str:
+        if self.spec.name:
+            return self.spec.name
+        return Path(self.source).stem if self.source != "<dict>" else "imu"
+
+    @property
+    def substeps(self) -> int:
+        """IMU intervals per keyframe interval."""
+        return round(self.spec.simulation.imu.rate / self.spec.model.keyframe_rate)
+
+    def _resolve(self, value: float | None, truth: float, field: str) -> float:
+        if value is not None:
+            return value
+        if truth <= 0:
+            raise ProblemError(
+                self.source,
+                field,
+                "must be set when the simulated value is 0 (cannot default to it)",
+            )
+        return truth
+
+    @property
+    def gyro_density(self) -> float:
+        """Assumed gyroscope noise density [rad/s/sqrt(Hz)]."""
+        m, s = self.spec.model.imu, self.spec.simulation.imu
+        v = self._resolve(
+            m.gyro_noise_density, s.gyro_noise_density, "model.imu.gyro_noise_density"
+        )
+        return float(np.radians(v))
+
+    @property
+    def acc_density(self) -> float:
+        m, s = self.spec.model.imu, self.spec.simulation.imu
+        return self._resolve(
+            m.acc_noise_density, s.acc_noise_density, "model.imu.acc_noise_density"
+        )
+
+    @property
+    def gyro_walk(self) -> float:
+        """Assumed gyroscope bias random walk [rad/s/sqrt(s)]."""
+        m, s = self.spec.model.imu, self.spec.simulation.imu
+        if m.bias == "constant":
+            return 0.0
+        v = self._resolve(m.gyro_bias_walk, s.gyro_bias_walk, "model.imu.gyro_bias_walk")
+        return float(np.radians(v))
+
+    @property
+    def acc_walk(self) -> float:
+        m, s = self.spec.model.imu, self.spec.simulation.imu
+        if m.bias == "constant":
+            return 0.0
+        return self._resolve(m.acc_bias_walk, s.acc_bias_walk, "model.imu.acc_bias_walk")
+
+    @property
+    def sigma_m(self) -> float:
+        return self._resolve(
+            self.spec.model.magnetometer.sigma_m,
+            self.spec.simulation.magnetometer.noise,
+            "model.magnetometer.sigma_m",
+        )
+
+    def resolve_all(self) -> None:
+        """Resolve every defaulted value now, so a bad file fails before anything is built."""
+        for name in ("gyro_density", "acc_density", "gyro_walk", "acc_walk"):
+            getattr(self, name)
+        if self.spec.model.gp.form != "none":
+            self.sigma_m  # noqa: B018
+
+
+def _is_field(part: Any) -> bool:
+    """Whether a location part names a key or an index, not a union member's type tag
+    (such as ``constrained-float`` or ``literal['estimate']``)."""
+    return isinstance(part, int) or not any(ch in str(part) for ch in "-[]'(")
+
+
+def _validation_error(source: str, err: ValidationError) -> ProblemError:
+    errors = err.errors()
+    first = errors[0]
+    loc = tuple(p for p in first["loc"] if _is_field(p))
+    where = ".".join(str(part) for part in loc)
+    if first["type"] == "extra_forbidden":
+        return ProblemError(source, where, "unknown key")
+    if first["type"] == "missing":
+        return ProblemError(source, where, "required key is missing")
+    # A value that fits none of a union's forms: say what each form wanted.
+    msgs = []
+    for e in errors:
+        if tuple(p for p in e["loc"] if _is_field(p)) == loc:
+            m = e["msg"].removeprefix("Value error, ")
+            if m not in msgs:
+                msgs.append(m)
+    return ProblemError(source, where, f"{' or '.join(msgs)} (got {first.get('input')!r})")
+
+
+def load_imu_problem(
+    problem: str | Path | Mapping[str, Any] | ImuProblem,
+    overrides: Iterable[str] = (),
+    source: str | None = None,
+) -> ImuProblem:
+    """Load and validate an IMU problem from a YAML path, a dictionary or an ImuProblem,
+    with ``key.path=value`` overrides (YAML values) applied before validation."""
+    if isinstance(problem, ImuProblem):
+        if not overrides:
+            return problem
+        data, src = problem.spec.model_dump(mode="python"), problem.source
+    elif isinstance(problem, Mapping):
+        data, src = dict(problem), source or "<dict>"
+    else:
+        path = Path(problem)
+        data, src = read_yaml(path), source or str(path)
+    data = apply_overrides(data, overrides, src)
+    try:
+        spec = ImuProblemSpec.model_validate(data)
+    except ValidationError as err:
+        raise _validation_error(src, err) from None
+    out = ImuProblem(spec=spec, source=src)
+    out.resolve_all()
+    return out

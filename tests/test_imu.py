@@ -1,0 +1,355 @@
+"""IMU problems: physical field, simulator, problem files, the Gauss-Newton Hessian of the
+rotated magnetometer, the noise-free problem, and the command."""
+
+import json
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from casmag import strapdown as sd
+from casmag.dipoles import Dipole, DipoleField, earth_field, moment_for
+from casmag.errors import ProblemError
+from casmag.imucli import imu_command
+from casmag.imuconfig import load_imu_problem
+from casmag.imusim import exact_increments, simulate_imu
+from casmag.imuslam import (
+    GaussNewtonBuilder,
+    _add_reduced_rank_map,
+    _gauss_newton_for,
+    imu_rotation_function,
+    solve_imu,
+)
+from casmag.reduced_rank import Domain, HilbertBasis
+
+ROOT = Path(__file__).resolve().parents[1]
+IMU_FILES = sorted((ROOT / "problems/imu").glob("*.yaml"))
+
+
+def _tiny(**model):
+    """A 4-second rectangle on a desk with one dipole: a few dozen keyframes."""
+    data = {
+        "seed": 11,
+        "simulation": {
+            "scenario": {
+                "kind": "rectangle",
+                "size": [0.12, 0.08],
+                "loops": 1,
+                "static": 0.5,
+                "speed": 0.12,
+            },
+            "field": {"dipoles": [{"position": [0.25, 0.0, -0.1], "moment": [2e-3, 1e-3, -3e-3]}]},
+        },
+        "model": {"keyframe_rate": 5.0, **model},
+        "solver": {"max_iter": 100, "tol": 1e-5},
+    }
+    return data
+
+
+def _noise_free(data, biases=True):
+    imu = {
+        "gyro_noise_density": 0.0,
+        "acc_noise_density": 0.0,
+        "gyro_bias_walk": 0.0,
+        "acc_bias_walk": 0.0,
+    }
+    if not biases:
+        imu.update(gyro_bias=[0.0, 0.0, 0.0], acc_bias=[0.0, 0.0, 0.0])
+    data["simulation"]["imu"] = imu
+    data["simulation"]["magnetometer"] = {"noise": 0.0}
+    data["model"]["imu"] = {
+        "gyro_noise_density": 1e-3,
+        "acc_noise_density": 1e-4,
+        "gyro_bias_walk": 1e-5,
+        "acc_bias_walk": 1e-6,
+    }
+    data["model"]["magnetometer"] = {"sigma_m": 1e-3}
+    data["model"]["zero_position"] = {"sigma": None}
+    return data
+
+
+# --------------------------------------------------------------------------- physics
+def test_dipole_field_is_curl_and_divergence_free():
+    rng = np.random.default_rng(0)
+    field = DipoleField(
+        earth=earth_field(),
+        dipoles=(
+            Dipole(np.array([0.3, 0.1, -0.2]), np.array([1e-3, -2e-3, 3e-3])),
+            Dipole(np.array([-0.2, 0.4, 0.0]), np.array([4e-3, 1e-3, 0.0])),
+        ),
+    )
+    X = rng.uniform(-0.1, 0.1, (20, 3))
+    J = field.jacobian(X, h=1e-5)
+    scale = np.abs(J).max()
+    assert scale > 1.0  # the dipoles make the field vary
+    np.testing.assert_allclose(np.trace(J, axis1=1, axis2=2), 0.0, atol=1e-6 * scale)
+    np.testing.assert_allclose(J - J.transpose(0, 2, 1), 0.0, atol=1e-6 * scale)
+
+
+def test_dipole_strength_and_earth_field():
+    m = moment_for(0.5, 0.2, [0.0, 0.0, 1.0])
+    d = Dipole(np.zeros(3), m)
+    np.testing.assert_allclose(d.field(np.array([[0.0, 0.0, 0.2]]))[0], [0, 0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(d.field(np.array([[0.2, 0.0, 0.0]]))[0], [0, 0, -0.25], atol=1e-12)
+    e = earth_field(67.0, 0.0)
+    assert np.linalg.norm(e) == pytest.approx(1.0)
+    assert e[2] < 0 and e[1] > 0 and abs(e[0]) < 1e-12  # north and down
+
+
+# --------------------------------------------------------------------------- simulator
+def test_exact_increments_integrate_to_the_truth():
+    p = load_imu_problem(_tiny())
+    d = simulate_imu(p)
+    tr = d.truth
+    dq, dv = exact_increments(tr)
+    P, V, Q = sd.strapdown(tr.P[0], tr.V[0], tr.Q[0], dq, dv, d.T)
+    np.testing.assert_allclose(P, tr.P, atol=1e-10)
+    np.testing.assert_allclose(V, tr.V, atol=1e-12)
+    assert sd.quat_angle(Q, tr.Q).max() < 1e-10
+    # Measured increments carry the biases: removing the true ones gives the truth again
+    # up to the white noise.
+    P2, _, _ = sd.strapdown(tr.P[0], tr.V[0], tr.Q[0], d.dq, d.dv, d.T, d.b_w[:-1], d.b_a[:-1])
+    P3, _, _ = sd.strapdown(tr.P[0], tr.V[0], tr.Q[0], d.dq, d.dv, d.T)
+    assert np.abs(P2 - tr.P).max() < 0.1 * np.abs(P3 - tr.P).max()
+
+
+def test_noise_free_sensors_and_levelling():
+    p = load_imu_problem(_noise_free(_tiny(), biases=False))
+    d = simulate_imu(p)
+    dq, dv = exact_increments(d.truth)
+    np.testing.assert_allclose(d.dq, dq, atol=1e-15)
+    np.testing.assert_allclose(d.dv, dv, atol=1e-15)
+    assert sd.quat_angle(d.q0, d.truth.Q[0]) < 1e-9
+    np.testing.assert_allclose(d.Y, sd.rotate(sd.quat_conj(d.truth.Q), d.M), atol=1e-12)
+    # An accelerometer bias tilts the levelled attitude by about b / g.
+    biased = _noise_free(_tiny(), biases=False)
+    biased["simulation"]["imu"]["acc_bias"] = [0.0981, 0.0, 0.0]
+    d2 = simulate_imu(load_imu_problem(biased))
+    assert np.degrees(sd.quat_angle(d2.q0, d2.truth.Q[0])) == pytest.approx(
+        np.degrees(0.01), rel=0.01
+    )
+
+
+def test_seed_and_independent_streams():
+    a = simulate_imu(load_imu_problem(_tiny()))
+    b = simulate_imu(load_imu_problem(_tiny()))
+    np.testing.assert_array_equal(a.dq, b.dq)
+    np.testing.assert_array_equal(a.Y, b.Y)
+    c = simulate_imu(load_imu_problem(_tiny(), ["simulation.magnetometer.noise=0.01"]))
+    np.testing.assert_array_equal(a.dq, c.dq)
+    np.testing.assert_array_equal(a.dv, c.dv)
+    assert not np.array_equal(a.Y, c.Y)
+    d = simulate_imu(load_imu_problem(_tiny(), ["seed=12"]))
+    assert not np.array_equal(a.dv, d.dv)
+
+
+@pytest.mark.parametrize("path", IMU_FILES, ids=lambda p: p.name)
+def test_problem_files_load_and_simulate(path):
+    p = load_imu_problem(path)
+    d = simulate_imu(p)
+    assert d.n_samples > 1000 and np.all(np.isfinite(d.Y))
+    assert p.substeps * p.spec.model.keyframe_rate == pytest.approx(p.spec.simulation.imu.rate)
+
+
+# --------------------------------------------------------------------------- problem files
+@pytest.mark.parametrize(
+    ("override", "field", "reason"),
+    [
+        ("model.unknown=1", "model.unknown", "unknown key"),
+        ("model.keyframe_rate=30", "model.keyframe_rate", "whole number"),
+        ("simulation.scenario.kind=circle", "simulation.scenario", "kind"),
+        ("simulation.imu.gyro_bias=[1, 2]", "simulation.imu.gyro_bias", "at least 3"),
+        ("simulation.imu.gyro_noise_density=0", "model.imu.gyro_noise_density", "must be set"),
+        ("model.gp.sigma_f=guess", "model.gp.sigma_f", "estimate"),
+        ("simulation.imu.levelling_seconds=2", "levelling_seconds", "at rest"),
+    ],
+)
+def test_bad_problem_is_one_line_naming_the_field(override, field, reason):
+    with pytest.raises(ProblemError) as err:
+        load_imu_problem(_tiny(), [override])
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith("<dict>: ") and field in msg and reason in msg
+
+
+def test_handwriting_letters_are_checked():
+    data = _tiny()
+    data["simulation"]["scenario"] = {"kind": "handwriting", "word": "maq"}
+    with pytest.raises(ProblemError, match=r"simulation\.scenario\.handwriting.*'q'"):
+        load_imu_problem(data)
+
+
+# --------------------------------------------------------------------------- Gauss-Newton
+def _rotated_map_problem(kernel, rng, residual):
+    """A small rotated-magnetometer block, its Hessian callback, a point and data; the data
+    fit exactly when ``residual`` is 0, else carry that much noise."""
+    n = 6
+    basis = HilbertBasis(Domain(np.zeros(3), np.array([0.5, 0.5, 0.4])), 20)
+    b = GaussNewtonBuilder()
+    P = b.variable("P", (n, 3))
+    D = b.variable("D", (n, 3))
+    RNOM = b.parameter("RNOM", (n, 9))
+    rot = imu_rotation_function()
+    _add_reduced_rank_map(b, basis, kernel, P, D, RNOM, rot, n, 3)
+    _, gn = _gauss_newton_for(b, basis, kernel, rot, n, 3, "D", "RNOM")
+    x = ca.vertcat(*[ca.vec(s) for s in b._x.symbols])
+    p = ca.vertcat(*[ca.vec(s) for s in b._p.symbols])
+    vals = {
+        "P": 0.2 * rng.standard_normal((n, 3)),
+        "D": 0.3 * rng.standard_normal((n, 3)),
+        "W": rng.standard_normal((20, 3) if kernel == "se" else (20, 1)),
+        "c": rng.standard_normal((3, 1)),
+    }
+    Qn = sd.quat_exp(rng.standard_normal((n, 3)))
+    rnom = sd.quat_to_rotmat(Qn).transpose(0, 2, 1).reshape(n, 9)
+    f = basis.field_sx(kernel, position_dim=3)
+    Y = np.zeros((n, 3))
+    for k in range(n):
+        R = sd.quat_to_rotmat(sd.quat_mul(Qn[k], sd.gibbs_quat(vals["D"][k])))
+        Y[k] = R.T @ np.asarray(f(vals["P"][k], vals["W"], vals["c"])).ravel()
+    Y += residual * rng.standard_normal(Y.shape)
+    pv = b._p.pack(
+        {
+            "RNOM": rnom,
+            "Y": Y,
+            "sigma_m": 0.05,
+            "sigma_f": 1.0,
+            "lengthscale": 0.2,
+            "sigma_lin": 1.0,
+        }
+    )
+    xv = b._x.pack(vals)
+    H_exact = ca.Function("h", [x, p], [ca.triu(ca.hessian(b.blocks["magnetometer"], x)[0])])
+    He = np.asarray(ca.densify(H_exact(xv, pv)))
+    Hg = np.asarray(ca.densify(gn(xv, pv, 1.0, ca.DM(0, 1))))
+    return b, He, Hg
+
+
+@pytest.mark.parametrize("kernel", ["curl_free", "se"])
+def test_rotated_gauss_newton_equals_exact_hessian_at_zero_residual(kernel):
+    """Where every residual is zero the Gauss-Newton Hessian is the exact Hessian."""
+    _, He, Hg = _rotated_map_problem(kernel, np.random.default_rng(4), residual=0.0)
+    assert np.abs(He).max() > 1.0
+    np.testing.assert_allclose(Hg, He, atol=1e-8 * np.abs(He).max())
+
+
+@pytest.mark.parametrize("kernel", ["curl_free", "se"])
+def test_rotation_curvature_terms_are_exact(kernel):
+    """With noisy data the callback's rows and columns of the orientation unknowns and its
+    position-weight block equal the exact Hessian's; only the field's curvature in position
+    is left out, so the position-position block differs (the comparison can fail)."""
+    b, He, Hg = _rotated_map_problem(kernel, np.random.default_rng(5), residual=0.3)
+    n = 6
+    d_idx = b.offset("D") + np.arange(3 * n)
+    p_idx = b.offset("P") + np.arange(3 * n)
+    scale = np.abs(He).max()
+    Hs_e, Hs_g = He + np.triu(He, 1).T, Hg + np.triu(Hg, 1).T
+    np.testing.assert_allclose(Hs_g[d_idx], Hs_e[d_idx], atol=1e-8 * scale)
+    w_idx = b.offset("W") + np.arange(60 if kernel == "se" else 20)
+    np.testing.assert_allclose(
+        Hs_g[np.ix_(p_idx, w_idx)], Hs_e[np.ix_(p_idx, w_idx)], atol=1e-8 * scale
+    )
+    assert np.abs(Hs_g[np.ix_(p_idx, p_idx)] - Hs_e[np.ix_(p_idx, p_idx)]).max() > 1e-4 * scale
+
+
+# --------------------------------------------------------------------------- solves
+def test_noise_free_imu_only_returns_the_truth():
+    """No noise, no biases, no zero-position update: the truth zeroes every residual."""
+    data = _noise_free(_tiny(gp={"form": "none"}), biases=False)
+    r = solve_imu(load_imu_problem(data))
+    assert r.success, r.status
+    a = r.arrays
+    np.testing.assert_allclose(a["P_estimate"], a["P_true"], atol=1e-6)
+    assert a["att_err_imu_only_deg"].max() < 1e-4
+    assert r.errors["strapdown"]["rmse"] < 1e-9  # exact increments integrate to the truth
+
+
+@pytest.mark.slow
+def test_rectangle_meets_the_done_criteria():
+    """problems/imu/rectangle.yaml (about a minute): GP-SLAM error at most 1/5 of the
+    strapdown's and of the IMU-only adjustment's, gyroscope biases within 20 % (or
+    0.01 deg/s), at most 150 IPOPT iterations per GP-SLAM pass."""
+    r = solve_imu(load_imu_problem(ROOT / "problems/imu/rectangle.yaml"))
+    assert r.success, r.status
+    e = r.errors
+    assert e["gp_slam"]["rmse"] <= 0.2 * e["strapdown"]["rmse"]
+    assert e["gp_slam"]["rmse"] <= 0.2 * e["imu_only"]["rmse"]
+    assert all(p["iterations"] <= 150 for p in r.gp_slam_passes)
+    true, est = np.array(r.biases["gyro"]["truth"]), np.array(r.biases["gyro"]["gp_slam"])
+    assert np.all(np.abs(est - true) <= np.maximum(0.2 * np.abs(true), 0.01))
+
+
+# --------------------------------------------------------------------------- command
+def _write(tmp_path, data):
+    import yaml
+
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_command_writes_outputs(tmp_path):
+    data = _tiny(gp={"sigma_f": 0.3, "lengthscale": 0.2, "num_basis": 60})
+    out = tmp_path / "out"
+    res = CliRunner().invoke(imu_command, [str(_write(tmp_path, data)), "--out", str(out), "-q"])
+    assert res.exit_code == 0, res.output
+    r = json.loads((out / "result.json").read_text())
+    assert r["success"] is True and r["info"]["num_basis"] == 60
+    for name in ("trajectory.csv", "trajectory.png", "cost.png", "biases.md"):
+        assert (out / name).stat().st_size > 0
+    assert r["errors"]["gp_slam"]["rmse"] < r["errors"]["strapdown"]["rmse"]
+    assert "| Z |" in (out / "biases.md").read_text()
+
+
+def test_command_bad_input_exit_2_and_nothing_written(tmp_path):
+    out = tmp_path / "out"
+    res = CliRunner().invoke(
+        imu_command, [str(_write(tmp_path, _tiny())), "--out", str(out), "--set", "model.x=1"]
+    )
+    assert res.exit_code == 2
+    assert "model.x: unknown key" in res.output and res.output.count("\n") == 1
+    assert not out.exists()
+
+
+def test_command_solver_failure_exit_1_recorded(tmp_path):
+    data = _tiny(gp={"sigma_f": 0.3, "lengthscale": 0.2, "num_basis": 40})
+    out = tmp_path / "out"
+    res = CliRunner().invoke(
+        imu_command,
+        [str(_write(tmp_path, data)), "--out", str(out), "-q", "--set", "solver.max_iter=2"],
+    )
+    assert res.exit_code == 1
+    assert "Maximum_Iterations_Exceeded" in res.output
+    r = json.loads((out / "result.json").read_text())
+    assert r["success"] is False and r["errors"]["gp_slam"]["rmse"] is None
+
+
+# --------------------------------------------------------------------------- planar model
+def test_planar_recording_with_heading_rate_bias(tmp_path):
+    """Planar odometry with a 0.5 deg/s heading-rate bias, written as a recording and read
+    back: GP-SLAM recovers the bias and cuts the position and heading errors."""
+    from casmag.imusim import dipole_field, simulate_planar
+    from casmag.imuslam import PlanarOptions, solve_planar_recording
+    from casmag.recording import write_recording
+
+    field = dipole_field(
+        1.0,
+        67.0,
+        2.0,
+        [
+            ("radiator", [1.9, 0.3, 0.2], [0.08, -0.04, 0.05]),
+            ("cabinet", [-0.4, 1.5, 0.3], [-0.05, 0.08, 0.06]),
+            ("rebar", [0.3, -0.3, -0.5], [0.03, 0.05, -0.12]),
+            ("rebar", [-1.0, -0.6, -0.5], [-0.06, 0.02, -0.1]),
+        ],
+    )
+    d = simulate_planar(1, field, size=(2.0, 1.5), loops=2, heading_bias_deg=0.5, disp_noise=0.002)
+    path = tmp_path / "planar.csv"
+    write_recording(path, d.t, d.Y, planar=d.U, P_true=d.P, yaw_true=d.psi)
+    opts = PlanarOptions(sigma_disp=0.002, sigma_dyaw=float(np.radians(0.05)), num_basis=120)
+    r = solve_planar_recording(path, opts)
+    assert r.success, r.status
+    assert r.rmse_after <= 0.35 * r.rmse_before
+    assert r.heading_rms_deg_after <= 0.2 * r.heading_rms_deg_before
+    assert r.bias[0] == pytest.approx(d.bias, rel=0.1)
