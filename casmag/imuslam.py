@@ -36,7 +36,6 @@ dyaw), a heading-rate bias (constant or random walk) and y = Rz(psi)^T (m(x) + c
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -54,7 +53,7 @@ from casmag.hyper import estimate_hyperparameters
 from casmag.imuconfig import ImuProblem, load_imu_problem
 from casmag.imusim import ImuData, simulate_imu
 from casmag.kernels import FIELD_DIM, get_kernel
-from casmag.nlp import NLP, NLPBuilder, Solution, _Progress
+from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.reduced_rank import Domain, HilbertBasis
 from casmag.rrmap import field_and_jacobians, make_basis
 
@@ -94,56 +93,19 @@ class GaussNewtonBuilder(NLPBuilder):
     def build_gauss_newton(
         self, solver: SolverSpec, name: str, callbacks: dict[str, ca.Function] | None = None
     ) -> NLP:
-        """Build with Gauss-Newton Hessians for the residual blocks and the callbacks'
-        blocks (by name); solver.hessian ``exact`` or ``limited-memory`` uses IPOPT's usual
-        Hessian for everything instead (callbacks unused)."""
+        """Build with Gauss-Newton Hessians for the residual blocks and the callback's
+        block (by name, one at most); solver.hessian ``exact`` or ``limited-memory`` uses
+        IPOPT's usual Hessian for everything instead (callbacks unused)."""
         callbacks = callbacks or {}
-        if solver.hessian not in ("auto", "gauss-newton"):
-            return self.build(solver, name=name)
-        t0 = time.perf_counter()
-        x, p = self._x.vector(), self._p.vector()
-        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 0)
-        special = set(self.residuals) | set(callbacks)
-        others = sum((e for n, e in self.blocks.items() if n not in special), ca.MX(0))
-        H = ca.triu(ca.hessian(others, x)[0])
-        for r in self.residuals.values():
-            J = ca.jacobian(r, x)
-            H = H + ca.triu(ca.mtimes(J.T, J))
-        for cb in callbacks.values():
-            H = H + cb(x, p, lam_f, lam_g)
-        opts: dict[str, Any] = {
-            "ipopt.max_iter": solver.max_iter,
-            "ipopt.tol": solver.tol,
-            "ipopt.print_level": solver.print_level,
-            "ipopt.linear_solver": solver.linear_solver,
-            "ipopt.hessian_approximation": "exact",
-            "ipopt.sb": "yes",
-            "print_time": False,
-            "hess_lag": ca.Function(
-                "hess_lag", [x, p, lam_f, lam_g], [lam_f * H], ["x", "p", "lam_f", "lam_g"],
-                ["triu_hess_gamma_x_x"],
-            ),
-        }  # fmt: skip
-        opts.update({f"ipopt.{k}": v for k, v in solver.ipopt.items()})
-        progress = _Progress(self._x.size, self._p.size)
-        opts["iteration_callback"] = progress
-        f = sum(self.blocks.values(), ca.MX(0))
-        ipopt = ca.nlpsol(name, "ipopt", {"x": x, "p": p, "f": f}, opts)
-        names = list(self.blocks)
-        blocks = ca.Function(f"{name}_blocks", [x, p], [self.blocks[n] for n in names])
         if len(callbacks) > 1:
             raise ValueError("one Gauss-Newton callback at most")
-        return NLP(
-            solver=ipopt,
-            keep=next(iter(callbacks.items()), None),  # (block, callback), as NLPBuilder's
-            progress=progress,
-            block_names=names,
-            blocks_fn=blocks,
-            x_layout=self._x,
-            p_layout=self._p,
-            lbx=self._x.pack(self._lbx),
-            ubx=self._x.pack(self._ubx),
-            build_seconds=time.perf_counter() - t0,
+        if solver.hessian not in ("auto", "gauss-newton"):
+            return self.build(solver, name=name)
+        return self.build(
+            solver,
+            name=name,
+            gauss_newton=next(iter(callbacks.items()), None),
+            residuals=self.residuals,
         )
 
 

@@ -176,12 +176,14 @@ class NLPBuilder:
         solver: SolverSpec,
         name: str = "casmag",
         gauss_newton: tuple[str, ca.Function] | None = None,
+        residuals: Mapping[str, ca.MX] | None = None,
     ) -> NLP:
         """Create the IPOPT solver once; returns an NLP that can be solved many times.
 
         gauss_newton: (block name, function (x, p, lam_f, lam_g) -> upper-triangular Hessian
-        of that block). IPOPT then gets that Hessian plus CasADi's exact Hessian of all other
-        blocks through ``hess_lag``.
+        of that block). residuals: {block name: residual vector r} of blocks 0.5 |r|^2 whose
+        Hessian is taken as J^T J (symbolic, sparse). IPOPT then gets these plus CasADi's
+        exact Hessian of all other blocks through ``hess_lag``.
         """
         t0 = time.perf_counter()
         x, p = self._x.vector(), self._p.vector()
@@ -197,11 +199,17 @@ class NLPBuilder:
             "ipopt.sb": "yes",  # no IPOPT banner
             "print_time": False,
         }
-        if gauss_newton is not None and hessian == "exact":
-            block, gn = gauss_newton
-            others = sum((e for n, e in self.blocks.items() if n != block), ca.MX(0))
+        residuals = dict(residuals or {})
+        if (gauss_newton is not None or residuals) and hessian == "exact":
+            special = set(residuals) | ({gauss_newton[0]} if gauss_newton else set())
+            others = sum((e for n, e in self.blocks.items() if n not in special), ca.MX(0))
             lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 0)
-            H = ca.triu(ca.hessian(others, x)[0]) + gn(x, p, lam_f, lam_g)
+            H = ca.triu(ca.hessian(others, x)[0])
+            for r in residuals.values():
+                J = ca.jacobian(r, x)
+                H = H + ca.triu(ca.mtimes(J.T, J))
+            if gauss_newton is not None:
+                H = H + gauss_newton[1](x, p, lam_f, lam_g)
             opts["hess_lag"] = ca.Function(
                 "hess_lag",
                 [x, p, lam_f, lam_g],
