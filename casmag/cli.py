@@ -131,8 +131,9 @@ def slam(
     """GP-SLAM on RECORDING (CSV: t, motion increments, mx,my,mz, optional truth).
 
     Defaults: reduced-rank map, hyperparameters from the data's marginal likelihood,
-    odometry noise 2 % of the median step, one trajectory knot per second, growing warm
-    starts. Writes result.json, trajectory.csv, trajectory.png, cost.png and map.png.
+    odometry noise 2 % of the median step, one trajectory knot per second (per 5 s above
+    20,000 samples), growing warm starts. Writes result.json, trajectory.csv,
+    trajectory.png, cost.png and map.png.
     """
     from casmag.api import slam as run_slam
 
