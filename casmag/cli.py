@@ -6,31 +6,25 @@ Exit codes: 0 success; 1 the solver failed (IPOPT's status is printed and record
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import click
 
+from casmag.clitools import (
+    EXIT_BAD_INPUT,
+    EXIT_SOLVER_FAILED,
+    fail,
+    fail_bad_input,
+    output_options,
+    print_progress,
+)
 from casmag.errors import CasmagError
 from casmag.imucli import imu_command
 from casmag.sweep import sweep_command
 
 if TYPE_CHECKING:
     from casmag.result import Result
-
-EXIT_SOLVER_FAILED = 1
-EXIT_BAD_INPUT = 2
-
-
-def _fail(message: str, code: int) -> None:
-    click.echo(f"casmag: error: {message}", err=True)
-    sys.exit(code)
-
-
-def _print_progress(k: int, cost: float, step: float, seconds: float) -> None:
-    # Unconstrained NLPs: the constraint violation is always 0, so the step is shown instead.
-    click.echo(f"  iter {k:4d}  cost {cost:.6e}  step {step:.2e}  {seconds:7.2f} s", err=True)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -41,22 +35,7 @@ def main() -> None:
 
 @main.command()
 @click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
-@click.option(
-    "--out",
-    "out_dir",
-    required=True,
-    type=click.Path(file_okay=False, path_type=Path),
-    help="Output folder (replaced atomically).",
-)
-@click.option(
-    "--set",
-    "overrides",
-    multiple=True,
-    metavar="KEY.PATH=VALUE",
-    help="Override a problem-file value (YAML syntax); repeatable.",
-)
-@click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
-@click.option("--quiet", "-q", is_flag=True, help="No progress lines, nothing on success.")
+@output_options
 def run(
     problem: Path, out_dir: Path, overrides: tuple[str, ...], no_figures: bool, quiet: bool
 ) -> None:
@@ -66,22 +45,19 @@ def run(
 
     try:
         prob = load_problem(problem, overrides)
-        result = solve(prob, progress=None if quiet else _print_progress)
+        result = solve(prob, progress=None if quiet else print_progress)
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
-        _fail(str(exc), EXIT_BAD_INPUT)
+        fail(str(exc), EXIT_BAD_INPUT)
     except (ValueError, RuntimeError) as exc:
-        _fail(
-            f"{problem}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
-            EXIT_BAD_INPUT,
-        )
+        fail_bad_input(problem, exc)
     _finish(result, problem, out_dir, quiet)
 
 
 def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
     """Exit 1 with IPOPT's status when the solve failed, else print the summary."""
     if not result.success:
-        _fail(
+        fail(
             f"{source}: IPOPT failed: status {result.status} after {result.iterations} iterations "
             f"(recorded in {out_dir / 'result.json'})",
             EXIT_SOLVER_FAILED,
@@ -102,24 +78,13 @@ def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
 
 @main.command()
 @click.argument("recording", type=click.Path(dir_okay=False, path_type=Path))
-@click.option(
-    "--out",
-    "out_dir",
-    required=True,
-    type=click.Path(file_okay=False, path_type=Path),
-    help="Output folder (written atomically).",
-)
+@output_options
 @click.option(
     "--problem",
     "problem",
     type=click.Path(dir_okay=False, path_type=Path),
     help="Problem file whose model and solver sections override the defaults.",
 )
-@click.option(
-    "--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override a problem key."
-)
-@click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
-@click.option("--quiet", "-q", is_flag=True, help="No progress lines, nothing on success.")
 def slam(
     recording: Path,
     out_dir: Path,
@@ -138,17 +103,12 @@ def slam(
     from casmag.api import slam as run_slam
 
     try:
-        result = run_slam(
-            recording, problem, overrides, progress=None if quiet else _print_progress
-        )
+        result = run_slam(recording, problem, overrides, progress=None if quiet else print_progress)
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
-        _fail(str(exc), EXIT_BAD_INPUT)
+        fail(str(exc), EXIT_BAD_INPUT)
     except (ValueError, RuntimeError) as exc:
-        _fail(
-            f"{recording}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
-            EXIT_BAD_INPUT,
-        )
+        fail_bad_input(recording, exc)
     _finish(result, recording, out_dir, quiet)
 
 
@@ -176,7 +136,7 @@ def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool) -> 
             return
         write_report(tables, out_file, figures=not no_figures)
     except CasmagError as exc:
-        _fail(str(exc), EXIT_BAD_INPUT)
+        fail(str(exc), EXIT_BAD_INPUT)
 
 
 main.add_command(sweep_command)

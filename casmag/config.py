@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import copy
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import yaml
 from pydantic import (
@@ -410,6 +410,31 @@ def read_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
+SpecT = TypeVar("SpecT", bound=BaseModel)
+
+
+def validate_spec(
+    spec_class: type[SpecT],
+    problem: str | Path | Mapping[str, Any],
+    overrides: Iterable[str] = (),
+    source: str | None = None,
+    to_error: Callable[[str, ValidationError], ProblemError] | None = None,
+) -> tuple[SpecT, str]:
+    """Read a YAML path (or take a dictionary), apply ``key.path=value`` overrides and
+    validate against ``spec_class``. Returns the spec and its source name; raises
+    ProblemError naming the file, the key and the reason (worded by ``to_error``)."""
+    if isinstance(problem, Mapping):
+        data, src = dict(problem), source or "<dict>"
+    else:
+        path = Path(problem)
+        data, src = read_yaml(path), source or str(path)
+    data = apply_overrides(data, overrides, src)
+    try:
+        return spec_class.model_validate(data), src
+    except ValidationError as err:
+        raise (to_error or _validation_error)(src, err) from None
+
+
 def load_problem(
     problem: str | Path | Mapping[str, Any] | Problem,
     overrides: Iterable[str] = (),
@@ -422,16 +447,7 @@ def load_problem(
     """
     if isinstance(problem, Problem):
         return problem.with_overrides(overrides) if overrides else problem
-    if isinstance(problem, Mapping):
-        data, src = dict(problem), source or "<dict>"
-    else:
-        path = Path(problem)
-        data, src = read_yaml(path), source or str(path)
-    data = apply_overrides(data, overrides, src)
-    try:
-        spec = ProblemSpec.model_validate(data)
-    except ValidationError as err:
-        raise _validation_error(src, err) from None
+    spec, src = validate_spec(ProblemSpec, problem, overrides, source)
     problem_obj = Problem(spec=spec, source=src)
     # Resolve defaults that can fail now, before anything is built.
     problem_obj.assumed_sigma_m  # noqa: B018

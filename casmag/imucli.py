@@ -8,44 +8,24 @@ reason; nothing is written).
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import click
 
+from casmag.clitools import (
+    EXIT_BAD_INPUT,
+    EXIT_SOLVER_FAILED,
+    fail,
+    fail_bad_input,
+    output_options,
+    print_progress,
+)
 from casmag.errors import CasmagError
-
-EXIT_SOLVER_FAILED = 1
-EXIT_BAD_INPUT = 2
-
-
-def _fail(message: str, code: int) -> None:
-    click.echo(f"casmag: error: {message}", err=True)
-    sys.exit(code)
-
-
-def _print_progress(k: int, cost: float, step: float, seconds: float) -> None:
-    click.echo(f"  iter {k:4d}  cost {cost:.6e}  step {step:.2e}  {seconds:7.2f} s", err=True)
 
 
 @click.command("imu")
 @click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
-@click.option(
-    "--out",
-    "out_dir",
-    required=True,
-    type=click.Path(file_okay=False, path_type=Path),
-    help="Output folder (replaced atomically).",
-)
-@click.option(
-    "--set",
-    "overrides",
-    multiple=True,
-    metavar="KEY.PATH=VALUE",
-    help="Override a problem-file value (YAML syntax); repeatable.",
-)
-@click.option("--no-figures", is_flag=True, help="Skip the PNG figures.")
-@click.option("--quiet", "-q", is_flag=True, help="No progress lines, nothing on success.")
+@output_options
 def imu_command(
     problem: Path, out_dir: Path, overrides: tuple[str, ...], no_figures: bool, quiet: bool
 ) -> None:
@@ -56,16 +36,15 @@ def imu_command(
 
     try:
         prob = load_imu_problem(problem, overrides)
-        result = solve_imu(prob, progress=None if quiet else _print_progress)
+        result = solve_imu(prob, progress=None if quiet else print_progress)
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
-        _fail(str(exc), EXIT_BAD_INPUT)
+        fail(str(exc), EXIT_BAD_INPUT)
     except (ValueError, RuntimeError) as exc:
-        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        _fail(f"{problem}: {text}", EXIT_BAD_INPUT)
+        fail_bad_input(problem, exc)
     if not result.success:
         stage = "IMU-only adjustment" if result.failed_stage == "imu_only" else "GP-SLAM"
-        _fail(
+        fail(
             f"{problem}: IPOPT failed in the {stage}: status {result.status} after "
             f"{result.iterations} iterations (recorded in {out_dir / 'result.json'})",
             EXIT_SOLVER_FAILED,

@@ -20,7 +20,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from casmag.config import SolverSpec, apply_overrides, read_yaml
+from casmag.config import SolverSpec, validate_spec
 from casmag.errors import ProblemError
 
 PositiveFloat = Annotated[float, Field(gt=0)]
@@ -392,17 +392,8 @@ def load_imu_problem(
     if isinstance(problem, ImuProblem):
         if not overrides:
             return problem
-        data, src = problem.spec.model_dump(mode="python"), problem.source
-    elif isinstance(problem, Mapping):
-        data, src = dict(problem), source or "<dict>"
-    else:
-        path = Path(problem)
-        data, src = read_yaml(path), source or str(path)
-    data = apply_overrides(data, overrides, src)
-    try:
-        spec = ImuProblemSpec.model_validate(data)
-    except ValidationError as err:
-        raise _validation_error(src, err) from None
+        problem, source = problem.spec.model_dump(mode="python"), problem.source
+    spec, src = validate_spec(ImuProblemSpec, problem, overrides, source, _validation_error)
     out = ImuProblem(spec=spec, source=src)
     out.resolve_all()
     return out

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import click
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from casmag.clitools import EXIT_BAD_INPUT, EXIT_SOLVER_FAILED, fail
 from casmag.config import Problem, load_problem, parse_override, read_yaml
 from casmag.errors import CasmagError, ProblemError, one_line
 from casmag.paper import TABLES
@@ -664,11 +665,6 @@ def run_sweeps(
 
 
 # --------------------------------------------------------------------------- command line
-def _fail(message: str, code: int) -> None:
-    click.echo(f"casmag: error: {message}", err=True)
-    sys.exit(code)
-
-
 @click.command("sweep")
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
@@ -750,11 +746,11 @@ def sweep_command(
                 p.out_dir = out_dir / p.name
         summary = run_sweeps(plans, jobs, scheduler, figures, rerun, progress=not quiet)
     except SweepAborted as exc:
-        _fail(f"{exc}; rerun the same command to resume", 1)
+        fail(f"{exc}; rerun the same command to resume", EXIT_SOLVER_FAILED)
     except CasmagError as exc:
-        _fail(str(exc), 2)
+        fail(str(exc), EXIT_BAD_INPUT)
     except KeyboardInterrupt:
-        _fail("interrupted; saved runs are kept, rerun the same command to resume", 130)
+        fail("interrupted; saved runs are kept, rerun the same command to resume", 130)
     if not quiet:
         line = (
             f"{summary.planned} runs: {summary.skipped} already saved, {summary.solved} solved, "
