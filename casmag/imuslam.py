@@ -55,7 +55,7 @@ from casmag.imusim import ImuData, simulate_imu
 from casmag.kernels import FIELD_DIM, get_kernel
 from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.reduced_rank import Domain, HilbertBasis
-from casmag.rrmap import field_and_jacobians, make_basis
+from casmag.rrmap import HessianCallback, field_and_jacobians, make_basis
 
 Progress = Callable[[int, float, float, float], None]
 
@@ -146,7 +146,7 @@ class RotatedMapLayout:
     Y: int | None = None
 
 
-class RotatedFieldGaussNewton(ca.Callback):
+class RotatedFieldGaussNewton(HessianCallback):
     """Gauss-Newton Hessian (upper triangle, not scaled by lam_f) of
 
         0.5 sum_k |(y_k - R(o_k)^T (m(p_k) + c)) / sigma_m|^2
@@ -225,46 +225,8 @@ class RotatedFieldGaussNewton(ca.Callback):
                     add(local[:, i], lay.c + b)
                 add(widx, lay.c + b)
                 add(np.array([lay.c + b]), np.array([lay.c + b]))
-        self._rows, self._cols = np.concatenate(rows), np.concatenate(cols)
-        nnz = self._rows.size
-        A = scipy.sparse.csc_matrix(
-            (np.arange(1, nnz + 1, dtype=np.float64), (self._rows, self._cols)),
-            shape=(lay.n_x, lay.n_x),
-        )
-        A.sort_indices()
-        if A.nnz != nnz:
-            raise RuntimeError("duplicate entries in the Gauss-Newton pattern")
-        self._perm = A.data.astype(np.int64) - 1
-        self._sp = ca.Sparsity(
-            lay.n_x,
-            lay.n_x,
-            A.indptr.astype(np.int64).tolist(),
-            A.indices.astype(np.int64).tolist(),
-        )
+        self._set_pattern(np.concatenate(rows), np.concatenate(cols), lay.n_x, lay.n_p)
         self._nl = nl
-
-    def get_n_in(self) -> int:
-        return 4
-
-    def get_n_out(self) -> int:
-        return 1
-
-    def get_name_in(self, i: int) -> str:
-        return ["x", "p", "lam_f", "lam_g"][i]
-
-    def get_name_out(self, i: int) -> str:
-        return "triu_hess_gamma_x_x"
-
-    def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        return ca.Sparsity.dense([self.lay.n_x, self.lay.n_p, 1, 0][i], 1)
-
-    def get_sparsity_out(self, i: int) -> ca.Sparsity:
-        return self._sp
-
-    def eval(self, args: list[Any]) -> list[Any]:
-        x = np.asarray(args[0]).ravel()
-        p = np.asarray(args[1]).ravel()
-        return [ca.DM(self._sp, self.values(x, p)[self._perm])]
 
     def _position_weight_curvature(
         self, P: np.ndarray, mu: np.ndarray, w: np.ndarray

@@ -276,7 +276,62 @@ class _MagnetometerGradient(ca.Callback):
         return 0
 
 
-class GaussNewtonHessian(ca.Callback):
+class HessianCallback(ca.Callback):
+    """A numpy Hessian block for IPOPT's ``hess_lag``: inputs (x, p, lam_f, lam_g), output
+    the upper triangle in a pattern fixed at construction from (row, col) triplets, values
+    from :meth:`values` in triplet order (not scaled by lam_f; the caller multiplies),
+    written straight into CasADi's output buffer."""
+
+    def _set_pattern(self, rows: np.ndarray, cols: np.ndarray, n_x: int, n_p: int) -> None:
+        self._rows, self._cols, self._n_x, self._n_p = rows, cols, n_x, n_p
+        nnz = rows.size
+        A = sps.csc_matrix(
+            (np.arange(1, nnz + 1, dtype=np.float64), (rows, cols)), shape=(n_x, n_x)
+        )
+        A.sort_indices()
+        if A.nnz != nnz:
+            raise RuntimeError("duplicate entries in the Hessian pattern")
+        self._perm = A.data.astype(np.int64) - 1
+        self._sp = ca.Sparsity(
+            n_x, n_x, A.indptr.astype(np.int64).tolist(), A.indices.astype(np.int64).tolist()
+        )
+
+    @property
+    def nnz(self) -> int:
+        return int(self._rows.size)
+
+    def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def get_n_in(self) -> int:
+        return 4
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ["x", "p", "lam_f", "lam_g"][i]
+
+    def get_name_out(self, i: int) -> str:
+        return "triu_hess_gamma_x_x"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense([self._n_x, self._n_p, 1, getattr(self, "n_g", 0)][i], 1)
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return self._sp
+
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg: list[Any], res: list[Any]) -> int:
+        # Raw buffers: building a DM from 10^7 numpy values takes 1.6 s, this a copy.
+        x, p = _array(arg[0]), _array(arg[1])
+        _array(res[0])[:] = self.values(x, p)[self._perm]
+        return 0
+
+
+class GaussNewtonHessian(HessianCallback):
     """Hessian of 0.5 sum_k |(y_k - m(p_k)) / sigma_m|^2 (upper triangle): Gauss-Newton
     J^T J, plus the residual-curvature terms (:func:`curvature_terms`) in mode ``exact``, or
     in mode ``hybrid`` once the cost stalls (large residuals far from the solution make the
@@ -354,55 +409,7 @@ class GaussNewtonHessian(ca.Callback):
                     add(cidx[a], lay.c + b)
                 add(widx, lay.c + b)
                 add(np.array([lay.c + b]), np.array([lay.c + b]))
-        self._rows = np.concatenate(rows)
-        self._cols = np.concatenate(cols)
-        nnz = self._rows.size
-        A = sps.csc_matrix(
-            (np.arange(1, nnz + 1, dtype=np.float64), (self._rows, self._cols)),
-            shape=(lay.n_x, lay.n_x),
-        )
-        A.sort_indices()
-        if A.nnz != nnz:
-            raise RuntimeError("duplicate entries in the Gauss-Newton pattern")
-        self._perm = A.data.astype(np.int64) - 1
-        self._sp = ca.Sparsity(
-            lay.n_x,
-            lay.n_x,
-            A.indptr.astype(np.int64).tolist(),
-            A.indices.astype(np.int64).tolist(),
-        )
-
-    @property
-    def nnz(self) -> int:
-        return int(self._rows.size)
-
-    # ------------------------------------------------------------------ callback API
-    def get_n_in(self) -> int:
-        return 4
-
-    def get_n_out(self) -> int:
-        return 1
-
-    def get_name_in(self, i: int) -> str:
-        return ["x", "p", "lam_f", "lam_g"][i]
-
-    def get_name_out(self, i: int) -> str:
-        return "triu_hess_gamma_x_x"
-
-    def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        return ca.Sparsity.dense([self.lay.n_x, self.lay.n_p, 1, self.n_g][i], 1)
-
-    def get_sparsity_out(self, i: int) -> ca.Sparsity:
-        return self._sp
-
-    def has_eval_buffer(self) -> bool:
-        return True
-
-    def eval_buffer(self, arg: list[Any], res: list[Any]) -> int:
-        # Raw buffers: building a DM from 10^7 numpy values takes 1.6 s, this a copy.
-        x, p = _array(arg[0]), _array(arg[1])
-        _array(res[0])[:] = self.values(x, p)[self._perm]
-        return 0
+        self._set_pattern(np.concatenate(rows), np.concatenate(cols), lay.n_x, lay.n_p)
 
     def reset(self) -> None:
         """Forget the previous solve (the hybrid switch starts with Gauss-Newton)."""
