@@ -17,6 +17,7 @@ one data set; a few lengthscale starts guard against local minima.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.optimize
@@ -132,3 +133,119 @@ def _estimate(
         n_samples=sum(len(w[0]) for w in wins),
         converged=bool(best.success),
     )
+
+
+@dataclass(frozen=True)
+class FieldEvidence:
+    """Does the field along a trajectory carry position information? Windowed marginal
+    likelihoods (paper Eq. 5, ``casmag.hyper``) of the magnetometer rotated into the local
+    frame, under the GP map (sigma_f, lengthscale [m], sigma_m estimated) and under a
+    homogeneous field (a constant per window plus white noise sigma_m_homogeneous, the only
+    hyperparameter): neg_log_marginal_* [nats] over n scalar observations. The map's two
+    extra hyperparameters cost the BIC penalty ln(n) (0.5 k ln n, k = 2);
+    log_bayes_factor = neg_log_marginal_homogeneous - neg_log_marginal_map - penalty, and the
+    field is ``homogeneous`` when it is not positive."""
+
+    sigma_f: float
+    lengthscale: float
+    sigma_m: float
+    sigma_m_homogeneous: float
+    neg_log_marginal_map: float
+    neg_log_marginal_homogeneous: float
+    n: int
+    penalty: float
+    log_bayes_factor: float
+    homogeneous: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def field_evidence(
+    P: np.ndarray,
+    Y_local: np.ndarray,
+    kernel: str,
+    est: HyperEstimate | None = None,
+    window: int = 150,
+    max_windows: int = 8,
+) -> FieldEvidence:
+    """Compare a spatially varying field with a homogeneous one along positions P (K, 3)
+    with the magnetometer Y_local (K, 3) in the local frame (same windows as the
+    hyperparameter estimate, which is reused when given as ``est``, with the same
+    ``window`` and ``max_windows``)."""
+    if est is None:
+        est = estimate_hyperparameters(
+            P, Y_local, kernel=kernel, window=window, max_windows=max_windows
+        )
+    wins = select_windows(P, Y_local, window, max_windows)
+    # As casmag.hyper: the constant-field prior from the data's mean and spread.
+    sigma_lin = float(np.abs(Y_local.mean(axis=0)).max() + Y_local.std())
+    name = get_kernel(kernel).name
+    # sigma_f -> 0 switches the map off (1e-12 of the field: below rounding).
+    log_sf0 = np.log(1e-12 * max(sigma_lin, 1e-300))
+
+    def homogeneous(log_sm: float) -> float:
+        return negative_log_marginal(np.array([log_sf0, 0.0, log_sm]), wins, name, sigma_lin)
+
+    spread = max(float(np.mean([Yw.std(axis=0).mean() for _, Yw in wins])), 1e-12)
+    res = scipy.optimize.minimize_scalar(
+        homogeneous, bounds=(np.log(spread) - 12.0, np.log(spread) + 2.0), method="bounded"
+    )
+    n = FIELD_DIM * sum(len(Xw) for Xw, _ in wins)
+    penalty = float(np.log(n))
+    lbf = float(res.fun) - est.neg_log_marginal - penalty
+    return FieldEvidence(
+        sigma_f=est.sigma_f,
+        lengthscale=est.lengthscale,
+        sigma_m=est.sigma_m,
+        sigma_m_homogeneous=float(np.exp(res.x)),
+        neg_log_marginal_map=est.neg_log_marginal,
+        neg_log_marginal_homogeneous=float(res.fun),
+        n=n,
+        penalty=penalty,
+        log_bayes_factor=lbf,
+        homogeneous=bool(lbf <= 0.0),
+    )
+
+
+def noise_correlation_time(
+    X: np.ndarray,
+    Y: np.ndarray,
+    kernel: str,
+    est: HyperEstimate,
+    window: int = 150,
+    max_windows: int = 8,
+    max_lag: int = 50,
+) -> float:
+    """Integrated autocorrelation time (in samples) of the magnetometer residuals along
+    time: tau = 1 + 2 sum_k rho_k over lags k until the first non-positive average
+    autocorrelation (Geyer's initial positive sequence). The residuals are the GP's
+    leave-one-out residuals within each window at the estimate. White noise gives tau near
+    1; noise correlated over tau samples carries the information of N / tau independent
+    samples, so a white-noise model needs its sigma_m inflated by sqrt(tau) to stay honest.
+    """
+    name = get_kernel(kernel).name
+    sigma_lin = float(np.abs(Y.mean(axis=0)).max() + Y.std())
+    rho_sum = np.zeros(max_lag + 1)
+    counts = np.zeros(max_lag + 1)
+    with threadpool_limits(1):
+        for Xw, Yw in select_windows(X, Y, window, max_windows):
+            n = len(Xw)
+            K = field_covariance(get_kernel(name), Xw, est.sigma_f, est.lengthscale)
+            K += sigma_lin**2 * np.kron(np.eye(FIELD_DIM), np.ones((n, n)))
+            K[np.diag_indices_from(K)] += est.sigma_m**2
+            Ki = np.linalg.inv(K)
+            r = (Ki @ Yw.ravel(order="F")) / np.diag(Ki)
+            R = r.reshape(FIELD_DIM, n)
+            R = R - R.mean(axis=1, keepdims=True)
+            var = np.mean(R**2, axis=1)
+            for k in range(min(max_lag, n - 2) + 1):
+                rho_sum[k] += np.mean(np.mean(R[:, : n - k] * R[:, k:], axis=1) / var)
+                counts[k] += 1
+    rho = rho_sum / np.maximum(counts, 1)
+    tau = 1.0
+    for k in range(1, max_lag + 1):
+        if counts[k] == 0 or rho[k] <= 0:
+            break
+        tau += 2.0 * rho[k]
+    return float(tau)

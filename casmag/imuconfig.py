@@ -210,6 +210,16 @@ class ImuGPSpec(_Strict):
     from the truth the same problem reaches 0.0019 m, cost 298), passes [4, 1] reach
     0.0019 m in 34 + 55 iterations.
 
+    homogeneous: what to do when the field turns out to carry no position information
+    (``casmag.imuslam.field_evidence``: on the GP-SLAM trajectory, the windowed marginal
+    likelihood of a field with spatial structure does not beat a constant field by the BIC
+    penalty of its two extra hyperparameters). ``imu_only`` (default): the result is the
+    IMU-only adjustment (the map cannot locate the sensor, so positions are the IMU's; the
+    GP-SLAM pass is still reported, as ``gp_slam_map``); ``keep``: the GP-SLAM estimate.
+    The check runs only when sigma_f or the lengthscale is ``estimate`` (given values assert
+    a field model), first on the IMU-only path (no map is solved when the field is
+    homogeneous already there), then on the last GP-SLAM pass's path.
+
     refine: further GP-SLAM passes, each with the hyperparameters re-estimated on the
     previous pass's trajectory (only when some are ``estimate``); default 0: measured on the
     spiral (single pass before it), it moved the lengthscale from 0.12 to 0.20 m (the value
@@ -229,6 +239,7 @@ class ImuGPSpec(_Strict):
     refine: Annotated[int, Field(ge=0, le=5)] = 0
     anneal: Annotated[list[PositiveFloat], Field(min_length=1, max_length=6)] = [4.0, 1.0]
     max_num_basis: Annotated[int, Field(ge=1, le=5000)] = 900
+    homogeneous: Literal["imu_only", "keep"] = "imu_only"
 
 
 class MagnetometerModelSpec(_Strict):
@@ -372,6 +383,14 @@ def _validation_error(source: str, err: ValidationError) -> ProblemError:
         return ProblemError(source, where, "unknown key")
     if first["type"] == "missing":
         return ProblemError(source, where, "required key is missing")
+    if not loc:
+        # A whole-file consistency check: its message starts with the key it is about, and
+        # the input (the whole file) is not repeated.
+        msg = first["msg"].removeprefix("Value error, ")
+        key, sep, reason = msg.partition(": ")
+        if sep and key and " " not in key:
+            return ProblemError(source, key, reason)
+        return ProblemError(source, "", msg)
     # A value that fits none of a union's forms: say what each form wanted.
     msgs = []
     for e in errors:
@@ -397,3 +416,71 @@ def load_imu_problem(
     out = ImuProblem(spec=spec, source=src)
     out.resolve_all()
     return out
+
+
+# --------------------------------------------------------------------------- planar recordings
+class PlanarModelSpec(_Strict):
+    """The planar odometry-with-heading model for ``casmag slam`` on a recording with
+    ``dfwd,dleft,dyaw`` columns: the fields of :class:`casmag.imuslam.PlanarOptions` (units
+    there: metres, radians, seconds; field units of the recording)."""
+
+    sigma_disp: PositiveFloat = 0.01
+    sigma_dyaw: PositiveFloat = 0.002
+    bias: Literal["constant", "random_walk"] = "constant"
+    bias_walk: PositiveFloat = 1.0e-4
+    bias_prior: PositiveFloat = 0.05
+    sigma_m: PositiveFloat = 0.01
+    kernel: Literal["se", "curl_free"] = "se"
+    sigma_f: PositiveFloat | Literal["estimate"] = "estimate"
+    lengthscale: PositiveFloat | Literal["estimate"] = "estimate"
+    sigma_lin: PositiveFloat = 2.0
+    num_basis: Annotated[int, Field(ge=1, le=5000)] | None = None
+    margin: PositiveFloat | None = None
+    sigma_anchor: PositiveFloat = 1.0e-3
+    sigma_psi0: PositiveFloat = 1.0e-3
+    curvature: bool = True
+
+
+#: Solver settings of planar recordings that differ from SolverSpec's defaults (keys a
+#: problem file or ``--set solver.KEY=...`` does not give keep these values).
+PLANAR_SOLVER_DEFAULTS: dict[str, Any] = {
+    "max_iter": 150,
+    "tol": 1.0e-5,
+    "ipopt": {"acceptable_tol": 1.0e-4, "acceptable_iter": 5},
+}
+
+
+class PlanarSpec(_Strict):
+    """A problem file for a planar recording: ``model`` (:class:`PlanarModelSpec`) and
+    ``solver`` (IPOPT; defaults :data:`PLANAR_SOLVER_DEFAULTS`)."""
+
+    model: PlanarModelSpec = PlanarModelSpec()
+    solver: SolverSpec = SolverSpec(**PLANAR_SOLVER_DEFAULTS)
+
+
+def load_planar_options(
+    problem: str | Path | Mapping[str, Any] | None = None,
+    overrides: Iterable[str] = (),
+    source: str | None = None,
+) -> Any:
+    """:class:`casmag.imuslam.PlanarOptions` from an optional problem file (only its
+    ``model`` and ``solver`` sections are read; other sections are ignored) and
+    ``key.path=value`` overrides such as ``model.sigma_disp=0.002``. Raises ProblemError
+    naming the file (or ``--set``), the key and the reason."""
+    from casmag.config import read_yaml
+    from casmag.imuslam import PlanarOptions
+
+    if problem is None:
+        data: dict[str, Any] = {}
+        source = source or "--set"
+    elif isinstance(problem, Mapping):
+        data = dict(problem)
+    else:
+        data, source = read_yaml(Path(problem)), source or str(problem)
+    data = {k: v for k, v in data.items() if k in ("model", "solver")}
+    solver = data.get("solver")
+    data["solver"] = {**PLANAR_SOLVER_DEFAULTS, **(solver if isinstance(solver, dict) else {})}
+    if solver is not None and not isinstance(solver, dict):
+        data["solver"] = solver  # let validation name the bad value
+    spec, _ = validate_spec(PlanarSpec, data, overrides, source, _validation_error)
+    return PlanarOptions(**spec.model.model_dump(), solver=spec.solver)

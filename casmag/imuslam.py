@@ -17,18 +17,22 @@ pair). Named cost blocks (negative log-densities):
   paper's "within a one metre sphere").
 - ``magnetometer``: 0.5 sum_k |(y_k - R_k^T (m(p_k) + c)) / sigma_m|^2 (Eq. 3) with a 3-D
   reduced-rank map (weights w, constant field c) or the exact GP (field values at keyframes).
-- ``gp_prior``, ``constant_field_prior``: the map's priors (Eq. 6).
+- ``gp_prior``, ``constant_field_prior``: the map's priors (Eq. 6); the reduced-rank
+  map's unknowns are whitened weights V (weights sqrt(S) V), so ``gp_prior`` is 0.5 |V|^2.
 
 The solve has stages: the IMU-only adjustment (no magnetometer) from plain strapdown
 integration, then GP-SLAM passes from its result (sigma_m annealed, ``model.gp.anneal``),
 each with the nominal orientations moved to the previous estimate. Hyperparameters marked
 ``estimate`` come from the windowed GP marginal likelihood (Eq. 5, ``casmag.hyper``) on the
 IMU-only trajectory; the joint MAP cannot estimate them with the reduced-rank map
-(unbounded, see ``casmag.config``).
+(unbounded, see ``casmag.config``). With estimated hyperparameters a field check
+(:func:`field_evidence`) on the IMU-only path and on the last pass's path decides whether the
+field carries position information at all; when it does not (a homogeneous field), the
+result is the IMU-only adjustment (``model.gp.homogeneous``).
 
 Hessian: Gauss-Newton for the imu and magnetometer residuals (the magnetometer's dense map
-blocks formed with numpy in :class:`RotatedFieldGaussNewton`, optionally with its rotation
-and position-weight curvature), CasADi's exact Hessian for all other blocks.
+blocks formed with numpy in :class:`RotatedFieldGaussNewton`, optionally with its
+second-order terms, which make it exact), CasADi's exact Hessian for all other blocks.
 
 Planar model (:func:`solve_planar`): states (x, y, psi) per sample, inputs (dfwd, dleft,
 dyaw), a heading-rate bias (constant or random walk) and y = Rz(psi)^T (m(x) + c).
@@ -49,13 +53,14 @@ import scipy.sparse
 from casmag import strapdown as sd
 from casmag.config import SolverSpec
 from casmag.gp import ExactGPPrior
-from casmag.hyper import estimate_hyperparameters
+from casmag.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
+from casmag.hyper import field_evidence as _field_evidence
 from casmag.imuconfig import ImuProblem, load_imu_problem
 from casmag.imusim import ImuData, simulate_imu
 from casmag.kernels import FIELD_DIM, get_kernel
 from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.reduced_rank import Domain, HilbertBasis
-from casmag.rrmap import HessianCallback, field_and_jacobians, make_basis
+from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
 
 Progress = Callable[[int, float, float, float], None]
 
@@ -144,6 +149,8 @@ class RotatedMapLayout:
     c: int | None
     sigma_m: int
     Y: int | None = None
+    sigma_f: int | None = None  # with lengthscale: offsets in p; the x entries at W are then
+    lengthscale: int | None = None  # whitened weights V, map weights sqrt(S) V
 
 
 class RotatedFieldGaussNewton(HessianCallback):
@@ -158,9 +165,10 @@ class RotatedFieldGaussNewton(HessianCallback):
 
     When the layout gives the data offset ``Y``, the second-order terms of the rotation are
     added: with lam = -(y - R^T u) / sigma_m^2 and F(o, u) = lam . (R(o)^T u), the blocks
-    F_oo, F_ou, F_ou dm/dp and F_ou dm/dw (u = m + c is linear in w and c), and the
-    position-weight block sum_b (R lam)_b d^2 m_b / dp dw. Only the field's own curvature
-    in p (third derivatives of the basis) is left out. Measured on
+    F_oo, F_ou, F_ou dm/dp and F_ou dm/dw (u = m + c is linear in w and c), the
+    position-weight block sum_b (R lam)_b d^2 m_b / dp dw and the field's own curvature in
+    position sum_b (R lam)_b d^2 m_b / dp dp (third derivatives of the basis for
+    curl-free): the block's exact Hessian. Measured on
     the homogeneous outdoor problem (one loop): 59 iterations without these terms (linear
     convergence along the accelerometer-bias/tilt direction), 12 with CasADi's exact
     Hessian."""
@@ -249,6 +257,13 @@ class RotatedFieldGaussNewton(HessianCallback):
         o = x[lay.rot]
         aux = p[lay.aux] if lay.aux.shape[1] else np.zeros((n, 0))
         w = x[lay.W : lay.W + self.n_w]
+        scale = np.ones(self.n_w)  # dW/dV per weight entry
+        if lay.sigma_f is not None and lay.lengthscale is not None:
+            S = self.basis.prior_variances(
+                self.kernel, float(p[lay.sigma_f]), float(p[lay.lengthscale])
+            )
+            scale = np.tile(np.sqrt(S), self.n_w // M)
+            w = w * scale
         c = x[lay.c : lay.c + 3] if lay.c is not None else np.zeros(3)
         inv = 1.0 / float(p[lay.sigma_m])
         m, A, D = field_and_jacobians(self.basis, self.kernel, P, w)
@@ -274,6 +289,13 @@ class RotatedFieldGaussNewton(HessianCallback):
             G[:, :, d:] += np.transpose(Fou, (0, 2, 1))
             mu = np.einsum("kab,kb->ka", R, lam)  # dF/du = R lam
             cross = self._position_weight_curvature(P, mu, w)
+            # The field's own curvature in position: sum_b mu_b d^2 m_b / dp dp (third
+            # derivatives of the basis for curl-free).
+            s2, _ = curvature_terms(self.basis, self.kernel, P, w, mu)
+            for (a, b), v in s2.items():
+                S[:, a, b] += v
+                if a != b:
+                    S[:, b, a] += v
         out = []
         for i in range(nl):
             for j in range(i, nl):
@@ -286,14 +308,15 @@ class RotatedFieldGaussNewton(HessianCallback):
                 blk = sum(G[:, b, i][:, None] * A[b] for b in range(FIELD_DIM))
             if lay.Y is not None and i < d:
                 blk = blk + cross[i]
-            out.append(blk)
+            out.append(blk * scale)
         iu = np.triu_indices(M)
         inv2 = inv * inv
+        sm = scale[:M]  # the same per basis function for every field component
         if self.kernel == "se":
-            H = (A[0].T @ A[0]) * inv2
+            H = (A[0].T @ A[0]) * inv2 * np.outer(sm, sm)
             out.extend([H[iu]] * FIELD_DIM)
         else:
-            H = sum(a.T @ a for a in A) * inv2
+            H = sum(a.T @ a for a in A) * inv2 * np.outer(sm, sm)
             out.append(H[iu])
         if lay.c is not None:
             for b in range(FIELD_DIM):
@@ -304,7 +327,7 @@ class RotatedFieldGaussNewton(HessianCallback):
                     v[b * M : (b + 1) * M] = A[0].sum(axis=0) * inv2
                 else:
                     v = A[b].sum(axis=0) * inv2
-                out.append(v)
+                out.append(v * scale)
                 out.append(np.array([n * inv2]))
         return np.concatenate([np.ravel(v) for v in out])
 
@@ -322,9 +345,15 @@ def _add_reduced_rank_map(
     dim: int,
 ) -> tuple[ca.MX, ca.MX]:
     """Weights, constant field and the blocks ``magnetometer``, ``gp_prior``,
-    ``constant_field_prior`` for a rotated magnetometer. Returns (W, c)."""
+    ``constant_field_prior`` for a rotated magnetometer. The unknown named ``W`` holds the
+    whitened weights V (map weights sqrt(S) V, S the prior variances). Returns (W, c) with
+    W the map weights (an expression)."""
     M = basis.num_basis
-    W = b.variable("W", (M, FIELD_DIM) if kernel == "se" else (M, 1))
+    # Whitened weights V (the unknowns): W = sqrt(S) V, so the GP prior is 0.5 |V|^2. With
+    # W itself, the prior variances S span 6 orders of magnitude and IPOPT's gradient test
+    # stalls on the high-frequency weights (handwriting: max |dJ/dW| 0.026 at S = 1.4e-8,
+    # 3.9e-6 in whitened units) while the solution no longer moves.
+    V = b.variable("W", (M, FIELD_DIM) if kernel == "se" else (M, 1))
     c = b.variable("c", (FIELD_DIM, 1))
     Y = b.parameter("Y", (n, FIELD_DIM))
     sigma_m = b.parameter("sigma_m", (1, 1))
@@ -336,6 +365,8 @@ def _add_reduced_rank_map(
     o = ca.SX.sym("o", O.shape[1])
     n_aux = 0 if AUX is None else AUX.shape[1]
     aux = ca.SX.sym("aux", n_aux)
+    S = basis.prior_variances(kernel, sigma_f, ell)
+    W = V * ca.repmat(ca.sqrt(S), 1, V.shape[1])
     w_sx, c_sx = ca.SX.sym("w", *W.shape), ca.SX.sym("c", FIELD_DIM)
     R = rotation(o, aux)
     e = (y - ca.mtimes(R.T, fieldf(x, w_sx, c_sx))) / sig
@@ -343,8 +374,7 @@ def _add_reduced_rank_map(
     aux_arg = AUX.T if AUX is not None else ca.MX(0, n)
     E = resid.map(n, "serial")(P.T, O.T, aux_arg, Y.T, W, c, sigma_m)
     b.cost("magnetometer", 0.5 * ca.sumsqr(E))
-    S = basis.prior_variances(kernel, sigma_f, ell)
-    b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2 / ca.repmat(S, 1, W.shape[1]))))
+    b.cost("gp_prior", 0.5 * ca.sumsqr(V))
     b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
     return W, c
 
@@ -379,6 +409,8 @@ def _gauss_newton_for(
         c=b.offset("c"),
         sigma_m=b.offset("sigma_m", "p"),
         Y=b.offset("Y", "p") if curvature else None,
+        sigma_f=b.offset("sigma_f", "p"),
+        lengthscale=b.offset("lengthscale", "p"),
     )
     return "magnetometer", RotatedFieldGaussNewton(
         "rotated_mag_gauss_newton", basis, kernel, rotation, layout
@@ -408,6 +440,14 @@ def ridge_weights(
     G = sum(a.T @ a for a in A) / sigma_m**2 + np.diag(1.0 / S)
     rhs = sum(A[q].T @ Rr[:, q] for q in range(FIELD_DIM)) / sigma_m**2
     return np.linalg.solve(G, rhs).reshape(-1, 1)
+
+
+def whiten(
+    basis: HilbertBasis, kernel: str, sigma_f: float, lengthscale: float, W: np.ndarray
+) -> np.ndarray:
+    """Map weights W (M, k) -> the NLP's whitened weights V = W / sqrt(S) (same shape)."""
+    S = basis.prior_variances(kernel, sigma_f, lengthscale)
+    return W / np.sqrt(S)[:, None]
 
 
 # --------------------------------------------------------------------------- IMU NLP
@@ -649,9 +689,20 @@ def _imu_params(
     return params
 
 
+def field_evidence(
+    P: np.ndarray, Y_local: np.ndarray, kernel: str, est: HyperEstimate | None = None
+) -> FieldEvidence:
+    """casmag.hyper.field_evidence with the IMU scenarios' windows (HYPER_WINDOW samples,
+    up to HYPER_WINDOWS windows). Measured on the IMU scenarios' true paths: log Bayes factor
+    about -6.7 outdoors (Earth's field only) against +865 or more on the desk and table."""
+    return _field_evidence(P, Y_local, kernel, est, HYPER_WINDOW, HYPER_WINDOWS)
+
+
 @dataclass
 class ImuSolution:
-    """Both stages of an IMU solve plus what was decided between them."""
+    """Both stages of an IMU solve plus what was decided between them. ``evidence``: the
+    field check on the last GP-SLAM pass (None when not run); ``fallback``: the field was
+    found homogeneous and the result is the IMU-only adjustment."""
 
     structure: ImuStructure
     keyframes: Keyframes
@@ -662,6 +713,8 @@ class ImuSolution:
     hyperparameters_source: str
     basis_size: int | None
     slam_passes: list[ImuSolveStage] = field(default_factory=list)
+    evidence: FieldEvidence | None = None
+    fallback: bool = False
 
 
 def solve_imu_stages(
@@ -713,7 +766,15 @@ def solve_imu_stages(
         return ImuSolution(s1, kf, strap, st1, None, hyper, "none", None)
     # Hyperparameters once, on the IMU-only trajectory; then GP-SLAM passes with sigma_m
     # annealed (a softer magnetometer first widens the basin), each from the previous one.
-    hyper, source = _hyperparameters(problem, kf, st1, "IMU-only")
+    hyper, source, est = _hyperparameters(problem, kf, st1, "IMU-only")
+    if est is not None and m.gp.homogeneous == "imu_only":
+        # Already homogeneous on the IMU-only path (whose orientation errors can only add
+        # apparent variation): no map. An unidentified lengthscale (sigma_f -> 0 leaves it
+        # free) would otherwise set the basis (measured: l = 0.0085 m on a 12 cm
+        # rectangle in Earth's field, and GP-SLAM hit the iteration limit).
+        pre = field_evidence(st1.P, sd.rotate(st1.Q, kf.Y), m.gp.kernel, est)
+        if pre.homogeneous:
+            return ImuSolution(s1, kf, strap, st1, None, hyper, source, None, [], pre, True)
     passes: list[ImuSolveStage] = []
     prev = st1
     s2, size = s1, None
@@ -727,21 +788,33 @@ def solve_imu_stages(
     for _ in range(m.gp.refine if estimated else 0):
         if not passes[-1].solution.success:
             break
-        hyper, source = _hyperparameters(problem, kf, passes[-1], "GP-SLAM")
+        hyper, source, _ = _hyperparameters(problem, kf, passes[-1], "GP-SLAM")
         st, s2, size = _slam_pass(problem, data, kf, base, passes[-1], hyper, 1.0, progress)
         passes.append(st)
-    return ImuSolution(s2, kf, strap, st1, passes[-1], hyper, source, size, passes)
+    evidence, fallback = None, False
+    # Only with estimated hyperparameters: given ones assert a field model.
+    if estimated and passes[-1].solution.success and m.gp.homogeneous == "imu_only":
+        # On the GP-SLAM trajectory, whose orientations fit the magnetometer: on the
+        # IMU-only one, orientation errors rotate Earth's field into apparent variation
+        # (measured outdoors: log Bayes factor +21 there, -6.7 on the true path).
+        last = passes[-1]
+        evidence = field_evidence(last.P, sd.rotate(last.Q, kf.Y), m.gp.kernel)
+        fallback = evidence.homogeneous
+    return ImuSolution(
+        s2, kf, strap, st1, passes[-1], hyper, source, size, passes, evidence, fallback
+    )
 
 
 def _hyperparameters(
     problem: ImuProblem, kf: Keyframes, prev: ImuSolveStage, prev_name: str
-) -> tuple[dict[str, float], str]:
+) -> tuple[dict[str, float], str, HyperEstimate | None]:
     """sigma_f and lengthscale given, or by the windowed marginal likelihood on a previous
     stage's trajectory with the magnetometer rotated into the local frame by its
-    orientations; sigma_m as assumed."""
+    orientations; sigma_m as assumed. Also returns the estimate (None when given)."""
     m = problem.spec.model
     sigma_f, ell = m.gp.sigma_f, m.gp.lengthscale
     source = "given"
+    est = None
     if "estimate" in (sigma_f, ell):
         # Short windows (3 s at 10 Hz): the previous trajectory drifts little within one.
         est = estimate_hyperparameters(
@@ -756,11 +829,15 @@ def _hyperparameters(
             sigma_f = est.sigma_f
         if ell == "estimate":
             ell = min(est.lengthscale, m.gp.max_lengthscale)
-    return {
-        "sigma_f": float(sigma_f),
-        "lengthscale": float(ell),
-        "sigma_m": float(problem.sigma_m),
-    }, source
+    return (
+        {
+            "sigma_f": float(sigma_f),
+            "lengthscale": float(ell),
+            "sigma_m": float(problem.sigma_m),
+        },
+        source,
+        est,
+    )
 
 
 def _slam_pass(
@@ -820,8 +897,21 @@ def _slam_pass(
     c0 = Y_local.mean(axis=0)
     if m.gp.form == "reduced_rank":
         basis = s2.hilbert_basis()
-        x0["W"] = ridge_weights(
-            basis, m.gp.kernel, prev.P, Y_local, c0, sigma_m, hyper["sigma_f"], hyper["lengthscale"]
+        x0["W"] = whiten(
+            basis,
+            m.gp.kernel,
+            hyper["sigma_f"],
+            hyper["lengthscale"],
+            ridge_weights(
+                basis,
+                m.gp.kernel,
+                prev.P,
+                Y_local,
+                c0,
+                sigma_m,
+                hyper["sigma_f"],
+                hyper["lengthscale"],
+            ),
         )
         x0["c"] = c0.reshape(3, 1)
     else:
@@ -844,7 +934,13 @@ class ImuResult:
     truth's, the IMU-only adjustment's and GP-SLAM's (the layout of the paper's Table 6).
     A failed stage (``failed_stage``: "imu_only" or "gp_slam") leaves its errors and those
     of the stages after it None; ``status`` and ``iterations`` are the last solve's,
-    ``solve_seconds`` sums the GP-SLAM passes (each listed in ``gp_slam_passes``)."""
+    ``solve_seconds`` sums the GP-SLAM passes (each listed in ``gp_slam_passes``).
+
+    ``map_decision``: ``map`` (the GP-SLAM estimate), ``homogeneous: IMU only`` (the field
+    check found no position information in the field, ``model.gp.homogeneous``: the
+    ``gp_slam`` errors and biases are then the IMU-only adjustment's, and the GP-SLAM
+    pass's are under ``gp_slam_map``) or ``none`` (no map). ``field_evidence``: the check's
+    numbers (:class:`FieldEvidence`)."""
 
     info: dict[str, Any]
     status: str
@@ -864,6 +960,8 @@ class ImuResult:
     cost_blocks: dict[str, dict[str, dict[str, float]]]
     cost_per_iteration: list[float]
     cost_per_iteration_imu_only: list[float]
+    field_evidence: dict[str, Any] | None = None
+    map_decision: str = "map"
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
 
     @property
@@ -898,20 +996,24 @@ class ImuResult:
             g = [_fmt(b["gyro"][k], i) for _, k in cols]
             a = [_fmt(b["acc"][k], i) for _, k in cols]
             lines.append(f"| {ax} | " + " | ".join(g + a) + " |")
+        if self.map_decision.startswith("homogeneous"):
+            lines.append("")
+            rest = (
+                "the GP-SLAM pass's own biases are under gp_slam_map in result.json."
+                if self.gp_slam_passes
+                else "no map was solved (homogeneous already on the IMU-only path)."
+            )
+            lines.append(
+                "The field carries no position information (field_evidence in result.json): "
+                f"the GP-SLAM columns are the IMU-only adjustment; {rest}"
+            )
         return "\n".join(lines) + "\n"
 
     def save(self, out_dir: Any, figures: bool = True) -> Any:
         """Write result.json, biases.md, trajectory.csv and figures into out_dir atomically."""
         import json
-        import os
-        import shutil
-        import tempfile
-        from pathlib import Path
 
-        out = Path(out_dir)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-        try:
+        def write(tmp: Any) -> None:
             (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
             (tmp / "biases.md").write_text(self.bias_table())
             if self.arrays:
@@ -922,13 +1024,30 @@ class ImuResult:
                     from casmag.plotting import cost_figure
 
                     cost_figure(self, tmp / "cost.png")  # type: ignore[arg-type]
-            if out.exists():
-                shutil.rmtree(out)
-            os.replace(tmp, out)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return out
+
+        return _save_atomic(out_dir, write)
+
+
+def _save_atomic(out_dir: Any, write: Callable[[Any], None]) -> Any:
+    """Run write(tmp) on a temporary folder beside out_dir, then rename it over out_dir, so
+    an interrupted or failed write never leaves a half-written output."""
+    import os
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    out = Path(out_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        write(tmp)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
 
 
 def _fmt(v: list[float] | None, i: int) -> str:
@@ -942,6 +1061,7 @@ def _write_csv(r: ImuResult, path: Any) -> None:
         ("P_strapdown", "strapdown"),
         ("P_imu_only", "imu_only"),
         ("P_estimate", "est"),
+        ("P_gp_slam_map", "gp_slam_map"),
         ("P_true", "true"),
     ):
         if a.get(key) is not None:
@@ -976,6 +1096,11 @@ def _trajectory_figure(r: ImuResult, path: Any) -> None:
         ("P_strapdown", "strapdown only", dict(color="tab:gray", lw=1.0, ls=":")),
         ("P_imu_only", "IMU only + zero-position update", dict(color="tab:cyan", lw=1.0, ls="--")),
         ("P_estimate", "GP-SLAM", dict(color="tab:blue", lw=1.0)),
+        (
+            "P_gp_slam_map",
+            "GP-SLAM map pass (not used: homogeneous field)",
+            dict(color="tab:orange", lw=0.8, ls="-."),
+        ),
     ]
     for key, label, style in series:
         P = a.get(key)
@@ -1046,8 +1171,13 @@ def solve_imu(
     ok1 = s1.solution.success
     final = s2 if s2 is not None else s1
     ok = final.solution.success and ok1
-    est = s2 if (s2 is not None and ok) else None
+    slam_map = s2 if (s2 is not None and ok) else None
+    est = s1 if (res.fallback and ok) else slam_map
     imu_only = s1 if ok1 else None
+    if problem.spec.model.gp.form == "none":
+        decision = "none"
+    else:
+        decision = "homogeneous: IMU only" if res.fallback else "map"
     errors = {
         "strapdown": _errors(res.strapdown["P"], res.strapdown["Q"], Pt, Qt),
         "imu_only": _errors(
@@ -1058,6 +1188,13 @@ def solve_imu(
         ),
         "gp_slam": _errors(None if est is None else est.P, None if est is None else est.Q, Pt, Qt),
     }
+    if res.fallback:
+        errors["gp_slam_map"] = _errors(
+            None if slam_map is None else slam_map.P,
+            None if slam_map is None else slam_map.Q,
+            Pt,
+            Qt,
+        )
 
     def mean_bias(st: ImuSolveStage | None, which: str) -> list[float] | None:
         if st is None:
@@ -1078,6 +1215,8 @@ def solve_imu(
             "imu_only": mean_bias(imu_only, which),
             "gp_slam": mean_bias(est, which),
         }
+        if res.fallback:
+            biases[which]["gp_slam_map"] = mean_bias(slam_map, which)
     spec = problem.spec
     info = {
         "name": problem.name,
@@ -1094,6 +1233,7 @@ def solve_imu(
         "gp_form": spec.model.gp.form,
         "kernel": spec.model.gp.kernel,
         "num_basis": res.basis_size,
+        "map_decision": decision,
         "hessian": "gauss-newton" if spec.solver.hessian == "auto" else spec.solver.hessian,
         "casmag": casmag.__version__,
         "casadi": ca.__version__,
@@ -1122,6 +1262,8 @@ def solve_imu(
             arrays["att_err_imu_only_deg"] = np.degrees(sd.quat_angle(imu_only.Q, Qt))
         if est is not None:
             arrays["att_err_est_deg"] = np.degrees(sd.quat_angle(est.Q, Qt))
+    if res.fallback and slam_map is not None:
+        arrays["P_gp_slam_map"] = slam_map.P
     if arrays["P_estimate"] is None:
         arrays["P_estimate"] = arrays["P_imu_only"] if spec.model.gp.form == "none" else None
     return ImuResult(
@@ -1155,6 +1297,8 @@ def solve_imu(
         cost_blocks=blocks,
         cost_per_iteration=final.solution.cost_per_iteration,
         cost_per_iteration_imu_only=s1.solution.cost_per_iteration,
+        field_evidence=None if res.evidence is None else res.evidence.to_dict(),
+        map_decision=decision,
         arrays=arrays,
     )
 
@@ -1294,7 +1438,57 @@ class PlanarResult:
     num_basis: int
     cost_blocks: dict[str, dict[str, float]]
     cost_per_iteration: list[float]
+    info: dict[str, Any] = field(default_factory=dict)
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""
+        from casmag.result import _finite
+
+        d = {k: v for k, v in self.__dict__.items() if k != "arrays"}
+        d["units"] = {
+            "errors": "position m, heading deg, no alignment",
+            "bias": "rad/s (rad per step without times)",
+            "seconds": "wall-clock s",
+        }
+        return _finite(d)
+
+    def save(self, out_dir: Any, figures: bool = True) -> Any:
+        """Write result.json, trajectory.csv and (if figures) trajectory.png and cost.png
+        into out_dir atomically."""
+        import json
+
+        def write(tmp: Any) -> None:
+            (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+            _write_planar_csv(self, tmp / "trajectory.csv")
+            if figures:
+                from casmag.plotting import cost_figure, trajectory_figure
+
+                trajectory_figure(self, tmp / "trajectory.png")  # type: ignore[arg-type]
+                if self.cost_per_iteration:
+                    cost_figure(self, tmp / "cost.png")  # type: ignore[arg-type]
+
+        return _save_atomic(out_dir, write)
+
+
+def _write_planar_csv(r: PlanarResult, path: Any) -> None:
+    """One row per sample: index, time, dead-reckoned, estimated and (if known) true x, y
+    [m] and heading psi [rad]."""
+    a = r.arrays
+    n = a["P_odometry"].shape[0]
+    cols, names = [np.arange(n), a.get("t", np.arange(n, dtype=float))], ["k", "t"]
+    for P, psi, tag in (
+        ("P_odometry", "psi_odometry", "odo"),
+        ("P_estimate", "psi_estimate", "est"),
+        ("P_true", "psi_true", "true"),
+    ):
+        if a.get(P) is not None:
+            cols.extend([*a[P].T, a[psi]])
+            names.extend(f"{c}_{tag}" for c in ("x", "y", "psi"))
+    fmt = ["%d"] + ["%.9g"] * (len(names) - 1)
+    np.savetxt(
+        path, np.column_stack(cols), delimiter=",", header=",".join(names), comments="", fmt=fmt
+    )
 
 
 def dead_reckon_planar(U: np.ndarray, p0: np.ndarray, psi0: float, bias_dt: Any = 0.0) -> tuple:
@@ -1321,6 +1515,7 @@ def solve_planar(
     p0: np.ndarray | None = None,
     psi0: float = 0.0,
     progress: Progress | None = None,
+    name: str = "planar",
 ) -> PlanarResult:
     """Planar odometry with heading plus magnetometer GP-SLAM from arrays.
 
@@ -1338,7 +1533,7 @@ def solve_planar(
     dt = np.ones(n - 1) if t is None else np.diff(np.asarray(t, dtype=float))
     if p0 is None:
         p0 = truth["P"][0] if truth is not None else np.zeros(2)
-        psi0 = float(truth["psi"][0]) if truth is not None else psi0
+        psi0 = float(truth["psi"][0]) if truth is not None and "psi" in truth else psi0
     P_dr, psi_dr = dead_reckon_planar(U, np.asarray(p0, float), psi0)
     Y_local = sd.rotate(sd.quat_from_euler(0.0 * psi_dr, 0.0 * psi_dr, psi_dr), Y)
     sigma_f, ell = options.sigma_f, options.lengthscale
@@ -1381,8 +1576,21 @@ def solve_planar(
         "P": P_dr,
         "psi": psi_dr.reshape(-1, 1),
         "bias": np.zeros((n - 1 if options.bias == "random_walk" else 1, 1)),
-        "W": ridge_weights(
-            basis, options.kernel, P_dr, Y_local, c0, options.sigma_m, float(sigma_f), float(ell)
+        "W": whiten(
+            basis,
+            options.kernel,
+            float(sigma_f),
+            float(ell),
+            ridge_weights(
+                basis,
+                options.kernel,
+                P_dr,
+                Y_local,
+                c0,
+                options.sigma_m,
+                float(sigma_f),
+                float(ell),
+            ),
         ),
         "c": c0.reshape(3, 1),
     }
@@ -1394,9 +1602,11 @@ def solve_planar(
     if truth is not None:
         before = rmse_and_max(P_dr, truth["P"])
         wrap = lambda a: np.angle(np.exp(1j * a))  # noqa: E731
-        hb_deg = float(np.degrees(np.sqrt(np.mean(wrap(psi_dr - truth["psi"]) ** 2))))
+        if "psi" in truth:
+            hb_deg = float(np.degrees(np.sqrt(np.mean(wrap(psi_dr - truth["psi"]) ** 2))))
         if sol.success:
             after = rmse_and_max(sol.x["P"], truth["P"])
+        if sol.success and "psi" in truth:
             ha_deg = float(
                 np.degrees(np.sqrt(np.mean(wrap(sol.x["psi"].ravel() - truth["psi"]) ** 2)))
             )
@@ -1424,18 +1634,37 @@ def solve_planar(
             for k in sol.blocks_before
         },
         cost_per_iteration=sol.cost_per_iteration,
+        info={
+            "name": name,
+            "samples": int(n),
+            "bias_model": options.bias,
+            "kernel": options.kernel,
+            "hyperparameters": "given"
+            if "estimate" not in (options.sigma_f, options.lengthscale)
+            else "marginal likelihood on the dead-reckoned path",
+            "casadi": ca.__version__,
+        },
         arrays={
+            "t": np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
             "P_odometry": P_dr,
+            "psi_odometry": psi_dr,
             "P_estimate": sol.x["P"],
-            "P_true": None if truth is None else truth["P"],
             "psi_estimate": sol.x["psi"].ravel(),
+            "P_true": None if truth is None else truth["P"],
+            "psi_true": None
+            if truth is None or "psi" not in truth
+            else np.asarray(truth["psi"], dtype=float),
         },
     )
 
 
-def solve_planar_recording(path: Any, options: PlanarOptions | None = None) -> PlanarResult:
+def solve_planar_recording(
+    path: Any, options: PlanarOptions | None = None, progress: Progress | None = None
+) -> PlanarResult:
     """Read a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.recording``) and solve
     it; truth columns, when present, are used for evaluation only."""
+    from pathlib import Path
+
     from casmag.errors import DataError
     from casmag.recording import read_recording
 
@@ -1446,8 +1675,20 @@ def solve_planar_recording(path: Any, options: PlanarOptions | None = None) -> P
         )
     cols = {name: rec.increments[:, i] for i, name in enumerate(rec.increment_names)}
     truth = None
-    if rec.P_true is not None and rec.yaw_true is not None:
-        truth = {"P": rec.P_true[:, :2], "psi": rec.yaw_true}
-    return solve_planar(
-        cols["dfwd"], cols["dleft"], cols["dyaw"], rec.Y, options, truth=truth, t=rec.t
+    if rec.P_true is not None:
+        truth = {"P": rec.P_true[:, :2]}
+        if rec.yaw_true is not None:
+            truth["psi"] = rec.yaw_true
+    result = solve_planar(
+        cols["dfwd"],
+        cols["dleft"],
+        cols["dyaw"],
+        rec.Y,
+        options,
+        truth=truth,
+        t=rec.t,
+        progress=progress,
+        name=Path(path).stem,
     )
+    result.info["recording"] = str(path)
+    return result

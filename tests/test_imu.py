@@ -181,7 +181,7 @@ def test_handwriting_letters_are_checked():
 
 
 # --------------------------------------------------------------------------- Gauss-Newton
-def _rotated_map_problem(kernel, rng, residual):
+def _rotated_map_problem(kernel, rng, residual, curv=True):
     """A small rotated-magnetometer block, its Hessian callback, a point and data; the data
     fit exactly when ``residual`` is 0, else carry that much noise."""
     n = 6
@@ -192,7 +192,7 @@ def _rotated_map_problem(kernel, rng, residual):
     RNOM = b.parameter("RNOM", (n, 9))
     rot = imu_rotation_function()
     _add_reduced_rank_map(b, basis, kernel, P, D, RNOM, rot, n, 3)
-    _, gn = _gauss_newton_for(b, basis, kernel, rot, n, 3, "D", "RNOM")
+    _, gn = _gauss_newton_for(b, basis, kernel, rot, n, 3, "D", "RNOM", curvature=curv)
     x = ca.vertcat(*[ca.vec(s) for s in b._x.symbols])
     p = ca.vertcat(*[ca.vec(s) for s in b._p.symbols])
     vals = {
@@ -204,10 +204,12 @@ def _rotated_map_problem(kernel, rng, residual):
     Qn = sd.quat_exp(rng.standard_normal((n, 3)))
     rnom = sd.quat_to_rotmat(Qn).transpose(0, 2, 1).reshape(n, 9)
     f = basis.field_sx(kernel, position_dim=3)
+    # The NLP's weights are whitened: the map's are sqrt(S) times them.
+    W_map = vals["W"] * np.sqrt(basis.prior_variances(kernel, 1.0, 0.2))[:, None]
     Y = np.zeros((n, 3))
     for k in range(n):
         R = sd.quat_to_rotmat(sd.quat_mul(Qn[k], sd.gibbs_quat(vals["D"][k])))
-        Y[k] = R.T @ np.asarray(f(vals["P"][k], vals["W"], vals["c"])).ravel()
+        Y[k] = R.T @ np.asarray(f(vals["P"][k], W_map, vals["c"])).ravel()
     Y += residual * rng.standard_normal(Y.shape)
     pv = b._p.pack(
         {
@@ -235,22 +237,17 @@ def test_rotated_gauss_newton_equals_exact_hessian_at_zero_residual(kernel):
 
 
 @pytest.mark.parametrize("kernel", ["curl_free", "se"])
-def test_rotation_curvature_terms_are_exact(kernel):
-    """With noisy data the callback's rows and columns of the orientation unknowns and its
-    position-weight block equal the exact Hessian's; only the field's curvature in position
-    is left out, so the position-position block differs (the comparison can fail)."""
-    b, He, Hg = _rotated_map_problem(kernel, np.random.default_rng(5), residual=0.3)
-    n = 6
-    d_idx = b.offset("D") + np.arange(3 * n)
-    p_idx = b.offset("P") + np.arange(3 * n)
+def test_curvature_terms_make_the_exact_hessian(kernel):
+    """With noisy data (residuals far from zero) the callback with its second-order terms
+    (rotation, position-weight and the field's curvature in position) equals the exact
+    Hessian of the block; without them (plain Gauss-Newton) it does not."""
+    rng = np.random.default_rng(5)
+    _, He, Hg = _rotated_map_problem(kernel, rng, residual=0.3)
     scale = np.abs(He).max()
-    Hs_e, Hs_g = He + np.triu(He, 1).T, Hg + np.triu(Hg, 1).T
-    np.testing.assert_allclose(Hs_g[d_idx], Hs_e[d_idx], atol=1e-8 * scale)
-    w_idx = b.offset("W") + np.arange(60 if kernel == "se" else 20)
-    np.testing.assert_allclose(
-        Hs_g[np.ix_(p_idx, w_idx)], Hs_e[np.ix_(p_idx, w_idx)], atol=1e-8 * scale
-    )
-    assert np.abs(Hs_g[np.ix_(p_idx, p_idx)] - Hs_e[np.ix_(p_idx, p_idx)]).max() > 1e-4 * scale
+    np.testing.assert_allclose(Hg, He, atol=1e-8 * scale)
+    _, He0, Hg0 = _rotated_map_problem(kernel, np.random.default_rng(5), residual=0.3, curv=False)
+    np.testing.assert_allclose(He0, He, atol=1e-12 * scale)
+    assert np.abs(Hg0 - He0).max() > 1e-3 * scale
 
 
 # --------------------------------------------------------------------------- solves
@@ -263,6 +260,86 @@ def test_noise_free_imu_only_returns_the_truth():
     np.testing.assert_allclose(a["P_estimate"], a["P_true"], atol=1e-6)
     assert a["att_err_imu_only_deg"].max() < 1e-4
     assert r.errors["strapdown"]["rmse"] < 1e-9  # exact increments integrate to the truth
+
+
+def test_noise_free_gp_slam_with_biases_returns_the_truth():
+    """Noise-free IMU and magnetometer, constant gyroscope and accelerometer biases of the
+    paper's size, the rectangle traced twice past a dipole: GP-SLAM returns the true path
+    and biases. What is left is the reduced-rank map's approximation of the dipole's field
+    (400 basis functions; the residual magnetometer cost is 0.3 sigma_m per component) and
+    the weak priors: 0.31 mm at most (measured), against 0.99 m for strapdown and 34 mm for
+    the IMU-only adjustment, which cannot see the heading drift."""
+    data = _noise_free(_tiny(gp={"sigma_f": 0.3, "lengthscale": 0.2, "num_basis": 400}))
+    data["simulation"]["scenario"]["loops"] = 2
+    data["model"]["imu"]["bias"] = "constant"
+    data["model"]["zero_position"] = {"sigma": 1.0}
+    r = solve_imu(load_imu_problem(data))
+    assert r.success, r.status
+    a = r.arrays
+    assert r.errors["strapdown"]["rmse"] > 0.5 and r.errors["imu_only"]["rmse"] > 0.02
+    assert np.abs(a["P_estimate"] - a["P_true"]).max() < 1e-3
+    assert r.errors["gp_slam"]["orientation_max_deg"] < 0.05
+    true, est = np.array(r.biases["gyro"]["truth"]), np.array(r.biases["gyro"]["gp_slam"])
+    np.testing.assert_allclose(est, true, rtol=0.05)
+    acc_true, acc_est = np.array(r.biases["acc"]["truth"]), np.array(r.biases["acc"]["gp_slam"])
+    assert abs(acc_est[2] - acc_true[2]) < 1e-4  # vertical: separated from tilt by gravity
+
+
+@pytest.mark.parametrize(
+    ("moment", "homogeneous"),
+    [(0.0, True), (1e-4, False)],
+    ids=["earth-only", "weak-dipole"],
+)
+def test_field_evidence_tells_a_homogeneous_field(moment, homogeneous):
+    """A rectangle traced twice at 10 Hz, magnetometer noise 0.004: Earth's field alone is
+    homogeneous (no position information); a dipole 0.3 m away whose field varies by
+    about 0.01 (2.5 sigma) over the path is not."""
+    from casmag.imuslam import field_evidence
+
+    rng = np.random.default_rng(8)
+    s = np.linspace(0, 2 * 1.6, 320) % 1.6  # rectangle 0.5 x 0.3 m, perimeter 1.6 m
+    x = np.clip(s, 0, 0.5) - np.clip(s - 0.8, 0, 0.5)
+    y = np.clip(s - 0.5, 0, 0.3) - np.clip(s - 1.3, 0, 0.3)
+    P = np.column_stack([x, y, 0.002 * rng.standard_normal(s.size)])
+    field = DipoleField(
+        earth=earth_field(),
+        dipoles=(Dipole(np.array([0.25, 0.45, -0.1]), moment * np.array([1.0, -1.0, 2.0])),),
+    )
+    B = field(P)
+    Y = B + 0.004 * rng.standard_normal(B.shape)
+    ev = field_evidence(P, Y, "curl_free")
+    assert ev.homogeneous is homogeneous, ev
+    if homogeneous:
+        # The map's field variation sigma_f / l ends below the noise: no information.
+        assert ev.sigma_f / ev.lengthscale < 0.004
+        assert ev.sigma_m_homogeneous == pytest.approx(0.004, rel=0.1)
+    else:
+        assert np.ptp(B, axis=0).max() > 0.008
+
+
+def test_homogeneous_field_keeps_the_imu_only_adjustment(tmp_path):
+    """Earth's field only (the outdoor case at a tiny size): the field check finds no
+    position information already on the IMU-only path (the estimated field variation
+    sigma_f / l is far below the noise), so no map is solved and the result is the IMU-only
+    adjustment, never worse than it. (The check after a GP-SLAM pass, which the full
+    outdoor problem takes, is the same function: test_field_evidence_...)"""
+    data = _tiny()
+    data["simulation"]["scenario"]["loops"] = 2
+    data["simulation"]["field"] = {"dipoles": []}
+    r = solve_imu(load_imu_problem(data))
+    assert r.success, r.status
+    assert r.map_decision == "homogeneous: IMU only" and r.gp_slam_passes == []
+    ev = r.field_evidence
+    assert ev["homogeneous"] is True and ev["log_bayes_factor"] < 0
+    assert ev["sigma_f"] / ev["lengthscale"] < 0.1 * 0.004
+    e = r.errors
+    assert e["strapdown"]["rmse"] > 0.5
+    assert e["gp_slam"]["rmse"] == e["imu_only"]["rmse"] and e["gp_slam_map"]["rmse"] is None
+    np.testing.assert_array_equal(r.arrays["P_estimate"], r.arrays["P_imu_only"])
+    out = r.save(tmp_path / "out", figures=False)
+    saved = json.loads((out / "result.json").read_text())
+    assert saved["map_decision"] == "homogeneous: IMU only"
+    assert "no position information" in (out / "biases.md").read_text()
 
 
 @pytest.mark.slow
