@@ -12,6 +12,8 @@ this is the reference form for a few hundred samples.
 
 from __future__ import annotations
 
+import math
+
 import casadi as ca
 
 from casmag.kernels import FIELD_DIM, Kernel
@@ -34,6 +36,8 @@ class ExactGPPrior:
         variance = kernel.matrix(ca.SX.zeros(1, dim), ca.SX.zeros(1, dim), 1.0, ell)[0, 0]
         C = C + jitter * variance * ca.SX.eye(C.shape[0])
         self._C = ca.Function("gp_correlation", [P, ell], [C])
+        self._variance = ca.Function("gp_variance", [ell], [variance])
+        self.block = logdet_block_size(jitter, C.shape[0])
 
     def correlation(self, P: ca.MX, lengthscale: ca.MX) -> ca.MX:
         return self._C(P, lengthscale)
@@ -52,4 +56,39 @@ class ExactGPPrior:
         C = self.correlation(P, lengthscale)
         copies = FIELD_DIM if self.kernel.output_dim == 1 else 1
         n_total = self.n * FIELD_DIM
-        return n_total * 2 * ca.log(sigma_f) + copies * ca.log(ca.det(C))
+        # The kernels have a constant diagonal k(0): log|C| = rows log k(0) + log|C / k(0)|.
+        v = self._variance(lengthscale)
+        scaled = C.shape[0] * ca.log(v) + block_log_det(C / v, self.block)
+        return n_total * 2 * ca.log(sigma_f) + copies * scaled
+
+
+#: Smallest determinant a diagonal block of the factorisation may reach (log): well above
+#: the log of the smallest normal double, -708.
+_LOG_DET_FLOOR = -600.0
+
+
+def logdet_block_size(jitter: float, n: int) -> int:
+    """Block size of :func:`block_log_det` for an n x n matrix with unit diagonal plus
+    ``jitter``: its eigenvalues, and those of every Schur complement, are at least the
+    jitter, so the determinant of a b x b block is at least jitter^b; b is the largest size
+    that keeps jitter^b above exp(_LOG_DET_FLOOR) (jitter below machine epsilon counts as
+    machine epsilon). The diagonal of a Schur complement is at most 1 + jitter, so no block
+    overflows."""
+    floor = max(jitter, 2.0**-52)
+    if floor >= 1.0:  # eigenvalues at least 1: no block can underflow
+        return n
+    return max(1, min(n, int(_LOG_DET_FLOOR / math.log(floor))))
+
+
+def block_log_det(A: ca.MX, block: int) -> ca.MX:
+    """log|A| of a symmetric positive definite A by a block LDL^T: the leading block B's
+    log det plus that of the Schur complement D - E^T B^-1 E, recursively. Built from
+    ``det`` of blocks and the differentiable ``solve``, so CasADi differentiates it to any
+    order."""
+    total = 0
+    S = A
+    while S.shape[0] > block:
+        B, E, D = S[:block, :block], S[:block, block:], S[block:, block:]
+        total = total + ca.log(ca.det(B))
+        S = D - ca.mtimes(E.T, ca.solve(B, E, "ldl"))
+    return total + ca.log(ca.det(S))

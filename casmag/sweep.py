@@ -58,11 +58,14 @@ class _Strict(BaseModel):
 
 class RowSpec(_Strict):
     """One row of a table file: ``key`` (also its folder name, and for a paper table the
-    paper's row it reproduces), an optional ``label`` (default: the paper's label, else the
-    key) and ``set``, a mapping of ``key.path: value`` overrides of the problem file."""
+    paper's row it reproduces, unless ``paper_row`` names another), an optional ``label``
+    (default: the paper's label, else the key) and ``set``, a mapping of ``key.path: value``
+    overrides of the problem file. ``paper_row`` lets a variant of a paper row (a different
+    model of the same experiment) be compared with that row's published numbers."""
 
     key: Annotated[str, Field(pattern=_KEY, max_length=80)]
     label: str | None = None
+    paper_row: str | None = None
     set: dict[str, Any] = {}
 
 
@@ -180,7 +183,10 @@ class SweepPlan:
 
 
 def _fingerprint(problem: Problem) -> str:
-    data = problem.spec.model_dump(mode="json")
+    """A hash of the problem's settings other than seed and names. Values left at their
+    defaults are left out, so a new option with a default (a schema addition) does not
+    make saved runs look as if they had been solved with different settings."""
+    data = problem.spec.model_dump(mode="json", exclude_defaults=True)
     for key in ("seed", "name", "description"):
         data.pop(key, None)
     text = json.dumps(data, sort_keys=True)
@@ -277,13 +283,17 @@ def load_sweep(
                 )
             paper = TABLES[table.paper]
             for i, r in enumerate(table.rows):
-                if r.key not in paper.keys:
+                ref = r.key if r.paper_row is None else r.paper_row
+                if ref not in paper.keys:
                     raise ProblemError(
                         src,
-                        f"rows.{i}.key",
-                        f"{r.key!r} is not a row of the paper's Table {paper.number} "
+                        f"rows.{i}.{'key' if r.paper_row is None else 'paper_row'}",
+                        f"{ref!r} is not a row of the paper's Table {paper.number} "
                         f"({', '.join(paper.keys)})",
                     )
+        elif any(r.paper_row is not None for r in table.rows):
+            i = next(i for i, r in enumerate(table.rows) if r.paper_row is not None)
+            raise ProblemError(src, f"rows.{i}.paper_row", "needs the table's 'paper'")
         problem_path = (path.parent / table.problem).resolve()
         try:
             shown = problem_path.relative_to(Path.cwd())
@@ -296,8 +306,8 @@ def load_sweep(
         rows = [
             (
                 r.key,
-                r.label or (paper.row(r.key).label if paper else r.key),
-                r.key if paper else None,
+                r.label or (paper.row(r.paper_row or r.key).label if paper else r.key),
+                (r.paper_row or r.key) if paper else None,
                 [*common, *[(src, f"rows.{i}.set", t) for t in _as_overrides(r.set)]],
             )
             for i, r in enumerate(table.rows)
@@ -629,6 +639,9 @@ def run_sweeps(
     if not tasks:
         summary.seconds = time.perf_counter() - t0
         return summary
+    # Seeds outermost across files too (a stable sort keeps the file and row order within a
+    # seed), so that an interrupted sweep of several tables has covered every row.
+    tasks.sort(key=lambda t: t.seed)
     bar = tqdm(
         total=len(tasks),
         desc=", ".join(p.name for p in plans)[:40],

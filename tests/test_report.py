@@ -60,8 +60,16 @@ def _map_png(path):
     fig.savefig(path / "map.png")
 
 
-def _sweep(root, rows, seeds, paper="table1", name="table1"):
-    """A sweep folder: rows = {key: {seed: dict(after=..., success=..., before=...)}}."""
+def _sweep(root, rows, seeds, paper="table1", name="table1", variants=None):
+    """A sweep folder: rows = {key: {seed: dict(after=..., success=..., before=...)}};
+    variants = {key: (paper_key, label)} for rows that are not the paper's own."""
+    variants = variants or {}
+
+    def row(k):
+        if k in variants:
+            return {"key": k, "label": variants[k][1], "paper_key": variants[k][0]}
+        return {"key": k, "label": TABLES[paper].row(k).label if paper else k, "paper_key": k}
+
     manifest = {
         "format": MANIFEST_FORMAT,
         "name": name,
@@ -70,10 +78,7 @@ def _sweep(root, rows, seeds, paper="table1", name="table1"):
         "source": "hand-made",
         "problem": "hand-made",
         "seeds": seeds,
-        "rows": [
-            {"key": k, "label": TABLES[paper].row(k).label if paper else k, "paper_key": k}
-            for k in rows
-        ],
+        "rows": [row(k) for k in rows],
     }
     root.mkdir(parents=True)
     (root / "sweep.json").write_text(json.dumps(manifest))
@@ -313,3 +318,38 @@ def test_bad_input_writes_nothing(tmp_path):
     assert len(lines) == 1
     assert not out.exists() and not (out.parent / "figures").exists()
     assert list(out.parent.iterdir()) == []
+
+
+def test_variant_rows_compare_with_their_paper_row(tmp_path):
+    """An "estimated" row shares its paper row's published numbers and target: the paper's
+    RMSE where the paper improved on odometry, 1.05 x ours before where it made it worse."""
+    fixed = {1: {"after": 0.005}, 2: {"after": 0.007}}
+    est = {1: {"after": 0.001}, 2: {"after": 0.002}}
+    root = _sweep(
+        tmp_path / "runs",
+        {
+            "sigma_f=1.000": fixed,
+            "sigma_f=1.000_estimated": est,
+            "sigma_f=0.001_estimated": {1: {"after": 0.072}, 2: {"after": 0.070}},
+        },
+        seeds=[1, 2],
+        paper="table2",
+        name="table2",
+        variants={
+            "sigma_f=1.000_estimated": ("sigma_f=1.000", "sigma_f = 1.000, estimated"),
+            "sigma_f=0.001_estimated": ("sigma_f=0.001", "sigma_f = 0.001, estimated"),
+        },
+    )
+    out = tmp_path / "t.md"
+    res = _invoke(["report", root, "--out", out, "--no-figures"])
+    assert res.exit_code == 0, res.output
+    text = out.read_text()
+    a = _cells(text, "After SLAM, sigma_f = 1.000")
+    b = _cells(text, "After SLAM, sigma_f = 1.000, estimated")
+    c = _cells(text, "After SLAM, sigma_f = 0.001, estimated")
+    assert a[1] == "0.0060" and a[4] == "0.004" and a[5] == "1.50"
+    assert a[-1] == "<= 0.0040 (paper): no"
+    assert b[1] == "0.0015" and b[4] == "0.004" and b[5] == "0.38"
+    assert b[-1] == "<= 0.0040 (paper): yes"
+    assert c[4] == "0.206"  # the paper's (worse than odometry) row
+    assert c[-1] == "<= 0.0693 (1.05 x before): no"  # 0.071 > 1.05 x 0.066

@@ -51,11 +51,36 @@ def test_paper_table_files_cover_every_paper_row():
     for path in TABLE_FILES:
         plan = load_sweep(path, "unused", seeds=20)
         paper = TABLES[plan.paper]
-        assert [r.paper_key for r in plan.rows] == list(paper.keys)
-        assert [r.label for r in plan.rows] == [r.label for r in paper.rows]
+        own = [r for r in plan.rows if r.key == r.paper_key]
+        assert [r.paper_key for r in own] == list(paper.keys)
+        assert [r.label for r in own] == [r.label for r in paper.rows]
         assert plan.seeds == list(range(1, 21))
         # Every row is a different problem.
         assert len({r.fingerprint for r in plan.rows}) == len(plan.rows)
+
+
+def test_estimated_rows_start_from_the_paper_rows_wrong_value():
+    """Tables 2 and 4 add, for the paper's rows (wrong value held fixed), rows that start
+    from the same wrong value and estimate it; both are compared with the paper's row."""
+    estimated = {
+        "table2": ["sigma_f=0.001", "sigma_f=1.000", "sigma_f=10.00"],
+        "table4": ["l=0.005", "l=0.050", "l=0.150", "l=0.400"],
+    }
+    for table, hyper in (("table2", "sigma_f"), ("table4", "lengthscale")):
+        plan = load_sweep(ROOT / f"problems/paper/{table}.yaml", "unused", seeds=1)
+        rows = {r.key: r for r in plan.rows}
+        assert [r.key for r in plan.rows] == [
+            *TABLES[table].keys,
+            *(f"{k}_estimated" for k in estimated[table]),
+        ]
+        for key in estimated[table]:
+            r, est = rows[key], rows[f"{key}_estimated"]
+            assert est.paper_key == r.paper_key == key
+            assert est.label == f"{r.label}, estimated"
+            assert r.problem["model"]["estimate"] == []
+            assert est.problem["model"]["estimate"] == [hyper]
+            assert est.problem["model"]["gp"][hyper] == r.problem["model"]["gp"][hyper]
+            assert est.problem["simulation"] == r.problem["simulation"]
 
 
 def test_table5_settings_are_the_papers_scaled_to_5cm_steps():
@@ -84,6 +109,14 @@ def test_table5_settings_are_the_papers_scaled_to_5cm_steps():
         (TWO_ROWS.replace("key: b", "key: b/c"), "t.yaml: rows.1.key"),
         ("paper: table9\n" + TWO_ROWS, "t.yaml: paper: 'table9' is not a paper table"),
         ("paper: table1\n" + TWO_ROWS, "t.yaml: rows.0.key: 'a' is not a row of the paper's"),
+        (
+            "paper: table1\n" + TWO_ROWS.replace("key: a", "key: a\n    paper_row: sigma_f=0.5"),
+            "t.yaml: rows.0.paper_row: 'sigma_f=0.5' is not a row of the paper's Table 1",
+        ),
+        (
+            TWO_ROWS.replace("key: b", "key: b\n    paper_row: sigma_f=0.100"),
+            "t.yaml: rows.1.paper_row: needs the table's 'paper'",
+        ),
         ("rows: []\n", "t.yaml: rows"),
     ],
 )
@@ -287,7 +320,7 @@ def test_every_paper_table_file_runs_at_tiny_size(tmp_path):
     out = tmp_path / "out"
     res = _invoke(["sweep", *TABLE_FILES, "--out", out, "--seeds", 1, "--figures", "none", *TINY])
     assert res.exit_code == 0, res.output
-    n_rows = sum(len(t.rows) for t in TABLES.values())
+    n_rows = sum(len(load_sweep(p, "unused", seeds=1).rows) for p in TABLE_FILES)
     assert f"{n_rows} runs: 0 already saved, {n_rows} solved, 0 failed, 0 errors" in res.output
     for path in TABLE_FILES:
         assert (out / path.stem / "sweep.json").is_file()
