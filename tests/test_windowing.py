@@ -1,0 +1,168 @@
+"""Sliding windows, the fixed-lag smoother and the coarse-to-fine lengthscale schedule
+(casmag.sliding), and their problem-file settings."""
+
+import itertools
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import casmag
+from casmag import sliding
+from casmag.errors import ProblemError
+from casmag.metrics import rmse_and_max
+from casmag.simulate import simulate_problem
+
+ROOT = Path(__file__).resolve().parents[1]
+BASE = ROOT / "problems/paper/base.yaml"
+
+
+def _spiral(bias=0.012, noise=1.0e-3, seed=2, *extra):
+    """The paper's spiral with l = 0.4 m (Table 5) and a reduced-rank map; a 12 mm per-step
+    bias drifts the dead reckoning by 3.4 lengthscales."""
+    return casmag.load_problem(
+        BASE,
+        [
+            f"seed={seed}",
+            "simulation.field.lengthscale=0.4",
+            f"simulation.odometry.bias=[{bias}, {bias}]",
+            f"simulation.odometry.noise={noise}",
+            "model.gp.form=reduced_rank",
+            "solver.warm_start.window=10",
+            "solver.warm_start.overlap=5",
+            *extra,
+        ],
+    )
+
+
+def test_window_starts_cover_every_sample():
+    for n, w, o in [(81, 10, 5), (81, 20, 10), (100, 7, 1), (10, 20, 5), (50, 50, 10)]:
+        starts = sliding.window_starts(n, w, o)
+        assert starts[0] == 0 and starts[-1] + min(w, n) == n
+        assert all(b - a <= w - o for a, b in itertools.pairwise(starts))
+        assert all(b > a for a, b in itertools.pairwise(starts))
+    assert sliding.window_starts(81, 10, 5) == [
+        0,
+        5,
+        10,
+        15,
+        20,
+        25,
+        30,
+        35,
+        40,
+        45,
+        50,
+        55,
+        60,
+        65,
+        70,
+        71,
+    ]
+
+
+@pytest.fixture(scope="module")
+def drifting():
+    """The drifting spiral (seed 2), and the smoother run on it from an empty NLP cache
+    with the number of window NLPs built meanwhile."""
+    problem = _spiral()
+    data = simulate_problem(problem)
+    sliding.window_nlp.cache_clear()
+    before = sliding.BUILDS["window"]
+    sm = sliding.fixed_lag_smoother(problem, data)
+    return problem, data, sm, sliding.BUILDS["window"] - before
+
+
+def test_one_window_nlp_serves_every_window_and_the_map_is_counted_once(drifting):
+    problem, data, sm, builds = drifting
+    assert sm.completed, [w.status for w in sm.windows]
+    assert len(sm.windows) == 16
+    assert builds == 1
+    # The carried prior is the GP prior plus every sample once, at its committed position.
+    s = sm.structure
+    J, _ = sliding.prior_design(s, sm.positions, data.Y)
+    expected = sliding.prior_precision(s, problem) + J.T @ J / problem.assumed_sigma_m**2
+    np.testing.assert_allclose(sm.map_precision, expected, rtol=1e-9, atol=1e-9 * expected.max())
+    # The carried map predicts the field at the true positions (field sigma_f = 0.1).
+    basis = s.hilbert_basis()
+    m = basis.phi(data.P_true) @ sm.map_mean
+    assert np.sqrt(np.mean((m - data.M_true) ** 2)) < 0.01
+
+
+def test_fixed_lag_smoother_alone_beats_dead_reckoning(drifting):
+    _, data, sm, _ = drifting
+    before, _ = rmse_and_max(data.dead_reckoning(), data.P_true)
+    after, _ = rmse_and_max(sm.positions, data.P_true)
+    assert before > 0.7  # 3.4 lengthscales of final drift
+    assert after < 0.05 * before and after < 0.03, (before, after)
+    np.testing.assert_allclose(sm.bias, data.bias_true, rtol=0.1)  # the last window's
+    assert sm.iterations < 200
+
+
+def test_sliding_start_reaches_the_basin_from_a_drifting_start(drifting):
+    problem, data, _, _ = drifting
+    slide = casmag.solve(problem.with_overrides(["solver.warm_start.strategy=sliding"]), data)
+    assert slide.success, slide.status
+    assert slide.rmse_before > 0.7 and slide.rmse_after < 0.01, slide.rmse_after
+    stages = slide.info["warm_start"]
+    assert [s["kind"] for s in stages] == ["window"] * 16 + ["batch"]
+    assert stages[-1]["iterations"] == slide.iterations
+    assert sum(s["iterations"] for s in stages) < 200
+    np.testing.assert_allclose(slide.odometry_bias, data.bias_true, atol=2e-4)
+
+
+def test_a_window_that_leaves_the_map_box_hands_the_batch_the_dead_reckoning(drifting):
+    problem, data, _, _ = drifting
+    # A map box far from the path: the first window's positions lie outside it.
+    far = data.dead_reckoning() + 50.0
+    sm = sliding.fixed_lag_smoother(problem, data, box_positions=far)
+    assert not sm.completed
+    assert [w.status for w in sm.windows] == [sliding.LEFT_BOX]
+    np.testing.assert_array_equal(sm.positions, data.dead_reckoning())
+    np.testing.assert_array_equal(sm.bias, 0.0)
+
+
+def test_coarse_to_fine_schedule_and_solve():
+    np.testing.assert_allclose(sliding.lengthscale_schedule(0.4, 3.0, 3), [1.2, 0.4 * 3**0.5, 0.4])
+    problem = _spiral(0.012, 1.0e-4, 1, "solver.warm_start.strategy=coarse-to-fine")
+    data = simulate_problem(problem)
+    res = casmag.solve(problem, data)
+    assert res.success, res.status
+    assert res.rmse_after < 0.01, res.rmse_after
+    stages = res.info["warm_start"]
+    assert [s["kind"] for s in stages] == ["lengthscale", "lengthscale", "batch"]
+    np.testing.assert_allclose([s["lengthscale"] for s in stages], [1.2, 0.4 * 3**0.5, 0.4])
+    assert res.hyperparameters["lengthscale"] == pytest.approx(0.4)
+
+
+def test_warm_start_settings_are_validated():
+    ws = _spiral(0.003, 1e-4, 1, "solver.warm_start.strategy=sliding").spec.solver.warm_start
+    assert (ws.window_samples, ws.overlap_samples) == (10, 5)
+    timed = casmag.load_problem(
+        BASE,
+        [
+            "solver.warm_start.unit=seconds",
+            "solver.warm_start.sample_period=0.1",
+            "solver.warm_start.window=2.0",
+            "solver.warm_start.overlap=0.5",
+        ],
+    ).spec.solver.warm_start
+    assert (timed.window_samples, timed.overlap_samples) == (20, 5)
+    bad = {
+        "solver.warm_start.overlap=20": "overlap",
+        "solver.warm_start.overlap=0": "overlap",
+        "solver.warm_start.window=2": "at least 3 samples",
+        "solver.warm_start.window=12.5": "whole numbers",
+        "solver.warm_start.unit=seconds": "sample_period",
+        "solver.warm_start.sample_period=0.1": "only used with unit: seconds",
+        "solver.warm_start.strategy=windows": "strategy",
+        "solver.warm_start.lengthscale_start=1.0": "lengthscale_start",
+        "solver.warm_start.lengthscale_stages=1": "lengthscale_stages",
+        "solver.warm_start.window_size=5": "unknown key",
+    }
+    for override, words in bad.items():
+        with pytest.raises(ProblemError) as err:
+            casmag.load_problem(BASE, [override])
+        message = str(err.value)
+        assert words in message and "\n" not in message, message
+        assert "base.yaml" in message
