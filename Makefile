@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-all lint clean bench-scale imu
+.PHONY: help install demo test test-all lint clean bench-scale bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables
 
 help: ## List the targets
@@ -74,8 +74,14 @@ lint: $(STAMP) ## ruff check and format check
 clean: ## Remove the environment and caches
 	rm -rf $(VENV) .pytest_cache .ruff_cache build *.egg-info
 
+bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences x 2 drifts + 2 homogeneous -> results/real/table.md
+	$(PY) -m casmag.realbench problems/real/*.yaml --out results/real
+
 bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
 	$(PY) -m casmag.bench scale --out results/bench
+
+bench-convergence: $(STAMP) ## Windowing convergence grid, 20 seeds per cell; results/bench/convergence.json, .png (resumable)
+	$(PY) -m casmag.convergence --out results/bench
 
 imu: $(STAMP) ## Solve every IMU problem; writes results/imu/<name>/ (about 10 minutes)
 	@for f in problems/imu/*.yaml; do n=$$(basename $$f .yaml); \

@@ -38,6 +38,11 @@ def solve(
     stages: list[Stage] = []
     if ws.strategy == "growing" and data.n_samples > ws.first_samples:
         sol, nlp, hyper, field, structure, solved, stages = solve_growing(problem, data, progress)
+    elif ws.strategy in ("sliding", "coarse-to-fine"):
+        from casmag.sliding import solve_coarse_to_fine, solve_sliding
+
+        staged = solve_sliding if ws.strategy == "sliding" else solve_coarse_to_fine
+        sol, nlp, hyper, field, structure, solved, stages = staged(problem, data, progress)
     else:
         sol, nlp, hyper, field, structure = solve_translational(problem, data, progress)
         solved = data
@@ -53,6 +58,7 @@ def solve(
         if sol.success:
             after = rmse_and_max(P_est, data.P_true)
     bias = sol.x.get("bias")
+    uncertainty, cov = _uncertainty(problem, nlp, sol, structure, solved, P_est, data.P_true)
     grid_x = grid_y = field_grid = None
     if sol.success:
         grid_x, grid_y = _grid(P_est, problem.assumed_lengthscale)
@@ -103,7 +109,9 @@ def solve(
         },
         cost_per_iteration=sol.cost_per_iteration,
         constraint_violation_per_iteration=sol.inf_pr_per_iteration,
+        uncertainty=uncertainty,
         arrays={
+            "P_cov": cov,
             "P_odometry": P_odo,
             "P_estimate": P_est,
             "P_true": data.P_true,
@@ -114,6 +122,42 @@ def solve(
             "map_field": None if field_grid is None else field_grid.reshape(*grid_x.shape, 3),
         },
     )
+
+
+# Largest number of unknowns for which the Laplace covariance is computed (a dense factor
+# of the Hessian: 12,000 unknowns take 1.2 GB).
+UNCERTAINTY_MAX_UNKNOWNS = 12_000
+
+
+def _uncertainty(
+    problem: Problem,
+    nlp: Any,
+    sol: Any,
+    structure: Any,
+    solved: Dataset,
+    P_est: np.ndarray,
+    P_true: np.ndarray | None,
+) -> tuple[dict[str, Any] | None, np.ndarray | None]:
+    """Laplace position covariances at the solution (casmag.uncertainty) and their summary
+    (mean 1-sigma, NEES against truth); None when switched off or the solve failed."""
+    if not (sol.success and problem.spec.solver.uncertainty):
+        return None, None
+    if solved.n_samples != P_est.shape[0]:
+        return None, None
+    from casmag.slam import parameters_and_guess
+    from casmag.uncertainty import NotPositiveDefinite, position_uncertainty
+
+    if nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
+        reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
+        return {"error": f"not computed: {reason}"}, None
+    params, _ = parameters_and_guess(problem, solved, structure)
+    try:
+        u = position_uncertainty(
+            nlp, sol, params, structure.knots, structure.dim, problem.assumed_sigma_odometry
+        )
+    except NotPositiveDefinite as exc:
+        return {"error": str(exc)}, None
+    return u.summary(P_est, P_true), u.cov
 
 
 def _grid(P: np.ndarray, lengthscale: float, points: int = 90) -> tuple[np.ndarray, np.ndarray]:
@@ -169,7 +213,7 @@ def recording_problem(
     hyperparameters it leaves null are still estimated.
     """
     from casmag.config import read_yaml
-    from casmag.hyper import estimate_hyperparameters
+    from casmag.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
 
     user: dict[str, Any] = {}
     source = name
@@ -203,8 +247,14 @@ def recording_problem(
         else f"{ODOMETRY_NOISE_FRACTION:g} x median step"
     }
     missing = [h for h, path in HYPER_PATHS.items() if _get(merged, path) is None]
+    est = estimate_hyperparameters(data.dead_reckoning(), data.Y, kernel)
+    how["field_evidence"] = field_evidence(data.dead_reckoning(), data.Y, kernel, est).to_dict()
+    # Diagnostic: magnetometer residuals correlated over tau samples make a white-noise
+    # sigma_m over-confident by about sqrt(tau) (measured on real sequence 5: tau 2.0).
+    how["noise_correlation_samples"] = noise_correlation_time(
+        data.dead_reckoning(), data.Y, kernel, est
+    )
     if missing:
-        est = estimate_hyperparameters(data.dead_reckoning(), data.Y, kernel)
         how["marginal_likelihood"] = {
             "sigma_f": est.sigma_f,
             "lengthscale": est.lengthscale,
@@ -222,6 +272,81 @@ def recording_problem(
         merged["model"]["gp"]["sigma_lin"] = float(np.abs(data.Y.mean(axis=0)).max() + data.Y.std())
     how["estimated"] = missing
     return load_problem(merged, overrides, source=source), how
+
+
+def _evidence_text(how: dict[str, Any]) -> str:
+    ev = how["field_evidence"]
+    return (
+        f"log Bayes factor {ev['log_bayes_factor']:.1f} <= 0 for a GP map against a constant "
+        "field, so the field carries no position information; result is the odometry"
+    )
+
+
+def odometry_only(problem: Problem, data: Dataset, reason: str) -> Result:
+    """The dead reckoning as the result, with its own uncertainty: the anchor plus the
+    odometry random walk plus, with a bias prior sigma_b, the bias's drift,
+    cov(p_k) = (sigma_anchor^2 + k sigma_o^2 + k^2 sigma_b^2) I. A bias the model takes as
+    unknown without a prior makes that unbounded: no covariance, said so."""
+    from casmag import __version__
+    from casmag.uncertainty import PositionUncertainty
+
+    P = data.dead_reckoning()
+    sigma_o = problem.assumed_sigma_odometry
+    odometry = problem.spec.model.odometry
+    k = np.arange(data.n_samples, dtype=float)
+    u: PositionUncertainty | None = None
+    summary: dict[str, Any]
+    if odometry.estimate_bias and odometry.bias_prior_sigma is None:
+        summary = {
+            "error": "not computed: odometry only with an unknown bias (no "
+            "model.odometry.bias_prior_sigma), the position uncertainty is unbounded"
+        }
+    else:
+        sigma_b = odometry.bias_prior_sigma if odometry.estimate_bias else 0.0
+        var = problem.spec.model.anchor.sigma**2 + sigma_o**2 * k + (sigma_b * k) ** 2
+        u = PositionUncertainty(var[:, None, None] * np.eye(data.dim))
+        summary = u.summary(P, data.P_true)
+    before = after = (None, None)
+    if data.P_true is not None:
+        before = after = rmse_and_max(P, data.P_true)
+    hyper = {
+        "sigma_f": problem.assumed_sigma_f,
+        "lengthscale": problem.assumed_lengthscale,
+        "sigma_m": problem.assumed_sigma_m,
+    }
+    return Result(
+        info={
+            "name": problem.name,
+            "source": problem.source,
+            "n_samples": data.n_samples,
+            "fallback": reason,
+            "casmag": __version__,
+        },
+        status="Odometry_Only",
+        success=True,
+        iterations=0,
+        build_seconds=0.0,
+        solve_seconds=0.0,
+        rmse_before=before[0],
+        max_before=before[1],
+        rmse_after=after[0],
+        max_after=after[1],
+        hyperparameters=hyper,
+        hyperparameters_initial=dict(hyper),
+        odometry_bias=None,
+        odometry_bias_true=None if data.bias_true is None else [float(v) for v in data.bias_true],
+        cost_blocks={},
+        cost_per_iteration=[],
+        constraint_violation_per_iteration=[],
+        uncertainty=summary,
+        arrays={
+            "P_odometry": P,
+            "P_estimate": P,
+            "P_true": data.P_true,
+            "Y": data.Y,
+            "P_cov": None if u is None else u.cov,
+        },
+    )
 
 
 def _get(d: dict[str, Any], path: tuple[str, ...]) -> Any:
@@ -243,15 +368,26 @@ def slam(
     problem: str | Path | None = None,
     overrides: tuple[str, ...] | list[str] = (),
     progress: Callable[[int, float, float, float], None] | None = None,
+    field_check: bool = True,
 ) -> Result:
     """GP-SLAM on a recording (CSV, see casmag.recording) with the defaults of
-    :func:`recording_problem`. Without truth in the recording the RMSE fields are None."""
+    :func:`recording_problem`. Without truth in the recording the RMSE fields are None.
+
+    field_check: first test whether the field carries position information at all
+    (casmag.hyper.field_evidence: windowed marginal likelihood of a GP map against a
+    homogeneous field, BIC-penalised, at the dead-reckoned positions). When it does not,
+    GP-SLAM has nothing to correct the drift with and can only add error (the paper's Table
+    1 at sigma_f = 0.001), so the result is the odometry itself (:func:`odometry_only`),
+    with ``info["fallback"]`` saying why."""
     from casmag.recording import read_recording
 
     rec = read_recording(recording)
     data = rec.to_dataset()
     prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
-    result = solve(prob, data, progress)
+    if field_check and how["field_evidence"]["homogeneous"]:
+        result = odometry_only(prob, data, "homogeneous field: " + _evidence_text(how))
+    else:
+        result = solve(prob, data, progress)
     result.info["recording"] = str(recording)
     result.info["defaults"] = how
     return result

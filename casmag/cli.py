@@ -85,6 +85,11 @@ def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
     type=click.Path(dir_okay=False, path_type=Path),
     help="Problem file whose model and solver sections override the defaults.",
 )
+@click.option(
+    "--no-field-check",
+    is_flag=True,
+    help="Solve even when the field shows no position information (default: odometry only).",
+)
 def slam(
     recording: Path,
     out_dir: Path,
@@ -92,18 +97,30 @@ def slam(
     overrides: tuple[str, ...],
     no_figures: bool,
     quiet: bool,
+    no_field_check: bool,
 ) -> None:
     """GP-SLAM on RECORDING (CSV: t, motion increments, mx,my,mz, optional truth).
 
     Defaults: reduced-rank map, hyperparameters from the data's marginal likelihood,
     odometry noise 2 % of the median step, one trajectory knot per second (per 5 s above
     20,000 samples), growing warm starts. Writes result.json, trajectory.csv,
-    trajectory.png, cost.png and map.png.
+    trajectory.png, cost.png and map.png. A planar recording (dfwd,dleft,dyaw) is solved
+    with the planar heading model instead (--set model.KEY=VALUE, casmag.imuconfig).
     """
     from casmag.api import slam as run_slam
+    from casmag.imucli import is_planar_recording, planar_slam
 
+    if is_planar_recording(recording):  # dfwd,dleft,dyaw: the planar model with heading
+        planar_slam(recording, out_dir, problem, overrides, no_figures, quiet)
+        return
     try:
-        result = run_slam(recording, problem, overrides, progress=None if quiet else print_progress)
+        result = run_slam(
+            recording,
+            problem,
+            overrides,
+            progress=None if quiet else print_progress,
+            field_check=not no_field_check,
+        )
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
@@ -137,6 +154,78 @@ def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool) -> 
         write_report(tables, out_file, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
+
+
+@main.command()
+@click.argument("source", type=click.Path(path_type=Path))
+@click.option("--out", "out_file", required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--drift", type=float, help="Final odometry drift [m] (default 0.5).")
+@click.option("--seed", type=int, help="Seed of the odometry noise and bias (default 0).")
+@click.option("--rate", type=float, help="Output rate [Hz] (default 10).")
+@click.option("--noise", type=float, help="Odometry noise per step, fraction of the median step.")
+@click.option("--motion", type=click.Choice(["translational", "planar"]))
+@click.option("--field", type=click.Choice(["recorded", "constant"]))
+@click.option("--no-align", is_flag=True, help="Keep the recorded magnetometer timing.")
+def convert(
+    source: Path,
+    out_file: Path,
+    drift: float | None,
+    seed: int | None,
+    rate: float | None,
+    noise: float | None,
+    motion: str | None,
+    field: str | None,
+    no_align: bool,
+) -> None:
+    """Turn a recorded sequence into a recording CSV (casmag.realdata's protocol).
+
+    SOURCE is a sequence prefix (DIR/N for DIR/N-time.csv, N-loc.csv, N-mag.csv) or a
+    real-data problem file (problems/real/*.yaml) whose ``recording`` section gives the
+    settings; options override either. Writes OUT and OUT's stem + .json (the protocol
+    record: clock shift, bias, measured drift).
+    """
+    import json
+
+    from casmag.realbench import load_real_problem, sequence_path
+    from casmag.realdata import Protocol, load_sequence
+    from casmag.realdata import convert as convert_sequence
+    from casmag.recording import write_recording
+
+    given = {
+        "drift": drift,
+        "seed": seed,
+        "rate": rate,
+        "noise": noise,
+        "motion": motion,
+        "field": field,
+    }
+    given = {k: v for k, v in given.items() if v is not None}
+    if no_align:
+        given["align"] = False
+    try:
+        if source.suffix in (".yaml", ".yml"):
+            spec = load_real_problem(source)
+            settings = spec.recording.model_dump()
+            prefix = sequence_path(spec, source)
+            settings.pop("sequence")
+        else:
+            settings, prefix = {}, source
+        settings.update(given)
+        conv = convert_sequence(load_sequence(prefix), Protocol(**settings))
+        record = out_file.with_suffix(".json")
+        write_recording(out_file, **conv.arrays)
+        tmp = record.with_name(f".{record.name}.tmp")
+        tmp.write_text(json.dumps(conv.record, indent=2) + "\n")
+        tmp.replace(record)
+    except CasmagError as exc:
+        fail(str(exc), EXIT_BAD_INPUT)
+    except (ValueError, TypeError) as exc:
+        fail_bad_input(source, exc)
+    od = conv.record["odometry"]
+    click.echo(
+        f"wrote {out_file}: {conv.record['samples']} samples at {conv.record['rate']:.3g} Hz, "
+        f"odometry drift {od['final_drift']:.3f} m (RMSE {od['rmse']:.3f} m)"
+    )
 
 
 main.add_command(sweep_command)

@@ -182,7 +182,8 @@ class ModelSpec(_Strict):
 
 
 class WarmStartSpec(_Strict):
-    """How the initial trajectory of the full problem is found (casmag.windowing).
+    """How the initial trajectory of the full problem is found (casmag.windowing,
+    casmag.sliding).
 
     strategy ``none``: the dead reckoning. ``growing``: solve the first ``first_samples``
     samples, then prefixes ``growth`` times longer up to all samples; each stage starts from
@@ -190,12 +191,69 @@ class WarmStartSpec(_Strict):
     estimated so far removed, and fits its map box around that start. A long recording's
     dead reckoning can drift by several lengthscales, which a single batch does not recover
     from, and it would inflate the map's box (and so the basis) with it.
+    ``sliding``: a fixed-lag smoother over windows of ``window`` samples that overlap by
+    ``overlap`` (in ``unit``: samples, or seconds with ``sample_period`` [s] per sample),
+    with a reduced-rank map carried from window to window as a Gaussian prior on its
+    weights; one NLP serves every window; each window stops after ``window_max_iter``
+    iterations; its trajectory starts the full batch.
+    ``coarse-to-fine``: ``lengthscale_stages`` batch solves with the lengthscale shrinking
+    geometrically from ``lengthscale_start`` times the assumed one to the assumed one, each
+    started from the previous (at most ``stage_max_iter`` iterations before the last).
+
+    Defaults: first_samples 4000, growth 4.0, stage_max_iter 25, window 20, overlap 10,
+    unit samples, sample_period null, window_max_iter 50, lengthscale_start 3.0,
+    lengthscale_stages 3.
     """
 
-    strategy: Literal["none", "growing"] = "none"
+    strategy: Literal["none", "growing", "sliding", "coarse-to-fine"] = "none"
     first_samples: Annotated[int, Field(ge=10)] = 4000
     growth: Annotated[float, Field(gt=1)] = 4.0
     stage_max_iter: Annotated[int, Field(ge=1)] = 25
+    window: PositiveFloat = 20.0
+    overlap: NonNegativeFloat = 10.0
+    unit: Literal["samples", "seconds"] = "samples"
+    sample_period: PositiveFloat | None = None
+    window_max_iter: Annotated[int, Field(ge=1)] = 50
+    lengthscale_start: Annotated[float, Field(gt=1)] = 3.0
+    lengthscale_stages: Annotated[int, Field(ge=2, le=20)] = 3
+
+    @field_validator("window", "overlap", mode="before")
+    @classmethod
+    def _number(cls, value: Any) -> Any:
+        # Strict mode refuses an int for a float field; a window of 20 samples is an int.
+        return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+    @model_validator(mode="after")
+    def _window_fits(self) -> WarmStartSpec:
+        if self.unit == "seconds" and self.sample_period is None:
+            raise ValueError("unit: seconds needs sample_period (seconds per sample)")
+        if self.unit == "samples" and self.sample_period is not None:
+            raise ValueError("sample_period is only used with unit: seconds")
+        window, overlap = self.window_samples, self.overlap_samples
+        if self.unit == "samples" and (window != self.window or overlap != self.overlap):
+            raise ValueError("window and overlap in samples must be whole numbers")
+        if window < 3:
+            raise ValueError(f"window must span at least 3 samples (got {window})")
+        if not 1 <= overlap < window:
+            raise ValueError(
+                f"overlap must be at least 1 sample and shorter than the window "
+                f"(got {overlap} of {window} samples)"
+            )
+        return self
+
+    @property
+    def window_samples(self) -> int:
+        """The window length in samples."""
+        if self.unit == "samples":
+            return round(self.window)
+        return round(self.window / (self.sample_period or 1.0))
+
+    @property
+    def overlap_samples(self) -> int:
+        """The overlap of consecutive windows in samples."""
+        if self.unit == "samples":
+            return round(self.overlap)
+        return round(self.overlap / (self.sample_period or 1.0))
 
 
 class SolverSpec(_Strict):
@@ -204,6 +262,9 @@ class SolverSpec(_Strict):
     hessian: ``auto`` is ``exact`` for the exact GP and ``gauss-newton`` for the reduced-rank
     map (its magnetometer block's Gauss-Newton Hessian formed with numpy, the other blocks'
     exact Hessian from CasADi); ``limited-memory`` is IPOPT's L-BFGS.
+    uncertainty: compute the Laplace covariance of every position at the solution
+    (casmag.uncertainty): a 1-sigma column in trajectory.csv, ellipses in trajectory.png, the
+    NEES against truth in result.json.
     """
 
     max_iter: Annotated[int, Field(ge=1, le=100_000)] = 200
@@ -213,6 +274,7 @@ class SolverSpec(_Strict):
     print_level: Annotated[int, Field(ge=0, le=12)] = 0
     ipopt: dict[str, float | int | str] = {}
     warm_start: WarmStartSpec = WarmStartSpec()
+    uncertainty: bool = True
 
 
 class ProblemSpec(_Strict):

@@ -277,6 +277,32 @@ class NLP:
         values = values if isinstance(values, (list, tuple)) else [values]
         return {n: float(v) for n, v in zip(self.block_names, values, strict=True)}
 
+    def hessian(self, x: Mapping[str, Any], params: Mapping[str, Any]) -> Any:
+        """The Hessian of the objective at x (named variables) as a symmetric scipy CSC
+        matrix: IPOPT's own ``nlp_hess_l`` with lam_f = 1, where a numpy map block (casmag.
+        rrmap) contributes its Gauss-Newton term J^T J, which is positive semi-definite (the
+        Hessian of a Laplace approximation; at a MAP with small residuals it is the exact one
+        to first order)."""
+        import scipy.sparse as sp
+
+        h = self.solver.get_function("nlp_hess_l")
+        mode_owner = (
+            self.keep[1] if self.keep is not None and hasattr(self.keep[1], "mode") else None
+        )
+        mode = mode_owner.mode if mode_owner is not None else None
+        if mode_owner is not None:
+            mode_owner.mode = "gauss-newton"
+        try:
+            H = h(self.x_layout.pack(x), self.p_layout.pack(params), 1.0, np.zeros(0))
+        finally:
+            if mode_owner is not None:
+                mode_owner.mode = mode
+                if hasattr(mode_owner, "reset"):
+                    mode_owner.reset()
+        H = H.sparse() if hasattr(H, "sparse") else H
+        upper = sp.csc_matrix(H)
+        return (upper + sp.triu(upper, k=1).T).tocsc()
+
     def solve(
         self,
         params: Mapping[str, Any],

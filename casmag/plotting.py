@@ -19,7 +19,8 @@ def _save(fig: Figure, path: Path) -> None:
 
 def trajectory_figure(result: Result, path: Path) -> None:
     """Odometry-only (dashed), estimate (solid) and truth (triangles), as in the paper's
-    Figures 1-4, with the errors in the title."""
+    Figures 1-4, with the errors in the title; with the Laplace covariances, 3-sigma
+    ellipses at about 40 points along the estimate."""
     a = result.arrays
     fig = Figure(figsize=(6.0, 5.6))
     ax = fig.add_subplot()
@@ -27,6 +28,8 @@ def trajectory_figure(result: Result, path: Path) -> None:
     if a.get("P_true") is not None:
         ax.plot(*a["P_true"][:, :2].T, "^", color="tab:red", ms=4, mfc="none", label="truth")
     ax.plot(*a["P_estimate"][:, :2].T, "-", color="tab:blue", lw=1.4, label="GP-SLAM")
+    if a.get("P_cov") is not None and a["P_cov"].shape[1] == 2:
+        _ellipses(ax, a["P_estimate"], a["P_cov"])
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
@@ -40,6 +43,30 @@ def trajectory_figure(result: Result, path: Path) -> None:
         )
     ax.set_title(title, fontsize=9)
     _save(fig, path)
+
+
+def _ellipses(ax: object, P: object, cov: object, count: int = 40, scale: float = 3.0) -> None:
+    """scale-sigma ellipses of the (N, 2, 2) covariances at ``count`` samples along P."""
+    import numpy as np
+    from matplotlib.patches import Ellipse
+
+    n = P.shape[0]
+    for i, k in enumerate(np.unique(np.linspace(0, n - 1, count).round().astype(int))):
+        w, v = np.linalg.eigh(cov[k])
+        angle = float(np.degrees(np.arctan2(v[1, 1], v[0, 1])))
+        width, height = 2 * scale * np.sqrt(np.maximum(w[::-1], 0.0))
+        ax.add_patch(
+            Ellipse(
+                (P[k, 0], P[k, 1]),
+                width,
+                height,
+                angle=angle,
+                fill=False,
+                lw=0.8,
+                color="tab:purple",
+                label=f"{scale:g}-sigma (Laplace)" if i == 0 else None,
+            )
+        )
 
 
 def cost_figure(result: Result, path: Path) -> None:

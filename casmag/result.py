@@ -46,6 +46,7 @@ class Result:
     cost_blocks: dict[str, dict[str, float]]
     cost_per_iteration: list[float]
     constraint_violation_per_iteration: list[float]
+    uncertainty: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -95,7 +96,9 @@ TRAJECTORY_COLUMNS = ("x", "y", "z")
 
 
 def write_trajectory_csv(result: Result, path: Path) -> None:
-    """One row per sample: index, odometry-only, estimate and (if known) true positions."""
+    """One row per sample: index, odometry-only, estimate and (if known) true positions,
+    and (when computed) the Laplace 1-sigma of the estimate per axis [m] and, in the plane,
+    the x-y covariance [m^2]."""
     a = result.arrays
     dim = a["P_estimate"].shape[1]
     cols, names = [np.arange(a["P_estimate"].shape[0])], ["k"]
@@ -103,6 +106,14 @@ def write_trajectory_csv(result: Result, path: Path) -> None:
         if key in a and a[key] is not None:
             cols.extend(a[key].T)
             names.extend(f"{c}_{tag}" for c in TRAJECTORY_COLUMNS[:dim])
+    cov = a.get("P_cov")
+    if cov is not None:
+        for i in range(dim):
+            cols.append(np.sqrt(cov[:, i, i]))
+            names.append(f"sigma_{TRAJECTORY_COLUMNS[i]}")
+        if dim == 2:
+            cols.append(cov[:, 0, 1])
+            names.append("cov_xy")
     fmt = ["%d"] + ["%.9g"] * (len(names) - 1)
     np.savetxt(
         path, np.column_stack(cols), delimiter=",", header=",".join(names), comments="", fmt=fmt

@@ -90,7 +90,7 @@ class Structure:
             logdet=bool({"sigma_f", "lengthscale"} & set(m.estimate))
             if m.gp.logdet is None
             else m.gp.logdet,
-            solver=problem.spec.solver.model_dump_json(),
+            solver=problem.spec.solver.model_dump_json(exclude={"uncertainty"}),
             form=m.gp.form,
             basis=basis,
             constant_field=m.gp.sigma_lin is not None,

@@ -9,12 +9,16 @@ PROBLEMS = ROOT / "problems"
 
 
 def _kind(path: Path) -> str:
-    if "imu" in path.relative_to(PROBLEMS).parts:
+    parts = path.relative_to(PROBLEMS).parts
+    if "imu" in parts:
         return "imu"
+    if "real" in parts:
+        return "real"
     return "table" if "rows" in yaml.safe_load(path.read_text()) else "translational"
 
 
 ALL = sorted(PROBLEMS.rglob("*.yaml"))
-# Translational problem files (casmag run): not the IMU problems (tests/test_imu.py) and not
-# the table files, which list rows of overrides of a problem file (tests/test_sweep.py).
+# Translational problem files (casmag run): not the IMU problems (tests/test_imu.py), not the
+# real-data problems (tests/test_realdata.py) and not the table files, which list rows of
+# overrides of a problem file (tests/test_sweep.py).
 TRANSLATIONAL = [p for p in ALL if _kind(p) == "translational"]

@@ -1,0 +1,271 @@
+"""Real-data problems and the real-data benchmark (``make bench-real``).
+
+A real-data problem file names a recorded sequence and the conversion protocol
+(casmag.realdata), plus optional ``model`` and ``solver`` sections that override the
+defaults of ``casmag slam``::
+
+    name: seq1-drift0.5
+    description: ...
+    recording:
+      sequence: ../../../shared/data/magnetic-data/invensense/1  # relative to this file
+      drift: 0.5          # final odometry drift [m]
+      seed: 1
+      # rate: 10, noise: 0.01, motion: translational, field: recorded, align: true
+    model: {}
+    solver: {}
+
+``python -m casmag.realbench FILES --out DIR`` converts and solves each file in its own
+process and writes DIR/<name>/ (result.json with the protocol record in ``info.protocol``,
+trajectory.csv, figures) and DIR/table.md, DIR/table.json (rows of files not run this time
+are kept from the previous table). Exit 1 when a solve failed (its row says so).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field
+
+from casmag.config import _Strict, validate_spec
+from casmag.errors import CasmagError, DataError
+
+DATA_HINT = "../shared/data/magnetic-data/invensense (see ../shared/data/README.md)"
+
+
+class RecordingSpec(_Strict):
+    """How a recorded sequence becomes a recording (casmag.realdata.Protocol)."""
+
+    sequence: str
+    rate: float = Field(10.0, gt=0)
+    drift: float = Field(0.5, ge=0)
+    noise: float = Field(0.01, ge=0)
+    seed: int = Field(0, ge=0)
+    motion: Literal["translational", "planar"] = "translational"
+    field: Literal["recorded", "constant"] = "recorded"
+    constant_noise: float = Field(1.0, gt=0)
+    align: bool = True
+
+
+class RealProblemSpec(_Strict):
+    """A real-data problem file: name, description, recording, model, solver."""
+
+    name: str
+    description: str = ""
+    recording: RecordingSpec
+    model: dict[str, Any] = Field(default_factory=dict)
+    solver: dict[str, Any] = Field(default_factory=dict)
+
+
+def load_real_problem(path: str | Path) -> RealProblemSpec:
+    """Read and validate a real-data problem file (one-line ProblemError on bad input)."""
+    return validate_spec(RealProblemSpec, Path(path))[0]
+
+
+def sequence_path(spec: RealProblemSpec, source: str | Path) -> Path:
+    """The sequence prefix, relative paths taken from the problem file's folder."""
+    p = Path(spec.recording.sequence)
+    return p if p.is_absolute() else (Path(source).resolve().parent / p)
+
+
+def convert_problem(path: str | Path) -> tuple[RealProblemSpec, Any]:
+    """Load a real-data problem file and convert its sequence (casmag.realdata.Converted)."""
+    from casmag.realdata import Protocol, convert, load_sequence
+
+    spec = load_real_problem(path)
+    prefix = sequence_path(spec, path)
+    if not prefix.with_name(f"{prefix.name}-time.csv").is_file():
+        raise DataError(
+            f"{path}: recording.sequence: {prefix}-time.csv not found (expected {DATA_HINT})"
+        )
+    r = spec.recording
+    protocol = Protocol(
+        rate=r.rate,
+        drift=r.drift,
+        noise=r.noise,
+        seed=r.seed,
+        motion=r.motion,
+        field=r.field,
+        constant_noise=r.constant_noise,
+        align=r.align,
+    )
+    return spec, convert(load_sequence(prefix), protocol)
+
+
+def solve_problem(path: str | Path, out_dir: str | Path, progress: Any = None) -> dict[str, Any]:
+    """Convert and solve one real-data problem; saves DIR and returns its table row."""
+    from casmag.api import slam
+    from casmag.recording import write_recording
+
+    spec, conv = convert_problem(path)
+    overrides_file = {"model": spec.model, "solver": spec.solver, "name": spec.name}
+    with tempfile.TemporaryDirectory(prefix="casmag-real-") as tmp:
+        rec = Path(tmp) / f"{spec.name}.csv"
+        write_recording(rec, **conv.arrays)
+        prob = Path(tmp) / "problem.yaml"
+        prob.write_text(json.dumps(overrides_file))
+        t0 = time.perf_counter()
+        result = slam(rec, prob, progress=progress)
+        wall = time.perf_counter() - t0
+    result.info["recording"] = str(path)
+    result.info["protocol"] = conv.record
+    result.info["wall_seconds"] = wall
+    result.save(out_dir)
+    return row(spec, conv.record, result, wall)
+
+
+def row(spec: RealProblemSpec, record: dict[str, Any], result: Any, wall: float) -> dict[str, Any]:
+    u = result.uncertainty or {}
+    hyp = result.info.get("defaults", {}).get("marginal_likelihood", {})
+    return {
+        "name": spec.name,
+        "sequence": record["sequence"],
+        "motion": spec.recording.motion,
+        "field": spec.recording.field,
+        "drift_target": spec.recording.drift,
+        "samples": record["samples"],
+        "clock_shift_s": record.get("clock", {}).get("shift_seconds"),
+        "status": result.status,
+        "success": result.success,
+        "iterations": result.iterations,
+        "wall_seconds": wall,
+        "rmse_before": result.rmse_before,
+        "max_before": result.max_before,
+        "rmse_after": result.rmse_after,
+        "max_after": result.max_after,
+        "ratio": None
+        if result.rmse_after is None or not result.rmse_before
+        else result.rmse_after / result.rmse_before,
+        "sigma_f": result.hyperparameters.get("sigma_f"),
+        "lengthscale": result.hyperparameters.get("lengthscale"),
+        "sigma_m": result.hyperparameters.get("sigma_m"),
+        "ml_converged": hyp.get("converged"),
+        "fallback": result.info.get("fallback"),
+        "nees_mean": u.get("nees_mean"),
+        "nees_expected": u.get("nees_expected"),
+        "sigma_mean": u.get("sigma_mean"),
+        "inside_95": u.get("inside_95"),
+    }
+
+
+def _fmt(v: Any, spec: str = ".3f") -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return format(v, spec)
+    return str(v)
+
+
+def markdown(rows: list[dict[str, Any]]) -> str:
+    head = (
+        "| problem | motion | field | N | clock shift [s] | RMSE before [m] | max before [m] "
+        "| RMSE after [m] | max after [m] | after/before | iterations | wall [s] "
+        "| sigma_f | l [m] | sigma_m | mean NEES (expected) | inside 95 % | status |"
+    )
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        nees = (
+            "-"
+            if r.get("nees_mean") is None
+            else f"{r['nees_mean']:.2f} ({r['nees_expected']:.0f})"
+        )
+        lines.append(
+            "| "
+            + " | ".join(
+                [
+                    r["name"],
+                    r["motion"],
+                    r["field"],
+                    _fmt(r["samples"]),
+                    _fmt(r["clock_shift_s"], ".2f"),
+                    _fmt(r["rmse_before"]),
+                    _fmt(r["max_before"]),
+                    _fmt(r["rmse_after"]),
+                    _fmt(r["max_after"]),
+                    _fmt(r["ratio"], ".2f"),
+                    _fmt(r["iterations"]),
+                    _fmt(r["wall_seconds"], ".0f"),
+                    _fmt(r["sigma_f"], ".2f"),
+                    _fmt(r["lengthscale"], ".2f"),
+                    _fmt(r["sigma_m"], ".2f"),
+                    nees,
+                    _fmt(r["inside_95"], ".2f"),
+                    r["status"] + (f" ({r['fallback']})" if r.get("fallback") else ""),
+                ]
+            )
+            + " |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _worker(args: tuple[str, str]) -> dict[str, Any]:
+    from threadpoolctl import threadpool_limits
+
+    path, out = args
+    with threadpool_limits(1):
+        try:
+            return solve_problem(path, out)
+        except CasmagError as exc:
+            return {"name": Path(path).stem, "error": str(exc)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m casmag.realbench", description=__doc__)
+    ap.add_argument("files", nargs="+")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("-j", "--jobs", type=int, default=min(2, os.cpu_count() or 1))
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    specs = []
+    for f in a.files:
+        try:
+            specs.append((f, load_real_problem(f).name))
+        except CasmagError as exc:
+            print(f"casmag: error: {exc}", file=sys.stderr)
+            return 2
+    jobs = [(f, str(out / name)) for f, name in specs]
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    rows: list[dict[str, Any]] = []
+    with ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as pool:
+        for r in pool.map(_worker, jobs):
+            rows.append(r)
+            msg = r.get("error") or (
+                f"{r['name']}: {r['status']}, RMSE {r['rmse_before']:.3f} -> "
+                f"{_fmt(r['rmse_after'])} m, {r['iterations']} it, {r['wall_seconds']:.0f} s"
+            )
+            print(msg, flush=True)
+    failed = [r for r in rows if "error" in r]
+    # Rows of problems not run this time are kept from an earlier table (re-running a few
+    # files updates their rows only).
+    previous = out / "table.json"
+    merged = (
+        {r["name"]: r for r in json.loads(previous.read_text())["rows"]}
+        if previous.is_file()
+        else {}
+    )
+    merged.update({r["name"]: r for r in rows})
+    table = [merged[k] for k in sorted(merged)]
+    _atomic_write(previous, json.dumps({"rows": table}, indent=2) + "\n")
+    _atomic_write(out / "table.md", markdown([r for r in table if "error" not in r]))
+    return 1 if failed or any(not r["success"] for r in rows if "error" not in r) else 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

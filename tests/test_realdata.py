@@ -1,0 +1,238 @@
+"""Real-data protocol (casmag.realdata, casmag convert), the Laplace position uncertainty
+(casmag.uncertainty) and the homogeneous-field fallback of `casmag slam`."""
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import casmag
+from casmag.api import slam
+from casmag.cli import main
+from casmag.errors import DataError
+from casmag.realdata import (
+    Protocol,
+    Sequence,
+    align,
+    clock_offset,
+    convert,
+    heading_of_motion,
+    load_sequence,
+    planar_dead_reckoning,
+    planar_increments,
+)
+from casmag.recording import dataset_to_recording_arrays, write_recording
+from casmag.simulate import simulate_problem
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data" / "magnetic-data" / "invensense"
+needs_shared = pytest.mark.skipif(
+    not (SHARED / "1-time.csv").is_file(),
+    reason=f"real data not found at {SHARED} (../shared beside the repository)",
+)
+
+
+def _field(P):
+    """A smooth synthetic field (uT) over the plane."""
+    x, y = P[:, 0], P[:, 1]
+    return np.column_stack(
+        [
+            20 + 6 * np.sin(2.1 * x) * np.cos(1.7 * y),
+            -5 + 5 * np.cos(1.3 * x + 0.4) + 3 * np.sin(2.5 * y),
+            -40 + 4 * np.sin(1.9 * x - 1.1 * y),
+        ]
+    )
+
+
+def _synthetic_sequence(lag: int = 0, n: int = 3000, rate: float = 50.0, seed: int = 0):
+    """A robot looping over 3 m x 2 m at 0.3 m/s; the magnetometer sample k is the field at
+    the position of sample k + lag (negative lag: the magnetometer is late)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / rate
+    P = np.column_stack([1.5 * np.cos(0.13 * t) + 0.2 * np.sin(0.5 * t), np.sin(0.21 * t)])
+    k = np.clip(np.arange(n) + lag, 0, n - 1)
+    mag = _field(P[k]) + 0.05 * rng.standard_normal((n, 3))
+    return Sequence("synthetic", t, P, mag)
+
+
+def test_clock_offset_finds_a_known_lag():
+    seq = _synthetic_sequence(lag=-7)
+    hyper = SimpleNamespace(sigma_f=4.0, lengthscale=0.8, sigma_m=0.05)
+    shift, record = clock_offset(seq, max_shift=0.3, stride=5, hyper=hyper)
+    assert shift == -7
+    assert record["shift_seconds"] == pytest.approx(-7 / 50)
+    assert record["log_marginal_gain"] > 10
+    aligned = align(seq, shift)
+    assert np.array_equal(aligned.mag[:100], seq.mag[7:107])
+    assert np.array_equal(aligned.loc[:100], seq.loc[:100])
+    assert aligned.loc.shape[0] == aligned.mag.shape[0] == seq.t.shape[0] - 7
+
+
+def test_convert_translational_drift_and_determinism():
+    seq = _synthetic_sequence()
+    p = Protocol(drift=0.5, noise=0.0, seed=3, align=False)
+    a, b = convert(seq, p), convert(seq, p)
+    assert np.array_equal(a.arrays["dxy"], b.arrays["dxy"])
+    assert a.record["odometry"]["final_drift"] == pytest.approx(0.5, rel=1e-9)
+    assert a.record["samples"] == 600  # 50 Hz -> 10 Hz
+    c = convert(seq, Protocol(drift=0.5, noise=0.0, seed=4, align=False))
+    assert not np.allclose(c.arrays["dxy"], a.arrays["dxy"])  # another bias direction
+
+
+def test_planar_increments_dead_reckon_back_and_drift_is_hit():
+    seq = _synthetic_sequence()
+    P = seq.loc[::5]
+    psi = heading_of_motion(P)
+    U = planar_increments(P, psi)
+    assert np.allclose(planar_dead_reckoning(U, P[0], psi[0]), P, atol=1e-9)
+    conv = convert(seq, Protocol(drift=1.5, seed=2, motion="planar", align=False))
+    assert conv.record["odometry"]["final_drift"] == pytest.approx(1.5, rel=1e-6)
+    assert conv.arrays["planar"].shape == (conv.record["samples"] - 1, 3)
+    # The magnetometer is rotated into the heading frame: |y| is unchanged.
+    Y = seq.mag[::5]
+    assert np.allclose(np.linalg.norm(conv.arrays["Y"], axis=1), np.linalg.norm(Y, axis=1))
+
+
+def test_constant_field_replaces_the_magnetometer():
+    seq = _synthetic_sequence()
+    conv = convert(seq, Protocol(field="constant", constant_noise=1.0, seed=1, align=False))
+    Y = conv.arrays["Y"]
+    assert np.allclose(Y.mean(axis=0), seq.mag[::5].mean(axis=0), atol=0.2)
+    assert np.allclose(Y.std(axis=0), 1.0, atol=0.1)
+
+
+def test_load_sequence_errors_name_the_file(tmp_path):
+    with pytest.raises(DataError, match=r"1-time\.csv: file not found"):
+        load_sequence(tmp_path / "1")
+    np.savetxt(tmp_path / "1-time.csv", np.arange(20) * 0.02)
+    np.savetxt(tmp_path / "1-loc.csv", np.zeros((20, 3)), delimiter=",")
+    np.savetxt(tmp_path / "1-mag.csv", np.zeros((20, 3)), delimiter=",")
+    with pytest.raises(DataError, match=r"1-loc\.csv: has 3 columns, expected 2"):
+        load_sequence(tmp_path / "1")
+    np.savetxt(tmp_path / "1-loc.csv", np.zeros((19, 2)), delimiter=",")
+    with pytest.raises(DataError, match=r"1-loc\.csv: has 19 rows"):
+        load_sequence(tmp_path / "1")
+
+
+def test_convert_cli_writes_recording_and_record(tmp_path):
+    seq = _synthetic_sequence()
+    for name, A in (("time", seq.t[:, None]), ("loc", seq.loc), ("mag", seq.mag)):
+        np.savetxt(tmp_path / f"7-{name}.csv", A, delimiter=",")
+    out = tmp_path / "rec.csv"
+    r = CliRunner().invoke(
+        main, ["convert", str(tmp_path / "7"), "--out", str(out), "--drift", "0.3", "--no-align"]
+    )
+    assert r.exit_code == 0, r.output
+    rec = casmag.recording.read_recording(out)
+    assert rec.n_samples == 600 and rec.has_truth
+    assert json.loads(out.with_suffix(".json").read_text())["odometry"]["final_drift"] > 0.25
+    bad = CliRunner().invoke(
+        main, ["convert", str(tmp_path / "9"), "--out", str(tmp_path / "x.csv")]
+    )
+    assert bad.exit_code == 2
+    assert "9-time.csv: file not found" in bad.output
+    assert len(bad.output.strip().splitlines()) == 1
+    assert not (tmp_path / "x.csv").exists()
+
+
+@needs_shared
+def test_real_sequence_magnetometer_lags_the_motion_capture():
+    """Measured: the magnetometer of sequence 1 is 0.26 s late; aligning it gains hundreds
+    of nats of marginal likelihood."""
+    _, record = clock_offset(load_sequence(SHARED / "1"))
+    assert -0.4 <= record["shift_seconds"] <= -0.1
+    assert record["log_marginal_gain"] > 100
+
+
+@needs_shared
+def test_every_real_problem_file_loads(tmp_path):
+    from casmag.realbench import load_real_problem, sequence_path
+
+    files = sorted((ROOT / "problems/real").glob("*.yaml"))
+    assert len(files) == 12
+    for f in files:
+        spec = load_real_problem(f)
+        prefix = sequence_path(spec, f)
+        assert prefix.with_name(f"{prefix.name}-time.csv").is_file(), f
+
+
+def _tiny(overrides=()):
+    return casmag.load_problem(
+        ROOT / "problems/bench/walk.yaml",
+        [
+            "seed=2",
+            "simulation.trajectory.samples=120",
+            "simulation.trajectory.area=[1.5, 1.5]",
+            "model.trajectory.knot_every=3",
+            "solver.warm_start.strategy=none",
+            *overrides,
+        ],
+    )
+
+
+def test_laplace_covariance_without_field_information_is_the_odometry_random_walk():
+    """With an uninformative magnetometer (sigma_m huge) and no bias, the posterior of the
+    positions is the anchor plus the odometry random walk: var(p_k) = sigma_a^2 + k sigma_o^2
+    per axis, also between knots (the Brownian-bridge term)."""
+    prob = _tiny(["model.magnetometer.sigma_m=1.0e6", "model.odometry.estimate_bias=false"])
+    res = casmag.solve(prob)
+    assert res.success
+    cov = res.arrays["P_cov"]
+    sa, so = prob.spec.model.anchor.sigma, prob.assumed_sigma_odometry
+    expected = sa**2 + so**2 * np.arange(cov.shape[0])
+    assert np.allclose(cov[:, 0, 0], expected, rtol=1e-4)
+    assert np.allclose(cov[:, 1, 1], expected, rtol=1e-4)
+    assert np.allclose(cov[:, 0, 1], 0.0, atol=1e-6 * expected.max())
+
+
+def test_laplace_uncertainty_is_written_and_shrinks_with_a_map(tmp_path):
+    res = casmag.solve(_tiny())
+    assert res.success
+    u = res.uncertainty
+    assert u["nees_mean"] is not None and u["nees_expected"] == 2.0
+    res.save(tmp_path / "out")
+    header = (tmp_path / "out" / "trajectory.csv").read_text().splitlines()[0].split(",")
+    assert header[-3:] == ["sigma_x", "sigma_y", "cov_xy"]
+    no_bias = "model.odometry.estimate_bias=false"
+    mapped = casmag.solve(_tiny([no_bias])).uncertainty
+    flat = casmag.solve(_tiny(["model.magnetometer.sigma_m=1.0e6", no_bias])).uncertainty
+    # The field pins the positions: the 1-sigma is smaller than with the odometry alone.
+    assert mapped["sigma_mean"] < 0.75 * flat["sigma_mean"]  # measured: 0.59
+    assert mapped["sigma_mean"] < u["sigma_mean"]  # a free bias adds uncertainty
+    # Without a field a free bias is unobservable: no Laplace approximation, said so.
+    unobservable = casmag.solve(_tiny(["model.magnetometer.sigma_m=1.0e6"]))
+    assert "not positive definite" in unobservable.uncertainty["error"]
+    assert "P_cov" not in unobservable.arrays or unobservable.arrays["P_cov"] is None
+
+
+def _recording(tmp_path, constant: bool):
+    data = simulate_problem(_tiny(["simulation.trajectory.samples=600"]))
+    arrays = dataset_to_recording_arrays(data, dt=0.1)
+    if constant:
+        rng = np.random.default_rng(5)
+        arrays["Y"] = data.Y.mean(axis=0) + 2e-3 * rng.standard_normal(data.Y.shape)
+    path = tmp_path / ("flat.csv" if constant else "field.csv")
+    write_recording(path, **arrays)
+    return path
+
+
+def test_slam_falls_back_to_odometry_in_a_homogeneous_field(tmp_path):
+    res = slam(_recording(tmp_path, constant=True))
+    assert res.status == "Odometry_Only" and res.success
+    assert "homogeneous field" in res.info["fallback"]
+    assert res.rmse_after == res.rmse_before
+    # The bias is unknown and has no prior: the odometry's uncertainty is unbounded.
+    assert "unbounded" in res.uncertainty["error"]
+    ev = res.info["defaults"]["field_evidence"]
+    assert ev["homogeneous"] and ev["log_bayes_factor"] <= 0
+    forced = slam(_recording(tmp_path, constant=True), field_check=False)
+    assert forced.status != "Odometry_Only"
+
+
+def test_slam_keeps_the_map_when_the_field_varies(tmp_path):
+    res = slam(_recording(tmp_path, constant=False))
+    assert res.status == "Solve_Succeeded"
+    assert res.info["defaults"]["field_evidence"]["log_bayes_factor"] > 10
