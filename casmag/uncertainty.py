@@ -81,6 +81,8 @@ def position_uncertainty(
     sigma_o) adds its Brownian-bridge variance sigma_o^2 s (k - s) / k per axis, s steps
     after a knot of an interval of k steps: the knot model leaves that part of the odometry
     noise out of the unknowns. Raises NotPositiveDefinite when the factorisation fails.
+    (The Hessian does not depend on the bias value, in which the odometry block is
+    quadratic, so the total bias a growing or sliding solve leaves in ``sol.x`` is harmless.)
     """
     x = {k: v for k, v in sol.x.items() if k in nlp.x_layout.entries}
     H = nlp.hessian(x, params).toarray()
