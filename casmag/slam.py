@@ -150,6 +150,41 @@ def build_translational(s: Structure) -> NLP:
     return b.build(SolverSpec.model_validate_json(s.solver), name="casmag_translational")
 
 
+def add_map_magnetometer(
+    b: NLPBuilder,
+    basis: HilbertBasis,
+    kernel: str,
+    knots: Knots,
+    dim: int,
+    constant_field: bool,
+    name: str = "magnetometer",
+) -> MapModel:
+    """Add the reduced-rank map's magnetometer block (a numpy callback, casmag.rrmap) as
+    cost ``magnetometer``, reading C, W (and c) from the variables and Q, Y, sigma_m from the
+    parameters already declared on ``b``; declare every symbol first. Returns the model the
+    Hessian callback needs."""
+    n_x, n_p = b.sizes
+    model = MapModel(
+        basis,
+        kernel,
+        knots,
+        dim,
+        MapLayout(
+            n_x=n_x,
+            n_p=n_p,
+            C=b.offset("C"),
+            Q=b.offset("Q", "p"),
+            Y=b.offset("Y", "p"),
+            W=b.offset("W"),
+            c=b.offset("c") if constant_field else None,
+            sigma_m=b.offset("sigma_m", "p"),
+        ),
+    )
+    mag = b.retain(MagnetometerCost(name, model))
+    b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
+    return model
+
+
 def _build_reduced_rank(
     b: NLPBuilder,
     s: Structure,
@@ -170,25 +205,7 @@ def _build_reduced_rank(
     sigma_lin = b.parameter("sigma_lin", (1, 1)) if s.constant_field else None
     sigma_b = b.parameter("sigma_bias", (1, 1)) if s.bias_prior else None
     # Every variable and parameter is declared: the numpy blocks see the full vectors.
-    n_x, n_p = b.sizes
-    model = MapModel(
-        basis,
-        s.kernel,
-        s.knots,
-        s.dim,
-        MapLayout(
-            n_x=n_x,
-            n_p=n_p,
-            C=b.offset("C"),
-            Q=b.offset("Q", "p"),
-            Y=b.offset("Y", "p"),
-            W=b.offset("W"),
-            c=b.offset("c") if s.constant_field else None,
-            sigma_m=b.offset("sigma_m", "p"),
-        ),
-    )
-    mag = b.retain(MagnetometerCost("magnetometer", model))
-    b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
+    model = add_map_magnetometer(b, basis, s.kernel, s.knots, s.dim, s.constant_field)
     S = basis.prior_variances(s.kernel, sigma_f, ell)  # (M, 1)
     n_cols = W.shape[1]
     b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2 / ca.repmat(S, 1, n_cols))))

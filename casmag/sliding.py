@@ -54,9 +54,6 @@ from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.reduced_rank import HilbertBasis
 from casmag.rrmap import (
     GaussNewtonHessian,
-    MagnetometerCost,
-    MapLayout,
-    MapModel,
     field_and_jacobians,
     make_basis,
 )
@@ -65,6 +62,7 @@ from casmag.slam import (
     HYPERPARAMETERS,
     Structure,
     _hilbert_basis,
+    add_map_magnetometer,
     cached_nlp,
     field_estimate,
     initial_weights,
@@ -175,26 +173,10 @@ def _build_window(s: WindowStructure) -> NLP:
     Lam = b.parameter("map_precision", (n_r, n_r))
     bias_mean = b.parameter("bias_mean", (1, s.dim))
     bias_prec = b.parameter("bias_precision", (1, 1))
-    n_x, n_p = b.sizes
-    model = MapModel(
-        basis,
-        s.kernel,
-        knots,
-        s.dim,
-        MapLayout(
-            n_x=n_x,
-            n_p=n_p,
-            C=b.offset("C"),
-            Q=b.offset("Q", "p"),
-            Y=b.offset("Y", "p"),
-            W=b.offset("W"),
-            c=b.offset("c") if s.constant_field else None,
-            sigma_m=b.offset("sigma_m", "p"),
-        ),
+    model = add_map_magnetometer(
+        b, basis, s.kernel, knots, s.dim, s.constant_field, "window_magnetometer"
     )
     b.cost("odometry", knots.odometry_cost(C, bias, sigma_o))
-    mag = b.retain(MagnetometerCost("window_magnetometer", model))
-    b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
     Z = W if s.shared_prior else ca.vertcat(ca.vec(W), *([c] if c is not None else []))
     R = Z - mu
     b.cost("map_prior", 0.5 * ca.sum1(ca.sum2(R * ca.mtimes(Lam, R))))
