@@ -414,9 +414,12 @@ def fixed_lag_smoother(
     )
 
 
-def _batch_stage(sol: Solution, nlp: NLP, n: int, lengthscale: float, bias: Any) -> WindowStage:
+def _batch_stage(
+    sol: Solution, nlp: NLP, n: int, lengthscale: float, bias: Any, kind: str = "batch"
+) -> WindowStage:
+    """A solve over all n samples (the batch, or a coarse-to-fine stage) as a stage."""
     return WindowStage(
-        kind="batch",
+        kind=kind,
         start=0,
         samples=n,
         status=sol.status,
@@ -486,17 +489,8 @@ def solve_coarse_to_fine(
             )
         sol = nlp.solve(params, x0, progress=progress if last else None)
         stages.append(
-            WindowStage(
-                kind="batch" if last else "lengthscale",
-                start=0,
-                samples=data.n_samples,
-                status=sol.status,
-                success=sol.success,
-                iterations=sol.iterations,
-                solve_seconds=sol.solve_seconds,
-                build_seconds=nlp.build_seconds,
-                lengthscale=ell,
-                bias=None if "bias" not in sol.x else [float(v) for v in sol.x["bias"].ravel()],
+            _batch_stage(
+                sol, nlp, data.n_samples, ell, sol.x.get("bias"), "batch" if last else "lengthscale"
             )
         )
         if not last and sol.status not in ACCEPTED:
