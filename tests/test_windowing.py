@@ -15,6 +15,8 @@ from casmag.simulate import simulate_problem
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "problems/paper/base.yaml"
+AUTO_SPIRAL = 12
+"""The automatic window on the Table 5 spiral (casmag.sliding.auto_window)."""
 
 
 def _spiral(bias=0.012, noise=1.0e-3, seed=2, *extra):
@@ -148,9 +150,21 @@ def test_warm_start_settings_are_validated():
         ],
     ).spec.solver.warm_start
     assert (timed.window_samples, timed.overlap_samples) == (20, 5)
+    # Defaults: window and overlap auto, resolved against the data (casmag.sliding).
+    default = casmag.load_problem(BASE, []).spec.solver.warm_start
+    assert (default.window, default.overlap, default.window_bias_prior) == (
+        "auto",
+        "auto",
+        "laplace",
+    )
+    assert (default.window_samples, default.overlap_samples) == (None, None)
+    half = casmag.load_problem(BASE, ["solver.warm_start.window=14"]).spec.solver.warm_start
+    assert (half.window_samples, half.overlap_samples) == (14, 7)
     bad = {
-        "solver.warm_start.overlap=20": "overlap",
         "solver.warm_start.overlap=0": "overlap",
+        "solver.warm_start.window=20;solver.warm_start.overlap=20": "overlap",
+        "solver.warm_start.window=auto;solver.warm_start.overlap=0.5": "whole numbers",
+        "solver.warm_start.window_bias_prior=fixed": "window_bias_prior",
         "solver.warm_start.window=2": "at least 3 samples",
         "solver.warm_start.window=12.5": "whole numbers",
         "solver.warm_start.unit=seconds": "sample_period",
@@ -162,7 +176,59 @@ def test_warm_start_settings_are_validated():
     }
     for override, words in bad.items():
         with pytest.raises(ProblemError) as err:
-            casmag.load_problem(BASE, [override])
+            casmag.load_problem(BASE, override.split(";"))
         message = str(err.value)
         assert words in message and "\n" not in message, message
         assert "base.yaml" in message
+
+
+def test_the_bias_prior_is_a_parameter_and_accumulates(drifting):
+    _, _, sm, builds = drifting
+    assert builds == 1  # every window, with its own bias prior, re-solves one NLP
+    entries = sliding.window_nlp(sm.structure).p_layout.entries
+    assert entries["bias_mean"].shape == (1, 2)
+    assert entries["bias_precision"].shape == (2, 2)
+    sigma = np.array([w.bias_sigma for w in sm.windows])
+    assert sigma.shape == (16, 2) and np.all(np.isfinite(sigma)) and np.all(sigma > 0)
+    # Each window's posterior contains the previous one's: the bias is known better at the
+    # end than after the first window.
+    assert np.all(sigma[-1] < 0.5 * sigma[0]), sigma
+
+
+def test_auto_window_travels_the_documented_multiple_of_the_lengthscale():
+    # The spiral steps 5 cm: l = 0.4 m is 8 steps, k = window_lengthscales of them plus one.
+    problem = _spiral(0.003, 1.0e-4, 1, "solver.warm_start.window=auto")
+    problem = problem.with_overrides(["solver.warm_start.overlap=auto"])
+    data = simulate_problem(problem)
+    k = problem.spec.solver.warm_start.window_lengthscales
+    n = round(k * 0.4 / 0.05) + 1
+    assert sliding.AUTO_WINDOW[0] <= n <= sliding.AUTO_WINDOW[1]
+    assert sliding.auto_window(problem, data) == (n, n // 2) == (AUTO_SPIRAL, AUTO_SPIRAL // 2)
+    # base.yaml: l = 0.1 m is 2 steps, below the floor of the clamp.
+    base = casmag.load_problem(BASE, [])
+    assert sliding.auto_window(base, simulate_problem(base))[0] == sliding.AUTO_WINDOW[0]
+    # A short recording: the window is the recording.
+    short = casmag.load_problem(BASE, ["simulation.trajectory.samples=7"])
+    assert sliding.auto_window(short, simulate_problem(short)) == (7, 3)
+
+
+def test_without_the_bias_prior_short_windows_run_away():
+    """base.yaml (l = 0.1 m, bias 1 mm/step) with 10-sample windows: without the prior each
+    window re-estimates the bias increment from its own samples and the total wanders off;
+    with it the estimate settles. The first 40 samples (8 windows) show it."""
+    problem = casmag.load_problem(
+        BASE,
+        [
+            "model.gp.form=reduced_rank",
+            "solver.warm_start.window=10",
+            "solver.warm_start.overlap=5",
+        ],
+    )
+    data = simulate_problem(problem).prefix(40)
+    err = {}
+    for prior in ("none", "laplace"):
+        p = problem.with_overrides([f"solver.warm_start.window_bias_prior={prior}"])
+        sm = sliding.fixed_lag_smoother(p, data)
+        assert sm.completed
+        err[prior] = np.abs(sm.bias - data.bias_true).max()
+    assert err["none"] > 1.0e-3 and err["laplace"] < 2.5e-4, err
