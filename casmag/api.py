@@ -22,6 +22,7 @@ def solve(
     problem: Problem | str | Path | dict[str, Any],
     data: Dataset | None = None,
     progress: Callable[[int, float, float, float], None] | None = None,
+    initial_positions: np.ndarray | None = None,
 ) -> Result:
     """Solve a GP-SLAM problem and return its result.
 
@@ -29,6 +30,7 @@ def solve(
     data: the data set to use; simulated from the problem (with its seed) when omitted.
     progress: called after every IPOPT iteration with (iteration, cost, max-norm of the
     step, seconds since the solve started).
+    initial_positions: (N, d) start of a plain batch solve (default: the dead reckoning).
     A failed solve is returned with ``success = False`` and IPOPT's ``status``; its error
     fields are None, so a failure is never mistaken for a result.
     """
@@ -44,7 +46,9 @@ def solve(
         staged = solve_sliding if ws.strategy == "sliding" else solve_coarse_to_fine
         sol, nlp, hyper, field, structure, solved, stages = staged(problem, data, progress)
     else:
-        sol, nlp, hyper, field, structure = solve_translational(problem, data, progress)
+        sol, nlp, hyper, field, structure = solve_translational(
+            problem, data, progress, initial_positions
+        )
         solved = data
 
     P_odo = data.dead_reckoning()
@@ -88,6 +92,10 @@ def solve(
         "lengthscale": problem.assumed_lengthscale,
         "sigma_m": problem.assumed_sigma_m,
     }
+    start = sol.stats.get("estimate_start")
+    if start is not None:  # the joint MAP's start of its estimated hyperparameters
+        info["estimate_start"] = start
+        initial.update(start["values"])
     return Result(
         info=info,
         status=sol.status,
@@ -102,7 +110,9 @@ def solve(
         hyperparameters={h: hyper[h] for h in HYPERPARAMETERS},
         hyperparameters_initial=initial,
         odometry_bias=None if bias is None else [float(v) for v in np.ravel(bias)],
-        odometry_bias_true=None if data.bias_true is None else [float(v) for v in data.bias_true],
+        odometry_bias_true=None
+        if data.bias_true is None
+        else [float(v) for v in np.ravel(data.bias_true)],
         cost_blocks={
             n: {"before": sol.blocks_before[n], "after": sol.blocks_after[n]}
             for n in sol.blocks_before
@@ -334,7 +344,9 @@ def odometry_only(problem: Problem, data: Dataset, reason: str) -> Result:
         hyperparameters=hyper,
         hyperparameters_initial=dict(hyper),
         odometry_bias=None,
-        odometry_bias_true=None if data.bias_true is None else [float(v) for v in data.bias_true],
+        odometry_bias_true=None
+        if data.bias_true is None
+        else [float(v) for v in np.ravel(data.bias_true)],
         cost_blocks={},
         cost_per_iteration=[],
         constraint_violation_per_iteration=[],

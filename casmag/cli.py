@@ -77,7 +77,9 @@ def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
 
 
 @main.command()
-@click.argument("recording", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument(
+    "recordings", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path)
+)
 @output_options
 @click.option(
     "--problem",
@@ -91,7 +93,7 @@ def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
     help="Solve even when the field shows no position information (default: odometry only).",
 )
 def slam(
-    recording: Path,
+    recordings: tuple[Path, ...],
     out_dir: Path,
     problem: Path | None,
     overrides: tuple[str, ...],
@@ -99,34 +101,52 @@ def slam(
     quiet: bool,
     no_field_check: bool,
 ) -> None:
-    """GP-SLAM on RECORDING (CSV: t, motion increments, mx,my,mz, optional truth).
+    """GP-SLAM on RECORDINGS (CSV: t, motion increments, mx,my,mz, optional truth).
 
     Defaults: reduced-rank map, hyperparameters from the data's marginal likelihood,
     odometry noise 2 % of the median step, one trajectory knot per second (per 5 s above
     20,000 samples), growing warm starts. Writes result.json, trajectory.csv,
     trajectory.png, cost.png and map.png. A planar recording (dfwd,dleft,dyaw) is solved
     with the planar heading model instead (--set model.KEY=VALUE, casmag.imuconfig).
+
+    Several recordings of the same field (translational, each with its first position in
+    the common frame) are solved together with one shared map, each with its own odometry
+    bias (casmag.multisession); result.json lists each session's errors and sessions.png
+    shows them.
     """
     from casmag.api import slam as run_slam
     from casmag.imucli import is_planar_recording, planar_slam
+    from casmag.multisession import slam_sessions
 
-    if is_planar_recording(recording):  # dfwd,dleft,dyaw: the planar model with heading
+    recording = recordings[0]
+    if len(recordings) == 1 and is_planar_recording(recording):  # the planar heading model
         planar_slam(recording, out_dir, problem, overrides, no_figures, quiet)
         return
+    progress = None if quiet else print_progress
     try:
-        result = run_slam(
-            recording,
-            problem,
-            overrides,
-            progress=None if quiet else print_progress,
-            field_check=not no_field_check,
-        )
+        for r in recordings[1:]:
+            if is_planar_recording(r):
+                raise CasmagError(f"{r}: planar recordings cannot be solved as several sessions")
+        if len(recordings) == 1:
+            result = run_slam(
+                recording, problem, overrides, progress=progress, field_check=not no_field_check
+            )
+        else:
+            result = slam_sessions(
+                recordings, problem, overrides, progress=progress, field_check=not no_field_check
+            )
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
     except (ValueError, RuntimeError) as exc:
         fail_bad_input(recording, exc)
     _finish(result, recording, out_dir, quiet)
+    if not quiet:
+        for row in result.info.get("sessions", []):
+            if row.get("rmse_after") is not None:
+                click.echo(
+                    f"  {row['name']}: RMSE {row['rmse_before']:.4f} -> {row['rmse_after']:.4f} m"
+                )
 
 
 @main.command()

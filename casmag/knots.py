@@ -15,6 +15,11 @@ their sum of squares collapses to one residual per interval:
 
     0.5 |c_{j+1} - c_j + k_j b|^2 / (k_j sigma_o^2).
 
+Several sessions stacked in one sample axis (``starts``, casmag.multisession) each get their
+own chain: the first and last sample of every session are knots, no sample lies between a
+session's last knot and the next session's first, and the odometry cost skips that
+interval and uses the session's own bias b_s.
+
 This is the MAP problem restricted to piecewise-linear drift corrections. It keeps the
 odometry within an interval as measured (its noise there is not corrected: about
 sigma_o sqrt(k) / 2 at the middle of an interval), and it shrinks the pose block and the
@@ -34,20 +39,40 @@ import scipy.sparse.linalg as spla
 
 @dataclass(frozen=True)
 class Knots:
-    """Knot placement for ``n`` samples: samples 0, every, 2 every, ... and n - 1."""
+    """Knot placement for ``n`` samples: samples 0, every, 2 every, ... and n - 1; with
+    several sessions (``starts``: first sample of each), the same within every session."""
 
     n: int
     every: int = 1
+    starts: tuple[int, ...] = (0,)
 
     def __post_init__(self) -> None:
         if self.n < 2 or self.every < 1:
             raise ValueError(f"need n >= 2 and every >= 1, got n={self.n}, every={self.every}")
+        if self.starts[0] != 0 or any(b - a < 2 for a, b in self.bounds):
+            raise ValueError(f"sessions must start at 0 and hold >= 2 samples, got {self.starts}")
+
+    @property
+    def bounds(self) -> list[tuple[int, int]]:
+        """(first, end) sample range of each session."""
+        return list(zip(self.starts, [*self.starts[1:], self.n], strict=True))
 
     @cached_property
     def samples(self) -> np.ndarray:
         """(K,) sample index of each knot."""
-        idx = np.arange(0, self.n, self.every)
-        return idx if idx[-1] == self.n - 1 else np.append(idx, self.n - 1)
+        parts = []
+        for a, b in self.bounds:
+            idx = np.arange(a, b, self.every)
+            parts.append(idx if idx[-1] == b - 1 else np.append(idx, b - 1))
+        return np.concatenate(parts)
+
+    @cached_property
+    def session_of_interval(self) -> np.ndarray:
+        """(K - 1,) session of each knot interval, -1 for the gap between two sessions."""
+        s = self.samples
+        session = np.searchsorted(np.asarray(self.starts), s[:-1], side="right") - 1
+        gap = np.isin(s[1:], np.asarray(self.starts))
+        return np.where(gap, -1, session)
 
     @property
     def count(self) -> int:
@@ -103,9 +128,19 @@ class Knots:
         )
 
     def odometry_cost(self, correction: ca.MX, bias: ca.MX, sigma_o: ca.MX) -> ca.MX:
-        """0.5 sum_j |c_{j+1} - c_j + k_j b|^2 / (k_j sigma_o^2) on (K, d) corrections."""
-        k = ca.DM(self.steps.astype(float).reshape(-1, 1))
-        K = self.count
-        d_corr = correction[1:K, :] - correction[0 : K - 1, :]
-        resid = (d_corr + ca.mtimes(k, bias)) / ca.repmat(ca.sqrt(k), 1, correction.shape[1])
+        """0.5 sum_j |c_{j+1} - c_j + k_j b_s(j)|^2 / (k_j sigma_o^2) on (K, d) corrections,
+        with bias (S, d), one row per session (the gap between sessions has no term)."""
+        session = self.session_of_interval
+        j = np.flatnonzero(session >= 0)
+        k = ca.DM(self.steps[j].astype(float).reshape(-1, 1))
+        if len(self.starts) == 1:
+            K = self.count
+            d_corr = correction[1:K, :] - correction[0 : K - 1, :]
+            drift = ca.mtimes(k, bias)
+        else:
+            d_corr = correction[(j + 1).tolist(), :] - correction[j.tolist(), :]
+            E = np.zeros((j.size, len(self.starts)))
+            E[np.arange(j.size), session[j]] = self.steps[j]
+            drift = ca.mtimes(ca.DM(E), bias)
+        resid = (d_corr + drift) / ca.repmat(ca.sqrt(k), 1, correction.shape[1])
         return 0.5 * ca.sumsqr(resid) / sigma_o**2

@@ -24,12 +24,7 @@ def trajectory_figure(result: Result, path: Path) -> None:
     a = result.arrays
     fig = Figure(figsize=(6.0, 5.6))
     ax = fig.add_subplot()
-    ax.plot(*a["P_odometry"][:, :2].T, "--", color="tab:cyan", lw=1.4, label="odometry only")
-    if a.get("P_true") is not None:
-        ax.plot(*a["P_true"][:, :2].T, "^", color="tab:red", ms=4, mfc="none", label="truth")
-    ax.plot(*a["P_estimate"][:, :2].T, "-", color="tab:blue", lw=1.4, label="GP-SLAM")
-    if a.get("P_cov") is not None and a["P_cov"].shape[1] == 2:
-        _ellipses(ax, a["P_estimate"], a["P_cov"])
+    _trajectories(ax, a, _pieces(result))
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
@@ -42,6 +37,74 @@ def trajectory_figure(result: Result, path: Path) -> None:
             f"max {result.max_before:.4f} m -> {result.max_after:.4f} m"
         )
     ax.set_title(title, fontsize=9)
+    _save(fig, path)
+
+
+def _pieces(result: Result) -> list[slice]:
+    """The sample ranges drawn as separate lines: one per session (casmag.multisession)."""
+    sessions = result.info.get("sessions")
+    if not sessions:
+        return [slice(None)]
+    return [slice(s["first_sample"], s["first_sample"] + s["n_samples"]) for s in sessions]
+
+
+def _trajectories(ax: object, a: dict, pieces: list[slice], ellipses: bool = True) -> None:
+    for i, sl in enumerate(pieces):
+        first = i == 0
+        ax.plot(
+            *a["P_odometry"][sl, :2].T,
+            "--",
+            color="tab:cyan",
+            lw=1.4,
+            label="odometry only" if first else None,
+        )
+        if a.get("P_true") is not None:
+            ax.plot(
+                *a["P_true"][sl, :2].T,
+                "^",
+                color="tab:red",
+                ms=4,
+                mfc="none",
+                label="truth" if first else None,
+            )
+        ax.plot(
+            *a["P_estimate"][sl, :2].T,
+            "-",
+            color="tab:blue",
+            lw=1.4,
+            label="GP-SLAM" if first else None,
+        )
+    if ellipses and a.get("P_cov") is not None and a["P_cov"].shape[1] == 2:
+        _ellipses(ax, a["P_estimate"], a["P_cov"])
+
+
+def sessions_figure(result: Result, path: Path) -> None:
+    """One panel per session of a multi-session solve (casmag.multisession): odometry-only,
+    estimate and truth, with the session's errors in its title."""
+    import math
+
+    sessions = result.info["sessions"]
+    cols = min(3, len(sessions))
+    rows = math.ceil(len(sessions) / cols)
+    fig = Figure(figsize=(4.2 * cols, 4.0 * rows))
+    for i, (s, sl) in enumerate(zip(sessions, _pieces(result), strict=True)):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        a = {
+            k: (None if v is None else v[sl])
+            for k, v in result.arrays.items()
+            if k.startswith("P_")
+        }
+        _trajectories(ax, a, [slice(None)], ellipses=True)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+        title = s["name"]
+        if s.get("rmse_after") is not None:
+            title += f": RMSE {s['rmse_before']:.3f} -> {s['rmse_after']:.3f} m"
+        ax.set_title(title, fontsize=9)
+        if i == 0:
+            ax.legend(loc="best", fontsize=7)
+    fig.suptitle(result.info.get("name", ""), fontsize=10)
+    fig.tight_layout()
     _save(fig, path)
 
 

@@ -14,6 +14,10 @@ defaults of ``casmag slam``::
     model: {}
     solver: {}
 
+A multi-session problem (casmag.multisession) lists several recordings under ``sessions:``
+(each a ``recording`` block) instead of one ``recording``; they are solved together with one
+shared map and the table gets one row per session, named ``<name>: <sequence>``.
+
 ``python -m casmag.realbench FILES --out DIR`` converts and solves each file in its own
 process and writes DIR/<name>/ (result.json with the protocol record in ``info.protocol``,
 trajectory.csv, figures) and DIR/table.md, DIR/table.json (rows of files not run this time
@@ -31,7 +35,7 @@ import time
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from casmag.config import _Strict, validate_spec
 from casmag.errors import CasmagError, DataError
@@ -58,9 +62,20 @@ class RealProblemSpec(_Strict):
 
     name: str
     description: str = ""
-    recording: RecordingSpec
+    recording: RecordingSpec | None = None
+    sessions: list[RecordingSpec] = Field(default_factory=list)
     model: dict[str, Any] = Field(default_factory=dict)
     solver: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _one_source(self) -> RealProblemSpec:
+        if (self.recording is None) == (not self.sessions):
+            raise ValueError("give either recording or sessions (a list of recordings)")
+        return self
+
+    @property
+    def recordings(self) -> list[RecordingSpec]:
+        return [self.recording] if self.recording is not None else list(self.sessions)
 
 
 def load_real_problem(path: str | Path) -> RealProblemSpec:
@@ -68,23 +83,38 @@ def load_real_problem(path: str | Path) -> RealProblemSpec:
     return validate_spec(RealProblemSpec, Path(path))[0]
 
 
-def sequence_path(spec: RealProblemSpec, source: str | Path) -> Path:
-    """The sequence prefix, relative paths taken from the problem file's folder."""
-    p = Path(spec.recording.sequence)
+def sequence_path(spec: RealProblemSpec, source: str | Path, index: int = 0) -> Path:
+    """The sequence prefix of recording ``index``, relative paths taken from the problem
+    file's folder."""
+    p = Path(spec.recordings[index].sequence)
     return p if p.is_absolute() else (Path(source).resolve().parent / p)
 
 
 def convert_problem(path: str | Path) -> tuple[RealProblemSpec, Any]:
-    """Load a real-data problem file and convert its sequence (casmag.realdata.Converted)."""
+    """Load a single-recording problem file and convert its sequence
+    (casmag.realdata.Converted)."""
+    spec = load_real_problem(path)
+    if spec.recording is None:
+        raise DataError(f"{path}: recording: missing (this file lists sessions)")
+    return spec, _convert(spec, path, 0)
+
+
+def convert_sessions(path: str | Path) -> tuple[RealProblemSpec, list[Any]]:
+    """Load a problem file and convert every recording it names, in order."""
+    spec = load_real_problem(path)
+    return spec, [_convert(spec, path, i) for i in range(len(spec.recordings))]
+
+
+def _convert(spec: RealProblemSpec, path: str | Path, index: int) -> Any:
     from casmag.realdata import Protocol, convert, load_sequence
 
-    spec = load_real_problem(path)
-    prefix = sequence_path(spec, path)
+    prefix = sequence_path(spec, path, index)
+    where = "recording" if spec.recording is not None else f"sessions[{index}]"
     if not prefix.with_name(f"{prefix.name}-time.csv").is_file():
         raise DataError(
-            f"{path}: recording.sequence: {prefix}-time.csv not found (expected {DATA_HINT})"
+            f"{path}: {where}.sequence: {prefix}-time.csv not found (expected {DATA_HINT})"
         )
-    r = spec.recording
+    r = spec.recordings[index]
     protocol = Protocol(
         rate=r.rate,
         drift=r.drift,
@@ -95,7 +125,7 @@ def convert_problem(path: str | Path) -> tuple[RealProblemSpec, Any]:
         constant_noise=r.constant_noise,
         align=r.align,
     )
-    return spec, convert(load_sequence(prefix), protocol)
+    return convert(load_sequence(prefix), protocol)
 
 
 def solve_problem(path: str | Path, out_dir: str | Path, progress: Any = None) -> dict[str, Any]:
@@ -103,6 +133,9 @@ def solve_problem(path: str | Path, out_dir: str | Path, progress: Any = None) -
     from casmag.api import slam
     from casmag.recording import write_recording
 
+    spec = load_real_problem(path)
+    if spec.recording is None:
+        return solve_sessions(path, out_dir, progress)
     spec, conv = convert_problem(path)
     overrides_file = {"model": spec.model, "solver": spec.solver, "name": spec.name}
     with tempfile.TemporaryDirectory(prefix="casmag-real-") as tmp:
@@ -120,15 +153,83 @@ def solve_problem(path: str | Path, out_dir: str | Path, progress: Any = None) -
     return row(spec, conv.record, result, wall)
 
 
-def row(spec: RealProblemSpec, record: dict[str, Any], result: Any, wall: float) -> dict[str, Any]:
+def solve_sessions(
+    path: str | Path, out_dir: str | Path, progress: Any = None
+) -> list[dict[str, Any]]:
+    """Convert and solve a multi-session problem (one shared map); saves DIR and returns
+    one table row per session."""
+    from casmag.multisession import slam_sessions
+    from casmag.recording import write_recording
+
+    spec, convs = convert_sessions(path)
+    overrides_file = {"model": spec.model, "solver": spec.solver, "name": spec.name}
+    with tempfile.TemporaryDirectory(prefix="casmag-real-") as tmp:
+        recs = []
+        for conv in convs:
+            seq = Path(conv.record["sequence"]).name
+            rec = Path(tmp) / f"{'seq' + seq if seq.isdigit() else seq}.csv"
+            write_recording(rec, **conv.arrays)
+            recs.append(rec)
+        prob = Path(tmp) / "problem.yaml"
+        prob.write_text(json.dumps(overrides_file))
+        t0 = time.perf_counter()
+        result = slam_sessions(recs, prob, progress=progress, name=spec.name)
+        wall = time.perf_counter() - t0
+    result.info["recording"] = str(path)
+    result.info["protocol"] = [c.record for c in convs]
+    result.info["wall_seconds"] = wall
+    result.save(out_dir)
+    return session_table_rows(spec, [c.record for c in convs], result, wall)
+
+
+def session_table_rows(
+    spec: RealProblemSpec, records: list[dict[str, Any]], result: Any, wall: float
+) -> list[dict[str, Any]]:
+    """One table row per session of a multi-session result; ``records`` are the protocol
+    records in the problem file's order (``result.info["session_order"]`` maps the solve
+    order back to it)."""
+    order = result.info.get("session_order") or list(range(len(records)))
+    rows = []
+    for i, sess in zip(order, result.info["sessions"], strict=True):
+        r = row(spec, records[i], result, wall, spec.recordings[i])
+        u = sess.get("uncertainty") or {}
+        after = sess.get("rmse_after")
+        r.update(
+            name=f"{spec.name}: {sess['name']}",
+            samples=sess["n_samples"],
+            rmse_before=sess.get("rmse_before"),
+            max_before=sess.get("max_before"),
+            rmse_after=after,
+            max_after=sess.get("max_after"),
+            ratio=None
+            if after is None or not sess.get("rmse_before")
+            else after / sess["rmse_before"],
+            nees_mean=u.get("nees_mean"),
+            nees_expected=u.get("nees_expected"),
+            sigma_mean=u.get("sigma_mean"),
+            inside_95=u.get("inside_95"),
+            sessions=len(records),
+        )
+        rows.append(r)
+    return rows
+
+
+def row(
+    spec: RealProblemSpec,
+    record: dict[str, Any],
+    result: Any,
+    wall: float,
+    recording: RecordingSpec | None = None,
+) -> dict[str, Any]:
+    rec = recording or spec.recording
     u = result.uncertainty or {}
     hyp = result.info.get("defaults", {}).get("marginal_likelihood", {})
     return {
         "name": spec.name,
         "sequence": record["sequence"],
-        "motion": spec.recording.motion,
-        "field": spec.recording.field,
-        "drift_target": spec.recording.drift,
+        "motion": rec.motion,
+        "field": rec.field,
+        "drift_target": rec.drift,
         "samples": record["samples"],
         "clock_shift_s": record.get("clock", {}).get("shift_seconds"),
         "status": result.status,
@@ -213,15 +314,16 @@ def _atomic_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _worker(args: tuple[str, str]) -> dict[str, Any]:
+def _worker(args: tuple[str, str]) -> list[dict[str, Any]]:
     from threadpoolctl import threadpool_limits
 
     path, out = args
     with threadpool_limits(1):
         try:
-            return solve_problem(path, out)
+            rows = solve_problem(path, out)
         except CasmagError as exc:
-            return {"name": Path(path).stem, "error": str(exc)}
+            return [{"name": Path(path).stem, "error": str(exc)}]
+    return rows if isinstance(rows, list) else [rows]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -244,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
 
     rows: list[dict[str, Any]] = []
     with ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as pool:
-        for r in pool.map(_worker, jobs):
+        for r in (r for rs in pool.map(_worker, jobs) for r in rs):
             rows.append(r)
             msg = r.get("error") or (
                 f"{r['name']}: {r['status']}, RMSE {r['rmse_before']:.3f} -> "

@@ -27,6 +27,11 @@ class Result:
     Errors are position errors in metres against the truth without alignment (None when the
     data have no truth, or the solve failed). ``cost_blocks`` maps each named block to its
     value at the initial guess ("before") and at the solution ("after").
+    ``hyperparameters_initial`` are the values the MAP started from: the assumed ones, except
+    estimated sigma_f and lengthscale, which start where ``info["estimate_start"]`` says
+    (``method``: both, marginal_likelihood or assumed; ``values``, ``assumed``, the marginal
+    likelihood's details and, for both, each start's solve and the one ``chosen``; see
+    casmag.slam.estimate_start). With both starts ``solve_seconds`` is their sum.
     """
 
     info: dict[str, Any]
@@ -69,6 +74,8 @@ class Result:
                 from casmag import plotting
 
                 plotting.trajectory_figure(self, tmp / "trajectory.png")
+                if self.info.get("sessions"):
+                    plotting.sessions_figure(self, tmp / "sessions.png")
                 if self.cost_per_iteration:
                     plotting.cost_figure(self, tmp / "cost.png")
                 if self.arrays.get("map_field") is not None:

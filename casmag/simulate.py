@@ -27,6 +27,11 @@ class Dataset:
     anchor: (d,) known first position [m]. Truth (None for real recordings without it):
     P_true (N, d) positions [m], M_true (N, 3) field at the true positions, bias_true (d,)
     per-step odometry bias [m].
+
+    Several sessions (recordings of the same field, casmag.multisession) are stacked: starts
+    (S,) is the first sample of each session, anchor is then (S, d), one known first position
+    per session, and bias_true (S, d); the step from a session's last sample to the next
+    session's first, U[starts[s] - 1], is not odometry and is ignored.
     """
 
     U: np.ndarray
@@ -35,23 +40,44 @@ class Dataset:
     P_true: np.ndarray | None = None
     M_true: np.ndarray | None = None
     bias_true: np.ndarray | None = None
+    starts: tuple[int, ...] = (0,)
 
     @property
     def n_samples(self) -> int:
         return self.Y.shape[0]
 
     @property
+    def n_sessions(self) -> int:
+        return len(self.starts)
+
+    @property
+    def session_bounds(self) -> list[tuple[int, int]]:
+        """(first, end) sample range of each session."""
+        ends = [*self.starts[1:], self.n_samples]
+        return list(zip(self.starts, ends, strict=True))
+
+    @property
     def dim(self) -> int:
         return self.U.shape[1]
 
     def dead_reckoning(self) -> np.ndarray:
-        """(N, d) positions from integrating the odometry from the anchor (bias not removed)."""
-        return np.vstack([self.anchor, self.anchor + np.cumsum(self.U, axis=0)])
+        """(N, d) positions from integrating the odometry from the anchor (bias not removed);
+        each session from its own anchor."""
+        if self.n_sessions == 1:
+            return np.vstack([self.anchor, self.anchor + np.cumsum(self.U, axis=0)])
+        anchors = np.asarray(self.anchor, dtype=float).reshape(self.n_sessions, -1)
+        parts = [
+            np.vstack([a, a + np.cumsum(self.U[i : j - 1], axis=0)])
+            for a, (i, j) in zip(anchors, self.session_bounds, strict=True)
+        ]
+        return np.vstack(parts)
 
     def prefix(self, n: int) -> Dataset:
         """The first n samples (and their n - 1 odometry steps)."""
         if not 2 <= n <= self.n_samples:
             raise ValueError(f"prefix length {n} outside [2, {self.n_samples}]")
+        if self.n_sessions > 1:
+            raise ValueError("a prefix of several stacked sessions is not defined")
         return replace(
             self,
             U=self.U[: n - 1],
@@ -64,6 +90,8 @@ class Dataset:
         """The same data with a per-step bias subtracted from every odometry increment (the
         true bias, when known, is reduced by the same amount)."""
         bias = np.asarray(bias, dtype=float).ravel()
+        if self.n_sessions > 1:
+            raise ValueError("debiasing several stacked sessions needs one bias per session")
         return replace(
             self,
             U=self.U - bias,

@@ -63,6 +63,7 @@ class Structure:
     basis: tuple | None = None  # reduced rank: (center, half_width, num_basis)
     constant_field: bool = False
     knot_every: int = 1
+    starts: tuple[int, ...] = (0,)  # first sample of each session (casmag.multisession)
 
     @classmethod
     def of(cls, problem: Problem, data: Dataset, positions: np.ndarray | None = None) -> Structure:
@@ -95,6 +96,7 @@ class Structure:
             basis=basis,
             constant_field=m.gp.sigma_lin is not None,
             knot_every=m.trajectory.knot_every,
+            starts=tuple(int(i) for i in data.starts),
         )
 
     def hilbert_basis(self) -> HilbertBasis:
@@ -102,7 +104,11 @@ class Structure:
 
     @property
     def knots(self) -> Knots:
-        return Knots(self.n, self.knot_every)
+        return Knots(self.n, self.knot_every, self.starts)
+
+    @property
+    def sessions(self) -> int:
+        return len(self.starts)
 
 
 @lru_cache(maxsize=8)
@@ -119,17 +125,23 @@ def _hyper(builder: NLPBuilder, name: str, estimated: bool) -> ca.MX:
     return builder.parameter(name, (1, 1))
 
 
+def _first(P: ca.MX, s: Structure) -> ca.MX:
+    """(S, d) first position of each session."""
+    return P[0, :] if s.sessions == 1 else P[list(s.starts), :]
+
+
 def build_translational(s: Structure) -> NLP:
     """Build the translational GP-SLAM NLP for a structure (use :func:`cached_nlp`)."""
     b = NLPBuilder()
     knots = s.knots
     C = b.variable("C", (knots.count, s.dim))
-    bias = b.variable("bias", (1, s.dim)) if s.estimate_bias else ca.MX.zeros(1, s.dim)
+    S = s.sessions
+    bias = b.variable("bias", (S, s.dim)) if s.estimate_bias else ca.MX.zeros(S, s.dim)
     sigma_f, ell, sigma_m = (_hyper(b, h, h in s.estimate) for h in HYPERPARAMETERS)
 
     Q = b.parameter("Q", (s.n, s.dim))
     Y = b.parameter("Y", (s.n, FIELD_DIM))
-    anchor = b.parameter("anchor", (1, s.dim))
+    anchor = b.parameter("anchor", (S, s.dim))
     sigma_o = b.parameter("sigma_o", (1, 1))
     sigma_a = b.parameter("sigma_anchor", (1, 1))
 
@@ -143,7 +155,7 @@ def build_translational(s: Structure) -> NLP:
     b.cost("gp_prior", 0.5 * prior.quadratic(P, M, sigma_f, ell))
     if s.logdet:
         b.cost("gp_logdet", 0.5 * prior.log_det(P, sigma_f, ell))
-    b.cost("anchor", 0.5 * ca.sumsqr((P[0, :] - anchor) / sigma_a))
+    b.cost("anchor", 0.5 * ca.sumsqr((_first(P, s) - anchor) / sigma_a))
     if s.bias_prior:
         sigma_b = b.parameter("sigma_bias", (1, 1))
         b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
@@ -213,7 +225,7 @@ def _build_reduced_rank(
         b.cost("gp_logdet", 0.5 * n_cols * ca.sum1(ca.log(S)))
     if s.constant_field:
         b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
-    b.cost("anchor", 0.5 * ca.sumsqr((P[0, :] - anchor) / sigma_a))
+    b.cost("anchor", 0.5 * ca.sumsqr((_first(P, s) - anchor) / sigma_a))
     if s.bias_prior:
         b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
     solver = SolverSpec.model_validate_json(s.solver)
@@ -303,11 +315,16 @@ def cached_nlp(structure: Structure) -> NLP:
 
 
 def parameters_and_guess(
-    problem: Problem, data: Dataset, s: Structure, initial_positions: np.ndarray | None = None
+    problem: Problem,
+    data: Dataset,
+    s: Structure,
+    initial_positions: np.ndarray | None = None,
+    hyper_start: dict[str, float] | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Parameter values and the initial guess: the dead reckoning (or the knot corrections
     closest to ``initial_positions``), the field fitted there, zero bias, hyperparameters at
-    their assumed values."""
+    their assumed values (estimated ones at ``hyper_start`` where it names them, see
+    :func:`estimate_start`)."""
     m = problem.spec.model
     hyper = {
         "sigma_f": problem.assumed_sigma_f,
@@ -317,7 +334,7 @@ def parameters_and_guess(
     params: dict[str, Any] = {
         "Q": data.dead_reckoning(),
         "Y": data.Y,
-        "anchor": data.anchor.reshape(1, -1),
+        "anchor": np.asarray(data.anchor, dtype=float).reshape(s.sessions, -1),
         "sigma_o": problem.assumed_sigma_odometry,
         "sigma_anchor": m.anchor.sigma,
     }
@@ -341,13 +358,90 @@ def parameters_and_guess(
     else:
         x0["M"] = data.Y
     if s.estimate_bias:
-        x0["bias"] = np.zeros((1, s.dim))
+        x0["bias"] = np.zeros((s.sessions, s.dim))
     for h, value in hyper.items():
         if h in s.estimate:
-            x0[f"log_{h}"] = np.log(value)
+            x0[f"log_{h}"] = np.log((hyper_start or {}).get(h, value))
         else:
             params[h] = value
     return params, x0
+
+
+def estimate_start(
+    problem: Problem, data: Dataset, s: Structure, initial_positions: np.ndarray | None = None
+) -> dict[str, Any] | None:
+    """Where the joint MAP starts the estimated sigma_f and lengthscale
+    (``model.estimate_start``): None when neither is estimated; else a record with
+    ``method``, ``values`` (the start of each estimated hyperparameter), ``assumed`` (the
+    problem's values) and, for ``marginal_likelihood`` and ``both``, the estimate's details
+    (casmag.hyper.estimate_conditional at the initial positions, the other hyperparameters
+    fixed at their assumed values, zero-mean field). With ``both`` the MAP is solved from
+    ``values`` and from ``assumed`` (:func:`solve_translational`)."""
+    free = [h for h in HYPERPARAMETERS if h in s.estimate and h != "sigma_m"]
+    if not free:
+        return None
+    from casmag.hyper import estimate_conditional
+
+    assumed = {
+        "sigma_f": problem.assumed_sigma_f,
+        "lengthscale": problem.assumed_lengthscale,
+        "sigma_m": problem.assumed_sigma_m,
+    }
+    method = problem.spec.model.estimate_start
+    record: dict[str, Any] = {"method": method, "assumed": {h: assumed[h] for h in free}}
+    if method == "assumed":
+        record["values"] = {h: assumed[h] for h in free}
+        return record
+    P0 = data.dead_reckoning() if initial_positions is None else initial_positions
+    est = estimate_conditional(
+        P0, data.Y, s.kernel, assumed, free, sigma_lin=problem.spec.model.gp.sigma_lin or 0.0
+    )
+    record["values"] = {h: est.values[h] for h in free}
+    record["marginal_likelihood"] = {
+        "neg_log_marginal": est.neg_log_marginal,
+        "windows": est.n_windows,
+        "samples": est.n_samples,
+        "converged": est.converged,
+        "iterations": est.iterations,
+    }
+    return record
+
+
+def _better_of_two_starts(
+    nlp: NLP,
+    sol: Solution,
+    params: dict[str, Any],
+    x0: dict[str, Any],
+    start: dict[str, Any],
+    progress: Any,
+) -> Solution:
+    """``estimate_start: both``: ``sol`` was solved from the marginal-likelihood start; solve
+    again from the assumed values and keep the solution with the lower MAP cost (a
+    successful solve before a failed one). Records both solves in ``start`` (``solves``,
+    ``chosen``; ``values`` becomes the chosen start); the kept solution's solve_seconds is
+    the sum of both solves."""
+    ml = dict(start["values"])
+    x0_assumed = dict(x0)
+    for h, value in start["assumed"].items():
+        x0_assumed[f"log_{h}"] = np.log(value)
+    other = nlp.solve(params, x0_assumed, progress=progress)
+    solves = {"marginal_likelihood": (ml, sol), "assumed": (dict(start["assumed"]), other)}
+    chosen = min(solves, key=lambda k: (not solves[k][1].success, solves[k][1].objective))
+    start["solves"] = {
+        k: {
+            "start": v,
+            "objective": s.objective,
+            "status": s.status,
+            "iterations": s.iterations,
+            "solve_seconds": s.solve_seconds,
+        }
+        for k, (v, s) in solves.items()
+    }
+    start["chosen"] = chosen
+    start["values"] = solves[chosen][0]
+    best = solves[chosen][1]
+    best.solve_seconds = sol.solve_seconds + other.solve_seconds
+    return best
 
 
 def solve_translational(
@@ -361,8 +455,15 @@ def solve_translational(
     (N, 3) field estimate at the samples and the problem's structure."""
     s = Structure.of(problem, data, initial_positions)
     nlp = cached_nlp(s)
-    params, x0 = parameters_and_guess(problem, data, s, initial_positions)
+    start = estimate_start(problem, data, s, initial_positions)
+    params, x0 = parameters_and_guess(
+        problem, data, s, initial_positions, None if start is None else start["values"]
+    )
     sol = nlp.solve(params, x0, progress=progress)
+    if start is not None and start["method"] == "both":
+        sol = _better_of_two_starts(nlp, sol, params, x0, start, progress)
+    if start is not None:
+        sol.stats["estimate_start"] = start
     hyper = {
         h: float(np.exp(sol.x[f"log_{h}"][0, 0])) if h in s.estimate else float(params[h])
         for h in HYPERPARAMETERS

@@ -152,11 +152,12 @@ def test_every_real_problem_file_loads(tmp_path):
     from casmag.realbench import load_real_problem, sequence_path
 
     files = sorted((ROOT / "problems/real").glob("*.yaml"))
-    assert len(files) == 12
+    assert len(files) == 14
     for f in files:
         spec = load_real_problem(f)
-        prefix = sequence_path(spec, f)
-        assert prefix.with_name(f"{prefix.name}-time.csv").is_file(), f
+        for i in range(len(spec.recordings)):
+            prefix = sequence_path(spec, f, i)
+            assert prefix.with_name(f"{prefix.name}-time.csv").is_file(), f
 
 
 def _tiny(overrides=()):

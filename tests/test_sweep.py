@@ -63,7 +63,7 @@ def test_estimated_rows_start_from_the_paper_rows_wrong_value():
     """Tables 2 and 4 add, for the paper's rows (wrong value held fixed), rows that start
     from the same wrong value and estimate it; both are compared with the paper's row."""
     estimated = {
-        "table2": ["sigma_f=0.001", "sigma_f=1.000", "sigma_f=10.00"],
+        "table2": ["sigma_f=0.001", "sigma_f=0.010", "sigma_f=1.000", "sigma_f=10.00"],
         "table4": ["l=0.005", "l=0.050", "l=0.150", "l=0.400"],
     }
     for table, hyper in (("table2", "sigma_f"), ("table4", "lengthscale")):
