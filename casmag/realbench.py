@@ -128,36 +128,13 @@ def _convert(spec: RealProblemSpec, path: str | Path, index: int) -> Any:
     return convert(load_sequence(prefix), protocol)
 
 
-def solve_problem(path: str | Path, out_dir: str | Path, progress: Any = None) -> dict[str, Any]:
-    """Convert and solve one real-data problem; saves DIR and returns its table row."""
-    from casmag.api import slam
-    from casmag.recording import write_recording
-
-    spec = load_real_problem(path)
-    if spec.recording is None:
-        return solve_sessions(path, out_dir, progress)
-    spec, conv = convert_problem(path)
-    overrides_file = {"model": spec.model, "solver": spec.solver, "name": spec.name}
-    with tempfile.TemporaryDirectory(prefix="casmag-real-") as tmp:
-        rec = Path(tmp) / f"{spec.name}.csv"
-        write_recording(rec, **conv.arrays)
-        prob = Path(tmp) / "problem.yaml"
-        prob.write_text(json.dumps(overrides_file))
-        t0 = time.perf_counter()
-        result = slam(rec, prob, progress=progress)
-        wall = time.perf_counter() - t0
-    result.info["recording"] = str(path)
-    result.info["protocol"] = conv.record
-    result.info["wall_seconds"] = wall
-    result.save(out_dir)
-    return row(spec, conv.record, result, wall)
-
-
-def solve_sessions(
+def solve_problem(
     path: str | Path, out_dir: str | Path, progress: Any = None
 ) -> list[dict[str, Any]]:
-    """Convert and solve a multi-session problem (one shared map); saves DIR and returns
-    one table row per session."""
+    """Convert and solve one real-data problem (one recording with ``casmag slam``'s
+    defaults, or several sessions with one shared map, casmag.multisession); saves DIR and
+    returns its table rows (one per session)."""
+    from casmag.api import slam
     from casmag.multisession import slam_sessions
     from casmag.recording import write_recording
 
@@ -167,19 +144,26 @@ def solve_sessions(
         recs = []
         for conv in convs:
             seq = Path(conv.record["sequence"]).name
-            rec = Path(tmp) / f"{'seq' + seq if seq.isdigit() else seq}.csv"
+            stem = spec.name if spec.recording is not None else seq
+            rec = Path(tmp) / f"{'seq' + stem if stem.isdigit() else stem}.csv"
             write_recording(rec, **conv.arrays)
             recs.append(rec)
         prob = Path(tmp) / "problem.yaml"
         prob.write_text(json.dumps(overrides_file))
         t0 = time.perf_counter()
-        result = slam_sessions(recs, prob, progress=progress, name=spec.name)
+        if spec.recording is not None:
+            result = slam(recs[0], prob, progress=progress)
+        else:
+            result = slam_sessions(recs, prob, progress=progress, name=spec.name)
         wall = time.perf_counter() - t0
+    records = [c.record for c in convs]
     result.info["recording"] = str(path)
-    result.info["protocol"] = [c.record for c in convs]
+    result.info["protocol"] = records[0] if spec.recording is not None else records
     result.info["wall_seconds"] = wall
     result.save(out_dir)
-    return session_table_rows(spec, [c.record for c in convs], result, wall)
+    if spec.recording is not None:
+        return [row(spec, records[0], result, wall)]
+    return session_table_rows(spec, records, result, wall)
 
 
 def session_table_rows(
@@ -320,10 +304,9 @@ def _worker(args: tuple[str, str]) -> list[dict[str, Any]]:
     path, out = args
     with threadpool_limits(1):
         try:
-            rows = solve_problem(path, out)
+            return solve_problem(path, out)
         except CasmagError as exc:
             return [{"name": Path(path).stem, "error": str(exc)}]
-    return rows if isinstance(rows, list) else [rows]
 
 
 def main(argv: list[str] | None = None) -> int:
