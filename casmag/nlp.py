@@ -175,15 +175,15 @@ class NLPBuilder:
         self,
         solver: SolverSpec,
         name: str = "casmag",
-        gauss_newton: tuple[str, ca.Function] | None = None,
+        gauss_newton: tuple[str | tuple[str, ...], ca.Function] | None = None,
         residuals: Mapping[str, ca.MX] | None = None,
     ) -> NLP:
         """Create the IPOPT solver once; returns an NLP that can be solved many times.
 
-        gauss_newton: (block name, function (x, p, lam_f, lam_g) -> upper-triangular Hessian
-        of that block). residuals: {block name: residual vector r} of blocks 0.5 |r|^2 whose
-        Hessian is taken as J^T J (symbolic, sparse). IPOPT then gets these plus CasADi's
-        exact Hessian of all other blocks through ``hess_lag``.
+        gauss_newton: (block name or names, function (x, p, lam_f, lam_g) -> upper-triangular
+        Hessian of those blocks). residuals: {block name: residual vector r} of blocks
+        0.5 |r|^2 whose Hessian is taken as J^T J (symbolic, sparse). IPOPT then gets these
+        plus CasADi's exact Hessian of all other blocks through ``hess_lag``.
         """
         t0 = time.perf_counter()
         x, p = self._x.vector(), self._p.vector()
@@ -201,7 +201,10 @@ class NLPBuilder:
         }
         residuals = dict(residuals or {})
         if (gauss_newton is not None or residuals) and hessian == "exact":
-            special = set(residuals) | ({gauss_newton[0]} if gauss_newton else set())
+            special = set(residuals)
+            if gauss_newton is not None:
+                names = gauss_newton[0]
+                special |= {names} if isinstance(names, str) else set(names)
             others = sum((e for n, e in self.blocks.items() if n not in special), ca.MX(0))
             lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 0)
             H = ca.triu(ca.hessian(others, x)[0])
