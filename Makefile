@@ -5,8 +5,8 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-all lint clean bench-scale bench-convergence imu
-.PHONY: table1 table2 table3 table4 table5 tables
+.PHONY: help install demo test test-all lint clean bench-scale bench-exact bench-convergence imu
+.PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
 	@grep -E '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
@@ -67,6 +67,9 @@ tables: $(STAMP) ## Paper Tables 1-5 in one parallel sweep -> results/paper/tabl
 	$(call paper_report,table5)
 	$(VENV)/bin/casmag report $(PAPER)/runs --out $(PAPER)/tables.md
 
+truth-start: $(STAMP) ## Tables 2 and 4 from the dead reckoning and from the truth -> results/paper/truth_start.md
+	$(PY) -m casmag.truthstart problems/paper/table2.yaml problems/paper/table4.yaml --seeds $(SEEDS) --out $(PAPER)
+
 lint: $(STAMP) ## ruff check and format check
 	$(VENV)/bin/ruff check casmag tests
 	$(VENV)/bin/ruff format --check casmag tests
@@ -79,6 +82,9 @@ bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences x 2 drifts + 2 
 
 bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
 	$(PY) -m casmag.bench scale --out results/bench
+
+bench-exact: $(STAMP) ## Exact GP against reduced rank, N = 100..500; replaces those rows of results/bench/scale.json
+	$(PY) -m casmag.bench exact --out results/bench
 
 bench-convergence: $(STAMP) ## Windowing convergence grid, 20 seeds per cell; results/bench/convergence.json, .png (resumable)
 	$(PY) -m casmag.convergence --out results/bench

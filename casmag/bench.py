@@ -26,7 +26,7 @@ KNOT_EVERY = {64000: 50}
 64,000 samples one knot per second gives a 12,800 x 2,745 dense knot-weight Hessian border
 (35 million entries; measured: 13 GB resident, killed after 9 minutes); one knot per 5 s
 gives a fifth of it."""
-EXACT_SIZES = (100, 150)
+EXACT_SIZES = (100, 150, 250, 500)
 
 
 COMPARISON = [
@@ -168,8 +168,33 @@ def scale(out_dir: str, sizes: str, exact_sizes: str) -> None:
     """Reduced-rank GP-SLAM on the walk at each N, and exact against reduced rank at small N
     (one knot per sample for both, :data:`COMPARISON`). Writes OUT/scale.json and
     OUT/scale.png."""
-    runs = []
-    for n in [int(v) for v in exact_sizes.split(",") if v]:
+    runs = _comparisons([int(v) for v in exact_sizes.split(",") if v])
+    for n in [int(v) for v in sizes.split(",") if v]:
+        click.echo(f"N = {n} reduced_rank ...", err=True)
+        knots = ["--knot-every", str(KNOT_EVERY[n])] if n in KNOT_EVERY else []
+        runs.append({"comparison": "scale", **_spawn([str(n), *knots])})
+        runs[-1].pop("P_estimate", None)
+        click.echo(f"  {_summary(runs[-1])}", err=True)
+    _save(Path(out_dir), runs)
+
+
+@main.command()
+@click.option("--out", "out_dir", default=str(ROOT / "results" / "bench"), type=click.Path())
+@click.option("--sizes", default=",".join(map(str, EXACT_SIZES)), help="Comma-separated N.")
+def exact(out_dir: str, sizes: str) -> None:
+    """Exact against reduced rank at each N (:data:`COMPARISON`), replacing those rows of
+    OUT/scale.json and keeping its scale rows."""
+    out = Path(out_dir)
+    old = json.loads((out / "scale.json").read_text()) if (out / "scale.json").exists() else {}
+    kept = [r for r in old.get("runs", []) if r.get("comparison") != "exact_vs_reduced_rank"]
+    _save(out, _comparisons([int(v) for v in sizes.split(",") if v]) + kept)
+
+
+def _comparisons(sizes: list[int]) -> list[dict[str, Any]]:
+    """The exact GP and the reduced-rank map on the same data at each N, one knot per
+    sample, with the largest position difference between the two."""
+    runs: list[dict[str, Any]] = []
+    for n in sizes:
         pair = []
         for form in ("exact", "reduced_rank"):
             click.echo(f"N = {n} {form} (one knot per sample) ...", err=True)
@@ -188,13 +213,10 @@ def scale(out_dir: str, sizes: str, exact_sizes: str) -> None:
             pair[1]["max_position_difference_to_exact"] = diff
             click.echo(f"  max |P_exact - P_reduced_rank| = {diff:.2e} m", err=True)
         runs += pair
-    for n in [int(v) for v in sizes.split(",") if v]:
-        click.echo(f"N = {n} reduced_rank ...", err=True)
-        knots = ["--knot-every", str(KNOT_EVERY[n])] if n in KNOT_EVERY else []
-        runs.append({"comparison": "scale", **_spawn([str(n), *knots])})
-        runs[-1].pop("P_estimate", None)
-        click.echo(f"  {_summary(runs[-1])}", err=True)
-    out = Path(out_dir)
+    return runs
+
+
+def _save(out: Path, runs: list[dict[str, Any]]) -> None:
     import casadi
 
     meta = {

@@ -163,7 +163,7 @@ class ExactPriorModel:
         c = self._factor(x, p)
         if c["cf"] is None:
             return float("nan"), float("nan")
-        s2 = np.exp(-2.0 * c["ls"])
+        s2 = _inverse_square(c["ls"])
         quad = 0.5 * s2 * c["Q"]
         n_total = self.N * FIELD_DIM
         logdet = 0.5 * (n_total * 2.0 * c["ls"] + self.copies * c["logdetC"])
@@ -206,7 +206,7 @@ class ExactPriorModel:
             return gq, gd
         c = self._first(c)
         N, d, lay = self.N, self.dim, self.lay
-        s2 = np.exp(-2.0 * c["ls"])
+        s2 = _inverse_square(c["ls"])
         alpha, V = c["alpha"], c["V"]
         Qth = -np.einsum("qc,qac->a", alpha, V)  # (N d + 1,)
         self._put_theta(gq, 0.5 * s2 * Qth)
@@ -238,7 +238,7 @@ class ExactPriorModel:
         c = self._first(self._factor(x, p))
         N, d, nk, ncol = self.N, self.dim, self.n_k, self.ncol
         nth = N * d + 1
-        s2 = np.exp(-2.0 * c["ls"])
+        s2 = _inverse_square(c["ls"])
         cf, alpha, V = c["cf"], c["alpha"], c["V"]
         A = c.get("A")
         if A is None:
@@ -322,6 +322,13 @@ class ExactPriorModel:
         ACl = A @ Cl
         out[N * d, N * d] = float(np.sum(ACl * ACl.T))
         return out
+
+
+def _inverse_square(log_sigma: float) -> float:
+    """1 / sigma^2 from log sigma; inf (not a warning) when IPOPT tries a far step, which
+    makes it shorten the step."""
+    with np.errstate(over="ignore"):
+        return float(np.exp(-2.0 * log_sigma))
 
 
 def _inverse(cf: tuple[np.ndarray, bool]) -> np.ndarray:
