@@ -43,7 +43,7 @@ from threadpoolctl import ThreadpoolController
 
 from casmag.kernels import FIELD_DIM, Kernel
 from casmag.knots import Knots
-from casmag.rrmap import HessianCallback, _array
+from casmag.rrmap import HessianCallback, NumpyCost
 
 
 @dataclass(frozen=True)
@@ -51,7 +51,8 @@ class ExactLayout:
     """Where the prior's unknowns sit in x and p (offsets into the stacked vectors).
 
     C: knot corrections (K, d) column-major in x; M: field values at the samples (N, 3)
-    column-major in x; Q: dead-reckoned positions (N, d) in p. sigma_f, lengthscale:
+    column-major in x; Q: dead-reckoned positions (N, d) in p, or None when the positions
+    are the variables themselves (P = C, one knot per sample). sigma_f, lengthscale:
     (``"x"``, offset of log value) when estimated, else (``"p"``, offset of the value).
     """
 
@@ -59,7 +60,7 @@ class ExactLayout:
     n_p: int
     C: int
     M: int
-    Q: int
+    Q: int | None
     sigma_f: tuple[str, int]
     lengthscale: tuple[str, int]
 
@@ -125,7 +126,10 @@ class ExactPriorModel:
         """Positions P (N, d), log sigma_f, log l, and m (n_k, ncol) at the NLP point."""
         lay, kn, d = self.lay, self.knots, self.dim
         C = x[lay.C : lay.C + kn.count * d].reshape(kn.count, d, order="F")
-        Q = p[lay.Q : lay.Q + self.N * d].reshape(self.N, d, order="F")
+        if lay.Q is None:
+            Q = np.zeros((self.N, d))
+        else:
+            Q = p[lay.Q : lay.Q + self.N * d].reshape(self.N, d, order="F")
         vec = x[lay.M : lay.M + self.N * FIELD_DIM]
         m = vec.reshape(self.n_k, self.ncol, order="F")
         return kn.positions(Q, C), self._log(lay.sigma_f, x, p), self._log(lay.lengthscale, x, p), m
@@ -355,75 +359,22 @@ def _inverse(cf: tuple[np.ndarray, bool]) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- CasADi blocks
-class ExactPriorCost(ca.Callback):
+class ExactPriorCost(NumpyCost):
     """One of the two prior blocks (``part`` 0: the quadratic, 1: the log-determinant) as
-    a function f(x, p) of the stacked NLP vectors, its gradient by callback too."""
+    a numpy cost of the stacked NLP vectors, BLAS single-threaded."""
 
     def __init__(self, name: str, model: ExactPriorModel, part: int):
-        ca.Callback.__init__(self)
         self.model, self.part = model, part
-        self._grad = _ExactPriorGradient(f"{name}_grad", model, part)
-        self.construct(name, {})
+        lay = model.lay
+        super().__init__(name, lay.n_x, lay.n_p, self._value, self._gradient)
 
-    def get_n_in(self) -> int:
-        return 2
-
-    def get_n_out(self) -> int:
-        return 1
-
-    def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        return ca.Sparsity.dense([self.model.lay.n_x, self.model.lay.n_p][i], 1)
-
-    def get_sparsity_out(self, i: int) -> ca.Sparsity:
-        return ca.Sparsity.dense(1, 1)
-
-    def has_eval_buffer(self) -> bool:
-        return True
-
-    def eval_buffer(self, arg: list[Any], res: list[Any]) -> int:
-        x, p = _array(arg[0]).copy(), _array(arg[1]).copy()
+    def _value(self, x: np.ndarray, p: np.ndarray) -> float:
         with _single_threaded():
-            _array(res[0])[0] = self.model.values(x, p)[self.part]
-        return 0
+            return self.model.values(x, p)[self.part]
 
-    def has_jacobian(self) -> bool:
-        return True
-
-    def get_jacobian(self, name: str, inames: list[str], onames: list[str], opts: dict) -> Any:
-        return self._grad
-
-
-class _ExactPriorGradient(ca.Callback):
-    """Jacobian of :class:`ExactPriorCost`: inputs (x, p, f), outputs df/dx (1, n_x) and
-    df/dp (1, n_p), structurally zero (the data are not differentiated)."""
-
-    def __init__(self, name: str, model: ExactPriorModel, part: int):
-        ca.Callback.__init__(self)
-        self.model, self.part = model, part
-        self.construct(name, {})
-
-    def get_n_in(self) -> int:
-        return 3
-
-    def get_n_out(self) -> int:
-        return 2
-
-    def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        return ca.Sparsity.dense([self.model.lay.n_x, self.model.lay.n_p, 1][i], 1)
-
-    def get_sparsity_out(self, i: int) -> ca.Sparsity:
-        if i == 0:
-            return ca.Sparsity.dense(1, self.model.lay.n_x)
-        return ca.Sparsity(1, self.model.lay.n_p)
-
-    def has_eval_buffer(self) -> bool:
-        return True
-
-    def eval_buffer(self, arg: list[Any], res: list[Any]) -> int:
-        x, p = _array(arg[0]).copy(), _array(arg[1]).copy()
+    def _gradient(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         with _single_threaded():
-            _array(res[0])[:] = self.model.gradient(x, p)[self.part]
-        return 0
+            return self.model.gradient(x, p)[self.part]
 
 
 class ExactPriorHessian(HessianCallback):
@@ -490,3 +441,45 @@ class ExactPriorHessian(HessianCallback):
         L[k:, :k] = Hpr.T
         L[k:, k:] = Hrr
         return L[self._lr, self._lc]
+
+
+def add_exact_prior(
+    b: Any,
+    kernel: Kernel,
+    knots: Knots,
+    dim: int,
+    jitter: float,
+    estimate: tuple[str, ...] = (),
+    logdet: bool = False,
+    positions: str = "C",
+    dead_reckoning: str | None = "Q",
+) -> tuple[str | tuple[str, ...], ExactPriorHessian]:
+    """Add the exact GP prior to a builder (casmag.nlp.NLPBuilder) as cost ``gp_prior``
+    (and ``gp_logdet`` when ``logdet``), reading the field ``M`` (N, 3), the positions
+    (variable ``positions``: knot corrections added to the parameter ``dead_reckoning``, or
+    the positions themselves when that is None) and sigma_f, lengthscale (variables
+    ``log_<name>`` when in ``estimate``, else parameters ``<name>``). Declare every symbol
+    first. Returns the block names and the Hessian callback for ``hess_lag``."""
+    n_x, n_p = b.sizes
+
+    def where(h: str) -> tuple[str, int]:
+        return ("x", b.offset(f"log_{h}")) if h in estimate else ("p", b.offset(h, "p"))
+
+    layout = ExactLayout(
+        n_x=n_x,
+        n_p=n_p,
+        C=b.offset(positions),
+        M=b.offset("M"),
+        Q=None if dead_reckoning is None else b.offset(dead_reckoning, "p"),
+        sigma_f=where("sigma_f"),
+        lengthscale=where("lengthscale"),
+    )
+    model = ExactPriorModel(kernel, knots, dim, jitter, layout, logdet)
+    x, p = b.x_vector(), b.p_vector()
+    quad = b.retain(ExactPriorCost("gp_prior_cb", model, 0))
+    b.cost("gp_prior", quad(x, p))
+    if logdet:
+        det = b.retain(ExactPriorCost("gp_logdet_cb", model, 1))
+        b.cost("gp_logdet", det(x, p))
+    hess = b.retain(ExactPriorHessian("gp_prior_hessian", model))
+    return (("gp_prior", "gp_logdet") if logdet else "gp_prior"), hess

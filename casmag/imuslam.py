@@ -52,12 +52,13 @@ import scipy.sparse
 
 from casmag import strapdown as sd
 from casmag.config import SolverSpec
-from casmag.gp import ExactGPPrior
+from casmag.exactgp import add_exact_prior
 from casmag.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
 from casmag.hyper import field_evidence as _field_evidence
 from casmag.imuconfig import ImuProblem, load_imu_problem
 from casmag.imusim import ImuData, simulate_imu
-from casmag.kernels import FIELD_DIM, get_kernel
+from casmag.kernels import FIELD_DIM, field_covariance, get_kernel
+from casmag.knots import Knots
 from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.reduced_rank import Domain, HilbertBasis
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
@@ -583,10 +584,15 @@ def build_imu(s: ImuStructure) -> NLP:
         e = (y_ - ca.mtimes(rotation(d, rn).T, m_ + c_)) / sg
         f = ca.Function("mag_exact", [d, rn, m_, c_, y_, sg], [e]).map(K, "serial")
         b.residual("magnetometer", f(D.T, RNOM.T, Mf.T, c, Y.T, sigma_m))
-        prior = ExactGPPrior(get_kernel(s.kernel), K, 3, s.jitter)
-        b.cost("gp_prior", 0.5 * prior.quadratic(P, Mf, sigma_f, ell))
         b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
-        return b.build_gauss_newton(solver, name="casmag_imu_exact")
+        del sigma_f, ell  # read by the prior from p
+        # Every symbol is declared: the numpy prior (casmag.exactgp) sees the full vectors.
+        gp = add_exact_prior(
+            b, get_kernel(s.kernel), Knots(K, 1), 3, s.jitter, positions="P", dead_reckoning=None
+        )
+        if solver.hessian == "exact":
+            return b.build(solver, name="casmag_imu_exact", gauss_newton=gp)
+        return b.build_gauss_newton(solver, name="casmag_imu_exact", callbacks=dict([gp]))
     basis = s.hilbert_basis()
     _add_reduced_rank_map(b, basis, s.kernel, P, D, RNOM, rotation, K, 3)
     block, gn = _gauss_newton_for(b, basis, s.kernel, rotation, K, 3, "D", "RNOM", s.curvature)
@@ -915,7 +921,14 @@ def _slam_pass(
         )
         x0["c"] = c0.reshape(3, 1)
     else:
-        x0["M"] = Y_local - c0
+        # The GP posterior mean of the field variation at the previous stage's positions:
+        # the data themselves (Y - c0) would cost 7.5e7 in the prior on handwriting, where
+        # centimetre position errors make neighbouring samples disagree.
+        kern = get_kernel(m.gp.kernel)
+        Kf = field_covariance(kern, prev.P, hyper["sigma_f"], hyper["lengthscale"])
+        r = (Y_local - c0).ravel(order="F")
+        mean = Kf @ np.linalg.solve(Kf + sigma_m**2 * np.eye(r.size), r)
+        x0["M"] = mean.reshape(K, FIELD_DIM, order="F")
         x0["c"] = c0.reshape(3, 1)
     sol2 = nlp2.solve(params, x0, progress=progress)
     st2 = ImuSolveStage(solution=sol2, nlp=nlp2, **_stage_estimates(sol2, prev.Q, K))

@@ -19,6 +19,7 @@ the other (cheap, sparse) blocks.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -204,19 +205,23 @@ def evaluate_map(
     return np.stack([grads[:, b, :] @ weights.ravel() for b in range(FIELD_DIM)], axis=1)
 
 
-class MagnetometerCost(ca.Callback):
-    """The magnetometer block f(x, p) = 0.5 sum_k |(y_k - m(p_k)) / sigma_m|^2 evaluated
-    with numpy (BLAS), its gradient through :class:`_MagnetometerGradient`.
+class NumpyCost(ca.Callback):
+    """A scalar cost block f(x, p) of the stacked NLP vectors evaluated with numpy:
+    ``value(x, p) -> float`` and ``gradient(x, p) -> (n_x,)``, the gradient through a second
+    callback (the data p are not differentiated). Its Hessian goes to IPOPT separately
+    (a :class:`HessianCallback` in ``hess_lag``)."""
 
-    A CasADi graph of N mapped residuals costs O(N) to build and to differentiate (measured:
-    36 s inside ``nlpsol`` at N = 16,000); this block is O(1) to build, and IPOPT gets its
-    Hessian from :class:`GaussNewtonHessian`.
-    """
-
-    def __init__(self, name: str, model: MapModel):
+    def __init__(
+        self,
+        name: str,
+        n_x: int,
+        n_p: int,
+        value: Callable[[np.ndarray, np.ndarray], float],
+        gradient: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    ):
         ca.Callback.__init__(self)
-        self.model = model
-        self._grad = _MagnetometerGradient(f"{name}_grad", model)
+        self.n_x, self.n_p, self.value = n_x, n_p, value
+        self._grad = _NumpyGradient(f"{name}_grad", n_x, n_p, gradient)
         self.construct(name, {})
 
     def get_n_in(self) -> int:
@@ -226,7 +231,7 @@ class MagnetometerCost(ca.Callback):
         return 1
 
     def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        return ca.Sparsity.dense([self.model.lay.n_x, self.model.lay.n_p][i], 1)
+        return ca.Sparsity.dense([self.n_x, self.n_p][i], 1)
 
     def get_sparsity_out(self, i: int) -> ca.Sparsity:
         return ca.Sparsity.dense(1, 1)
@@ -235,7 +240,7 @@ class MagnetometerCost(ca.Callback):
         return True
 
     def eval_buffer(self, arg: list[Any], res: list[Any]) -> int:
-        _array(res[0])[0] = self.model.cost(_array(arg[0]), _array(arg[1]))
+        _array(res[0])[0] = self.value(_array(arg[0]).copy(), _array(arg[1]).copy())
         return 0
 
     def has_jacobian(self) -> bool:
@@ -245,13 +250,13 @@ class MagnetometerCost(ca.Callback):
         return self._grad
 
 
-class _MagnetometerGradient(ca.Callback):
-    """Jacobian of :class:`MagnetometerCost`: inputs (x, p, f), outputs df/dx (1, n_x)
-    dense and df/dp (1, n_p) structurally zero (the data are not differentiated)."""
+class _NumpyGradient(ca.Callback):
+    """Jacobian of :class:`NumpyCost`: inputs (x, p, f), outputs df/dx (1, n_x) dense and
+    df/dp (1, n_p) structurally zero."""
 
-    def __init__(self, name: str, model: MapModel):
+    def __init__(self, name: str, n_x: int, n_p: int, gradient: Callable[..., np.ndarray]):
         ca.Callback.__init__(self)
-        self.model = model
+        self.n_x, self.n_p, self.gradient = n_x, n_p, gradient
         self.construct(name, {})
 
     def get_n_in(self) -> int:
@@ -261,19 +266,33 @@ class _MagnetometerGradient(ca.Callback):
         return 2
 
     def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        return ca.Sparsity.dense([self.model.lay.n_x, self.model.lay.n_p, 1][i], 1)
+        return ca.Sparsity.dense([self.n_x, self.n_p, 1][i], 1)
 
     def get_sparsity_out(self, i: int) -> ca.Sparsity:
         if i == 0:
-            return ca.Sparsity.dense(1, self.model.lay.n_x)
-        return ca.Sparsity(1, self.model.lay.n_p)
+            return ca.Sparsity.dense(1, self.n_x)
+        return ca.Sparsity(1, self.n_p)
 
     def has_eval_buffer(self) -> bool:
         return True
 
     def eval_buffer(self, arg: list[Any], res: list[Any]) -> int:
-        _array(res[0])[:] = self.model.gradient(_array(arg[0]), _array(arg[1]))
+        _array(res[0])[:] = self.gradient(_array(arg[0]).copy(), _array(arg[1]).copy())
         return 0
+
+
+class MagnetometerCost(NumpyCost):
+    """The magnetometer block f(x, p) = 0.5 sum_k |(y_k - m(p_k)) / sigma_m|^2 evaluated
+    with numpy (BLAS), its gradient too.
+
+    A CasADi graph of N mapped residuals costs O(N) to build and to differentiate (measured:
+    36 s inside ``nlpsol`` at N = 16,000); this block is O(1) to build, and IPOPT gets its
+    Hessian from :class:`GaussNewtonHessian`.
+    """
+
+    def __init__(self, name: str, model: MapModel):
+        self.model = model
+        super().__init__(name, model.lay.n_x, model.lay.n_p, model.cost, model.gradient)
 
 
 class HessianCallback(ca.Callback):

@@ -28,7 +28,7 @@ import casadi as ca
 import numpy as np
 
 from casmag.config import Problem, SolverSpec
-from casmag.exactgp import ExactLayout, ExactPriorCost, ExactPriorHessian, ExactPriorModel
+from casmag.exactgp import add_exact_prior
 from casmag.kernels import FIELD_DIM, get_kernel
 from casmag.knots import Knots
 from casmag.nlp import NLP, NLPBuilder, Solution
@@ -153,43 +153,13 @@ def build_translational(s: Structure) -> NLP:
     sigma_b = b.parameter("sigma_bias", (1, 1)) if s.bias_prior else None
     b.cost("magnetometer", 0.5 * ca.sumsqr((Y - M) / sigma_m))
     # Every variable and parameter is declared: the numpy prior blocks see the full vectors.
-    prior, hess = exact_prior_blocks(b, s)
-    b.cost("gp_prior", prior[0])
-    if s.logdet:
-        b.cost("gp_logdet", prior[1])
+    kernel = get_kernel(s.kernel)
+    gp = add_exact_prior(b, kernel, s.knots, s.dim, s.jitter, s.estimate, s.logdet)
     b.cost("anchor", 0.5 * ca.sumsqr((_first(P, s) - anchor) / sigma_a))
     if s.bias_prior:
         b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
     solver = SolverSpec.model_validate_json(s.solver)
-    blocks = ("gp_prior", "gp_logdet") if s.logdet else ("gp_prior",)
-    return b.build(solver, name="casmag_translational", gauss_newton=(blocks, hess))
-
-
-def exact_prior_blocks(b: NLPBuilder, s: Structure) -> tuple[tuple[ca.MX, ca.MX], ca.Function]:
-    """The exact GP prior's two cost blocks (0.5 m^T K^-1 m and 0.5 log|K|) as numpy
-    callbacks (casmag.exactgp) reading C, M (and the estimated log hyperparameters) from x and
-    Q (and the fixed hyperparameters) from p, and the callback of their exact Hessian for
-    ``hess_lag``. Declare every symbol on ``b`` first."""
-    n_x, n_p = b.sizes
-
-    def where(h: str) -> tuple[str, int]:
-        return ("x", b.offset(f"log_{h}")) if h in s.estimate else ("p", b.offset(h, "p"))
-
-    layout = ExactLayout(
-        n_x=n_x,
-        n_p=n_p,
-        C=b.offset("C"),
-        M=b.offset("M"),
-        Q=b.offset("Q", "p"),
-        sigma_f=where("sigma_f"),
-        lengthscale=where("lengthscale"),
-    )
-    model = ExactPriorModel(get_kernel(s.kernel), s.knots, s.dim, s.jitter, layout, s.logdet)
-    x, p = b.x_vector(), b.p_vector()
-    quad = b.retain(ExactPriorCost("gp_prior_cb", model, 0))
-    logdet = b.retain(ExactPriorCost("gp_logdet_cb", model, 1))
-    hess = b.retain(ExactPriorHessian("gp_prior_hessian", model))
-    return (quad(x, p), logdet(x, p)), hess
+    return b.build(solver, name="casmag_translational", gauss_newton=gp)
 
 
 def add_map_magnetometer(
