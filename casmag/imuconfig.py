@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from casmag.config import SolverSpec, validate_spec
 from casmag.errors import ProblemError
@@ -439,6 +439,15 @@ class PlanarModelSpec(_Strict):
     sigma_anchor: PositiveFloat = 1.0e-3
     sigma_psi0: PositiveFloat = 1.0e-3
     curvature: bool = True
+    starts: Annotated[int, Field(ge=1, le=21)] = 1
+    start_heading_deg: PositiveFloat = 10.0
+
+    @field_validator("starts")
+    @classmethod
+    def _odd(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError("must be odd (the dead reckoning and pairs of +-biases)")
+        return v
 
 
 #: Solver settings of planar recordings that differ from SolverSpec's defaults (keys a
