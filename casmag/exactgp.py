@@ -421,6 +421,8 @@ class ExactPriorHessian(HessianCallback):
     def _values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         m = self.model
         N, d = m.N, m.dim
+        if m._factor(x, p)["cf"] is None:  # not positive definite: no Hessian either
+            return np.full(self._lr.size, np.nan)
         H = m.local_hessian(x, p)
         # theta (t-major positions, log l) -> (knots axis-major, [log l])
         Hpp = H[: N * d, : N * d][np.ix_(self._perm_theta, self._perm_theta)]

@@ -95,3 +95,5 @@ def test_not_positive_definite_gives_nan_not_a_crash() -> None:
     model.jitter = 0.0
     q, _ = model.values(x, p)
     assert np.isnan(q)
+    assert np.all(np.isnan(model.gradient(x, p)[0]))
+    assert np.all(np.isnan(ExactPriorHessian("h", model).values(x, p)))
