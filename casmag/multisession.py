@@ -17,7 +17,7 @@ itself most comes first (:func:`revisit_fraction`, computable without truth), an
 later stage starts from the previous stage's trajectories plus the new session's dead
 reckoning. On that pair this reached the truth's optimum in 6 iterations for the last stage.
 Long sessions (more than 2 x FIRST_PREFIX samples) are also tried from growing prefixes,
-and the start with the lower MAP cost is kept (:func:`_solve_first`, :func:`_add_session`):
+and the start with the lower MAP cost is kept (:func:`solve_two_starts`, :func:`_add_session`):
 on the real field neither start is right every time, and the cost told them apart in every
 case measured (README, Measured: real field).
 
@@ -112,7 +112,7 @@ def solve_sessions(
     P_prev: np.ndarray | None = None
     for k in range(1, len(ordered)):
         if k == 1:
-            P_prev, first = _solve_first(problem, ordered[0])
+            P_prev, first = solve_two_starts(problem, ordered[0])
             stages.extend(first)
             continue
         P_prev, added = _add_session(problem, ordered[: k - 1], P_prev, ordered[k - 1])
@@ -210,9 +210,12 @@ def _add_session(
     return best[1], stages
 
 
-def _solve_first(problem: Problem, data: Dataset) -> tuple[np.ndarray, list[dict[str, Any]]]:
-    """The first session alone, from two starts, keeping the lower MAP cost: the batch from
-    the dead reckoning, and growing prefixes from FIRST_PREFIX samples (casmag.windowing).
+def solve_two_starts(problem: Problem, data: Dataset) -> tuple[np.ndarray, list[dict[str, Any]]]:
+    """One session (the first of several, or a single recording: casmag.api.slam) from two
+    starts, keeping the lower MAP cost: the batch from the dead reckoning, and growing
+    prefixes from FIRST_PREFIX samples (casmag.windowing); the second only for more than
+    2 x FIRST_PREFIX samples. Returns the kept positions (the dead reckoning when both
+    failed) and a stage record of each start (``start``, ``cost``, ``kept``).
     Neither is right every time on the real field: on sequence 5 at 0.5 m drift the batch
     reached 0.012 m at cost 661 and growing 0.418 m at cost 1,552; at 1.5 m drift the batch
     stopped at 0.944 m (cost 1,116) and growing reached 0.011 m."""
@@ -274,6 +277,11 @@ def session_rows(data: Dataset, result: Result, names: Sequence[str]) -> list[di
             from casmag.uncertainty import PositionUncertainty
 
             row["uncertainty"] = PositionUncertainty(cov[i:j]).summary(P_est[s], P_true[s])
+            plain = result.arrays.get("P_cov_uninflated")
+            if plain is not None:  # the Laplace covariance before the inflation
+                row["uncertainty_uninflated"] = PositionUncertainty(plain[i:j]).summary(
+                    P_est[s], P_true[s]
+                )
         row["odometry_bias"] = None if bias is None else [float(v) for v in bias[s]]
         row["odometry_bias_true"] = None if bias_true is None else [float(v) for v in bias_true[s]]
         rows.append(row)

@@ -192,6 +192,8 @@ def session_table_rows(
             nees_expected=u.get("nees_expected"),
             sigma_mean=u.get("sigma_mean"),
             inside_95=u.get("inside_95"),
+            nees_mean_uninflated=(sess.get("uncertainty_uninflated") or {}).get("nees_mean"),
+            inside_95_uninflated=(sess.get("uncertainty_uninflated") or {}).get("inside_95"),
             sessions=len(records),
         )
         rows.append(r)
@@ -236,6 +238,13 @@ def row(
         "nees_expected": u.get("nees_expected"),
         "sigma_mean": u.get("sigma_mean"),
         "inside_95": u.get("inside_95"),
+        "nees_mean_uninflated": (u.get("uninflated") or {}).get("nees_mean"),
+        "inside_95_uninflated": (u.get("uninflated") or {}).get("inside_95"),
+        "inflation_factor_mean": (u.get("inflation") or {}).get("factor_mean"),
+        "two_starts": [
+            {k: st.get(k) for k in ("start", "cost", "kept", "iterations", "solve_seconds")}
+            for st in result.info.get("two_starts", [])
+        ],
     }
 
 
@@ -249,11 +258,20 @@ def _fmt(v: Any, spec: str = ".3f") -> str:
     return str(v)
 
 
+def _plain(r: dict[str, Any]) -> str:
+    """The plain Laplace covariance's mean NEES and inside-95 % fraction (before the
+    inflation for correlated residuals, casmag.uncertainty)."""
+    if r.get("nees_mean_uninflated") is None:
+        return "-"
+    return f"{r['nees_mean_uninflated']:.2f}, {_fmt(r.get('inside_95_uninflated'), '.2f')}"
+
+
 def markdown(rows: list[dict[str, Any]]) -> str:
     head = (
         "| problem | motion | field | N | clock shift [s] | RMSE before [m] | max before [m] "
         "| RMSE after [m] | max after [m] | after/before | iterations | wall [s] "
-        "| sigma_f | l [m] | sigma_m | mean NEES (expected) | inside 95 % | status |"
+        "| sigma_f | l [m] | sigma_m | mean NEES (expected) | inside 95 % "
+        "| plain Laplace: mean NEES, inside 95 % | status |"
     )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
@@ -283,6 +301,7 @@ def markdown(rows: list[dict[str, Any]]) -> str:
                     _fmt(r["sigma_m"], ".2f"),
                     nees,
                     _fmt(r["inside_95"], ".2f"),
+                    _plain(r),
                     r["status"] + (f" ({r['fallback']})" if r.get("fallback") else ""),
                 ]
             )
