@@ -8,6 +8,7 @@ import casadi as ca
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from small_problems import planar_room_field
 
 from casmag import strapdown as sd
 from casmag.dipoles import Dipole, DipoleField, earth_field, moment_for
@@ -262,6 +263,18 @@ def test_noise_free_imu_only_returns_the_truth():
     assert r.errors["strapdown"]["rmse"] < 1e-9  # exact increments integrate to the truth
 
 
+def _noise_free_rectangle(gp: dict):
+    """The noise-free rectangle traced twice with constant biases and the weak
+    zero-position update, solved with map settings ``gp`` (sigma_f 0.3, l 0.2 m)."""
+    data = _noise_free(_tiny(gp={"sigma_f": 0.3, "lengthscale": 0.2, **gp}))
+    data["simulation"]["scenario"]["loops"] = 2
+    data["model"]["imu"]["bias"] = "constant"
+    data["model"]["zero_position"] = {"sigma": 1.0}
+    r = solve_imu(load_imu_problem(data))
+    assert r.success, r.status
+    return r
+
+
 def test_noise_free_gp_slam_with_biases_returns_the_truth():
     """Noise-free IMU and magnetometer, constant gyroscope and accelerometer biases of the
     paper's size, the rectangle traced twice past a dipole: GP-SLAM returns the true path
@@ -269,12 +282,7 @@ def test_noise_free_gp_slam_with_biases_returns_the_truth():
     (400 basis functions; the residual magnetometer cost is 0.3 sigma_m per component) and
     the weak priors: 0.31 mm at most (measured), against 0.99 m for strapdown and 34 mm for
     the IMU-only adjustment, which cannot see the heading drift."""
-    data = _noise_free(_tiny(gp={"sigma_f": 0.3, "lengthscale": 0.2, "num_basis": 400}))
-    data["simulation"]["scenario"]["loops"] = 2
-    data["model"]["imu"]["bias"] = "constant"
-    data["model"]["zero_position"] = {"sigma": 1.0}
-    r = solve_imu(load_imu_problem(data))
-    assert r.success, r.status
+    r = _noise_free_rectangle({"num_basis": 400})
     a = r.arrays
     assert r.errors["strapdown"]["rmse"] > 0.5 and r.errors["imu_only"]["rmse"] > 0.02
     assert np.abs(a["P_estimate"] - a["P_true"]).max() < 1e-3
@@ -290,12 +298,7 @@ def test_noise_free_gp_slam_with_the_exact_gp_at_keyframes():
     basis truncation), started from the GP posterior mean of the field at the IMU-only path.
     Measured: 0.74 mm at most, orientation within 0.083 deg, gyroscope biases within 7.5 %
     (z: 0.129 against 0.12 deg/s), 4 iterations of the map pass."""
-    data = _noise_free(_tiny(gp={"sigma_f": 0.3, "lengthscale": 0.2, "form": "exact"}))
-    data["simulation"]["scenario"]["loops"] = 2
-    data["model"]["imu"]["bias"] = "constant"
-    data["model"]["zero_position"] = {"sigma": 1.0}
-    r = solve_imu(load_imu_problem(data))
-    assert r.success, r.status
+    r = _noise_free_rectangle({"form": "exact"})
     a = r.arrays
     assert r.errors["imu_only"]["rmse"] > 0.02
     assert np.abs(a["P_estimate"] - a["P_true"]).max() < 1e-3
@@ -425,21 +428,11 @@ def test_command_solver_failure_exit_1_recorded(tmp_path):
 def test_planar_recording_with_heading_rate_bias(tmp_path):
     """Planar odometry with a 0.5 deg/s heading-rate bias, written as a recording and read
     back: GP-SLAM recovers the bias and cuts the position and heading errors."""
-    from casmag.imusim import dipole_field, simulate_planar
+    from casmag.imusim import simulate_planar
     from casmag.imuslam import PlanarOptions, solve_planar_recording
     from casmag.recording import write_recording
 
-    field = dipole_field(
-        1.0,
-        67.0,
-        2.0,
-        [
-            ("radiator", [1.9, 0.3, 0.2], [0.08, -0.04, 0.05]),
-            ("cabinet", [-0.4, 1.5, 0.3], [-0.05, 0.08, 0.06]),
-            ("rebar", [0.3, -0.3, -0.5], [0.03, 0.05, -0.12]),
-            ("rebar", [-1.0, -0.6, -0.5], [-0.06, 0.02, -0.1]),
-        ],
-    )
+    field = planar_room_field()
     d = simulate_planar(1, field, size=(2.0, 1.5), loops=2, heading_bias_deg=0.5, disp_noise=0.002)
     path = tmp_path / "planar.csv"
     write_recording(path, d.t, d.Y, planar=d.U, P_true=d.P, yaw_true=d.psi)
@@ -457,20 +450,10 @@ def test_planar_starts_keep_the_lowest_cost():
     (three loops, seed 1): cost 262.4 and RMSE after / before 0.34 from the dead reckoning,
     254.1 and 0.18 from either biased start."""
     from casmag.imuconfig import load_planar_options
-    from casmag.imusim import dipole_field, simulate_planar
+    from casmag.imusim import simulate_planar
     from casmag.imuslam import solve_planar
 
-    field = dipole_field(
-        1.0,
-        67.0,
-        2.0,
-        [
-            ("radiator", [1.9, 0.3, 0.2], [0.08, -0.04, 0.05]),
-            ("cabinet", [-0.4, 1.5, 0.3], [-0.05, 0.08, 0.06]),
-            ("rebar", [0.3, -0.3, -0.5], [0.03, 0.05, -0.12]),
-            ("rebar", [-1.0, -0.6, -0.5], [-0.06, 0.02, -0.1]),
-        ],
-    )
+    field = planar_room_field()
     d = simulate_planar(1, field, size=(2.0, 1.5), loops=3, heading_bias_deg=0.5, disp_noise=0.002)
     sets = ["model.sigma_disp=0.002", f"model.sigma_dyaw={np.radians(0.05)}"]
     opts = load_planar_options(None, [*sets, "model.num_basis=120", "model.starts=3"])

@@ -7,9 +7,10 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from small_problems import planar_room_field
 
 from casmag.cli import main
-from casmag.imusim import dipole_field, simulate_planar
+from casmag.imusim import simulate_planar
 from casmag.recording import write_recording
 
 BIAS_DEG = 0.5  # heading-rate bias [deg/s]
@@ -21,17 +22,7 @@ def planar_recording(tmp_path_factory):
     """Three loops of a 2 m x 1.5 m rounded rectangle at 1 m/s (10 Hz, 186 samples) past
     four dipoles, heading-rate bias 0.5 deg/s, seeded (seeds 1-5 measured: RMSE after / before
     0.34, 0.17, 0.08, 0.09, 0.14; seed 1 ends in a worse local optimum)."""
-    field = dipole_field(
-        1.0,
-        67.0,
-        2.0,
-        [
-            ("radiator", [1.9, 0.3, 0.2], [0.08, -0.04, 0.05]),
-            ("cabinet", [-0.4, 1.5, 0.3], [-0.05, 0.08, 0.06]),
-            ("rebar", [0.3, -0.3, -0.5], [0.03, 0.05, -0.12]),
-            ("rebar", [-1.0, -0.6, -0.5], [-0.06, 0.02, -0.1]),
-        ],
-    )
+    field = planar_room_field()
     d = simulate_planar(
         4, field, size=(2.0, 1.5), loops=3, heading_bias_deg=BIAS_DEG, disp_noise=0.002
     )

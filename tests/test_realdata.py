@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from small_problems import tiny_walk
 
 import casmag
 from casmag.api import slam
@@ -160,25 +161,11 @@ def test_every_real_problem_file_loads(tmp_path):
             assert prefix.with_name(f"{prefix.name}-time.csv").is_file(), f
 
 
-def _tiny(overrides=()):
-    return casmag.load_problem(
-        ROOT / "problems/bench/walk.yaml",
-        [
-            "seed=2",
-            "simulation.trajectory.samples=120",
-            "simulation.trajectory.area=[1.5, 1.5]",
-            "model.trajectory.knot_every=3",
-            "solver.warm_start.strategy=none",
-            *overrides,
-        ],
-    )
-
-
 def test_laplace_covariance_without_field_information_is_the_odometry_random_walk():
     """With an uninformative magnetometer (sigma_m huge) and no bias, the posterior of the
     positions is the anchor plus the odometry random walk: var(p_k) = sigma_a^2 + k sigma_o^2
     per axis, also between knots (the Brownian-bridge term)."""
-    prob = _tiny(["model.magnetometer.sigma_m=1.0e6", "model.odometry.estimate_bias=false"])
+    prob = tiny_walk(["model.magnetometer.sigma_m=1.0e6", "model.odometry.estimate_bias=false"])
     res = casmag.solve(prob)
     assert res.success
     cov = res.arrays["P_cov"]
@@ -190,7 +177,7 @@ def test_laplace_covariance_without_field_information_is_the_odometry_random_wal
 
 
 def test_laplace_uncertainty_is_written_and_shrinks_with_a_map(tmp_path):
-    res = casmag.solve(_tiny())
+    res = casmag.solve(tiny_walk())
     assert res.success
     u = res.uncertainty
     assert u["nees_mean"] is not None and u["nees_expected"] == 2.0
@@ -198,19 +185,19 @@ def test_laplace_uncertainty_is_written_and_shrinks_with_a_map(tmp_path):
     header = (tmp_path / "out" / "trajectory.csv").read_text().splitlines()[0].split(",")
     assert header[-3:] == ["sigma_x", "sigma_y", "cov_xy"]
     no_bias = "model.odometry.estimate_bias=false"
-    mapped = casmag.solve(_tiny([no_bias])).uncertainty
-    flat = casmag.solve(_tiny(["model.magnetometer.sigma_m=1.0e6", no_bias])).uncertainty
+    mapped = casmag.solve(tiny_walk([no_bias])).uncertainty
+    flat = casmag.solve(tiny_walk(["model.magnetometer.sigma_m=1.0e6", no_bias])).uncertainty
     # The field pins the positions: the 1-sigma is smaller than with the odometry alone.
     assert mapped["sigma_mean"] < 0.75 * flat["sigma_mean"]  # measured: 0.59
     assert mapped["sigma_mean"] < u["sigma_mean"]  # a free bias adds uncertainty
     # Without a field a free bias is unobservable: no Laplace approximation, said so.
-    unobservable = casmag.solve(_tiny(["model.magnetometer.sigma_m=1.0e6"]))
+    unobservable = casmag.solve(tiny_walk(["model.magnetometer.sigma_m=1.0e6"]))
     assert "not positive definite" in unobservable.uncertainty["error"]
     assert "P_cov" not in unobservable.arrays or unobservable.arrays["P_cov"] is None
 
 
 def _recording(tmp_path, constant: bool):
-    data = simulate_problem(_tiny(["simulation.trajectory.samples=600"]))
+    data = simulate_problem(tiny_walk(["simulation.trajectory.samples=600"]))
     arrays = dataset_to_recording_arrays(data, dt=0.1)
     if constant:
         rng = np.random.default_rng(5)
@@ -243,7 +230,7 @@ def test_slam_keeps_the_lower_cost_of_two_starts(tmp_path):
     """A recording longer than 2 x FIRST_PREFIX samples (and within one batch) is solved
     from the dead reckoning and from growing prefixes; the lower MAP cost is kept and the
     final solve starts there."""
-    data = simulate_problem(_tiny(["simulation.trajectory.samples=900"]))
+    data = simulate_problem(tiny_walk(["simulation.trajectory.samples=900"]))
     path = tmp_path / "long.csv"
     write_recording(path, **dataset_to_recording_arrays(data, dt=0.1))
     res = slam(path)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from small_problems import tiny_walk
 
 import casmag
 from casmag.simulate import simulate_problem
@@ -63,20 +64,6 @@ def test_residual_inflation_factors():
         residual_inflation(R, bounds, 1.0, "bogus")
 
 
-def _small(overrides=()):
-    return casmag.load_problem(
-        ROOT / "problems/bench/walk.yaml",
-        [
-            "seed=2",
-            "simulation.trajectory.samples=120",
-            "simulation.trajectory.area=[1.5, 1.5]",
-            "model.trajectory.knot_every=3",
-            "solver.warm_start.strategy=none",
-            *overrides,
-        ],
-    )
-
-
 @pytest.mark.parametrize(
     "overrides",
     [
@@ -90,7 +77,7 @@ def _small(overrides=()):
 def test_magnetometer_correction_is_the_magnetometer_gauss_newton_block(overrides):
     """Weights 0 remove the magnetometer block (the Hessian at sigma_m -> infinity), weights
     1/2 halve it (the Hessian at sigma_m sqrt 2)."""
-    prob = _small(overrides)
+    prob = tiny_walk(overrides)
     data = simulate_problem(prob)
     sol, nlp, _, _, s = solve_translational(prob, data)
     assert sol.success
