@@ -180,6 +180,7 @@ class ExactPriorModel:
             return c
         N, R, d = self.N, self.R, self.dim
         P = c["P"]
+        # every ordered pair (i, j): p_i, p_j, log l
         Z = np.vstack([P[self._pi].T, P[self._pj].T, np.full((1, N * N), c["ll"])])
         J = np.asarray(self._mapped("jac", N * N)(Z, self._diag))  # (R^2 nz, N^2)
         nz = 2 * d + 1
@@ -199,7 +200,7 @@ class ExactPriorModel:
         V = V.reshape(self.n_k, N * d, self.ncol)  # columns t-major: (t, k) -> t d + k
         Vl = (Cl @ alpha)[:, None, :]
         V = np.concatenate([V, Vl], axis=1)  # (n_k, N d + 1, ncol)
-        c.update(J=J, G=G, Cl=Cl, V=V)
+        c.update(Z=Z, J=J, G=G, Cl=Cl, V=V)
         return c
 
     def gradient(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -285,12 +286,10 @@ class ExactPriorModel:
         """sum_ij W_ij d2 C_ij / dtheta dtheta over (positions t-major, log l)."""
         N, R, d = self.N, self.R, self.dim
         nz = 2 * d + 1
-        P = c["P"]
-        Z = np.vstack([P[self._pi].T, P[self._pj].T, np.full((1, N * N), c["ll"])])
         Wb = W.reshape(R, N, R, N)  # [r, i, s, j]
         w = np.transpose(Wb, (1, 3, 0, 2)).reshape(N * N, R, R)  # pair (i, j) -> [r, s]
         wv = np.transpose(w, (2, 1, 0)).reshape(R * R, N * N)  # vec column-major per pair
-        h = np.asarray(self._mapped("hess", N * N)(Z, self._diag, wv))  # (nz^2, N^2)
+        h = np.asarray(self._mapped("hess", N * N)(c["Z"], self._diag, wv))  # (nz^2, N^2)
         h = h.T.reshape(N, N, nz, nz)  # symmetric, so the vec order does not matter
         pi, pj, pl = slice(0, d), slice(d, 2 * d), 2 * d
         H = np.zeros((N, d, N, d))

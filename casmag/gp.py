@@ -5,9 +5,9 @@ With the field m at the N sample points as unknowns, the prior block of the MAP 
     0.5 m^T K(P, theta)^-1 m  [+ 0.5 log|K(P, theta)| when hyperparameters are estimated],
 
 with K built from the kernel at the estimated positions P. The quadratic form uses a
-differentiable sparse LDL solve on MX, so IPOPT gets exact first and second derivatives with
-respect to positions, field values and hyperparameters. Cost and memory grow as N^3 and N^2:
-this is the reference form for a few hundred samples.
+differentiable sparse LDL solve on MX, so CasADi differentiates it to any order. The NLPs no
+longer use this graph (its Hessian costs O(N^3) virtual-machine operations per evaluation):
+they use the numpy blocks of casmag.exactgp, and this form is their test reference.
 """
 
 from __future__ import annotations

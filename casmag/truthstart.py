@@ -40,8 +40,10 @@ def solve_both(problem: dict[str, Any]) -> dict[str, Any]:
 
     prob = load_problem(problem)
     data = simulate_problem(prob)
-    out: dict[str, Any] = {"seed": prob.spec.seed, "rmse_before": None}
-    out["rmse_before"] = rmse_and_max(data.dead_reckoning(), data.P_true)[0]
+    out: dict[str, Any] = {
+        "seed": prob.spec.seed,
+        "rmse_before": rmse_and_max(data.dead_reckoning(), data.P_true)[0],
+    }
     for name, init in (("dead_reckoning", None), ("truth", data.P_true)):
         t0 = time.perf_counter()
         sol, *_ = solve_translational(prob, data, initial_positions=init)
