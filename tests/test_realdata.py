@@ -226,6 +226,22 @@ def test_slam_keeps_the_map_when_the_field_varies(tmp_path):
     assert res.info["defaults"]["field_evidence"]["log_bayes_factor"] > 10
 
 
+def test_truth_start_diagnostic_reaches_the_same_optimum_on_an_easy_recording(tmp_path):
+    """casmag.realbench.truth_start: the MAP solved again from the true trajectory. On a
+    simulated walk whose field GP-SLAM resolves, both starts end at the same optimum: the
+    same cost to IPOPT's tolerance and the same positions."""
+    from casmag.realbench import truth_start
+
+    path = _recording(tmp_path, constant=False)
+    res = slam(path)
+    assert res.success
+    t = truth_start(path, None, res)
+    assert t["success"]
+    assert abs(t["cost_above_result"]) < 1e-3 * t["cost"]
+    assert t["rmse"] == pytest.approx(res.rmse_after, rel=0.02, abs=1e-4)
+    assert t["rmse"] < 0.5 * res.rmse_before
+
+
 def test_slam_keeps_the_lower_cost_of_two_starts(tmp_path):
     """A recording longer than 2 x FIRST_PREFIX samples (and within one batch) is solved
     from the dead reckoning and from growing prefixes; the lower MAP cost is kept and the

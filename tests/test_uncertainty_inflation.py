@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 from small_problems import tiny_walk
 
 import casmag
@@ -16,6 +17,7 @@ from casmag.slam import parameters_and_guess, solve_translational
 from casmag.uncertainty import (
     autocorrelation_time,
     magnetometer_correction,
+    nees_consistency,
     residual_inflation,
 )
 
@@ -30,6 +32,33 @@ def _ar1(n: int, phi: float, sd: float, rng: np.random.Generator, cols: int = 3)
     for k in range(1, n):
         x[k] = phi * x[k - 1] + e[k]
     return x
+
+
+def test_nees_range_covers_an_honest_covariance_with_smooth_errors():
+    # Position errors that are N(0, I) at every sample but smooth along the path (AR(1),
+    # tau 99): an honest unit covariance. The mean NEES of one trajectory scatters widely,
+    # and the range from its correlation time must cover the expected 2 about 95 % of the
+    # time, where the range that takes the samples as independent would not.
+    rng = np.random.default_rng(11)
+    covered, naive = 0, 0
+    trials = 200
+    for _ in range(trials):
+        e = _ar1(1500, 0.98, 1.0, rng, 2)
+        q = np.sum(e**2, axis=1)
+        r = nees_consistency(q, 2)
+        lo, hi = r["nees_interval_95"]
+        covered += lo <= 2.0 <= hi
+        assert r["nees_independent"] == pytest.approx(1500 / r["nees_tau"])
+        n = q.size
+        naive += chi2.ppf(0.025, 2 * n) / n <= np.mean(q) <= chi2.ppf(0.975, 2 * n) / n
+    assert covered / trials >= 0.88, covered
+    assert naive / trials <= 0.5, naive
+    # White chi-squared values: tau about 1 and a narrow range around 2.
+    q = rng.chisquare(2, size=4000)
+    r = nees_consistency(q, 2)
+    assert r["nees_tau"] < 1.5
+    lo, hi = r["nees_interval_95"]
+    assert lo < 2.0 < hi and hi - lo < 0.35
 
 
 def test_autocorrelation_time_of_ar1_and_white_noise():
