@@ -46,6 +46,9 @@ def imu_command(
         fail_bad_input(problem, exc)
     if not result.success:
         stage = "IMU-only adjustment" if result.failed_stage == "imu_only" else "GP-SLAM"
+        grow = result.gp_slam_passes[-1].get("grow") if result.gp_slam_passes else None
+        if result.failed_stage == "gp_slam" and grow:
+            stage += f" (prefix of {grow[-1]['keyframes']} of {result.info['keyframes']} keyframes)"
         fail(
             f"{problem}: IPOPT failed in the {stage}: status {result.status} after "
             f"{result.iterations} iterations (recorded in {out_dir / 'result.json'})",
@@ -53,7 +56,7 @@ def imu_command(
         )
     if not quiet:
         e = result.errors
-        its = " + ".join(str(p["iterations"]) for p in result.gp_slam_passes) or "0"
+        its = " + ".join(_pass_iterations(p) for p in result.gp_slam_passes) or "0"
         line = (
             f"{result.info['name']}: {result.status}, {result.iterations_imu_only} (IMU only) + "
             f"{its} (GP-SLAM) iterations, {result.solve_seconds_imu_only:.1f} + "
@@ -134,3 +137,12 @@ def planar_slam(
             line += f"; heading-rate bias {np.degrees(result.bias[0]):.4f} deg/s"
         click.echo(line)
         click.echo(f"wrote {out_dir}/")
+
+
+def _pass_iterations(p: dict) -> str:
+    """A GP-SLAM pass's iterations; a grown pass (model.gp.grow): its last solve's and the
+    total over its solves."""
+    grow = p.get("grow")
+    if not grow:
+        return str(p["iterations"])
+    return f"{p['iterations']} (grown: {p['iterations_total']} over {len(grow)} solves)"

@@ -657,6 +657,7 @@ class ImuSolveStage:
     Q: np.ndarray
     b_w: np.ndarray
     b_a: np.ndarray
+    grow: list[dict[str, Any]] = field(default_factory=list)  # prefix stages (model.gp.grow)
 
 
 def _stage_estimates(sol: Solution, Qnom: np.ndarray, K: int) -> dict[str, np.ndarray]:
@@ -696,12 +697,24 @@ def _imu_params(
 
 
 def field_evidence(
-    P: np.ndarray, Y_local: np.ndarray, kernel: str, est: HyperEstimate | None = None
+    P: np.ndarray,
+    Y_local: np.ndarray,
+    kernel: str,
+    est: HyperEstimate | None = None,
+    windows: tuple[int, int] = (HYPER_WINDOW, HYPER_WINDOWS),
 ) -> FieldEvidence:
-    """casmag.hyper.field_evidence with the IMU scenarios' windows (HYPER_WINDOW samples,
-    up to HYPER_WINDOWS windows). Measured on the IMU scenarios' true paths: log Bayes factor
+    """casmag.hyper.field_evidence with the IMU scenarios' windows (``windows``: keyframes
+    per window and the most windows; default HYPER_WINDOW, HYPER_WINDOWS; ``est`` must come
+    from the same windows). Measured on the IMU scenarios' true paths: log Bayes factor
     about -6.7 outdoors (Earth's field only) against +865 or more on the desk and table."""
-    return _field_evidence(P, Y_local, kernel, est, HYPER_WINDOW, HYPER_WINDOWS)
+    return _field_evidence(P, Y_local, kernel, est, *windows)
+
+
+def hyper_windows(spec: Any, K: int) -> tuple[int, int]:
+    """Keyframes per marginal-likelihood window and the most windows (``model.gp``:
+    ``hyper_window``, ``hyper_windows``; ``all``: every whole window of the K keyframes)."""
+    w = spec.hyper_window
+    return w, (max(1, K // w) if spec.hyper_windows == "all" else spec.hyper_windows)
 
 
 @dataclass
@@ -778,14 +791,26 @@ def solve_imu_stages(
         # apparent variation): no map. An unidentified lengthscale (sigma_f -> 0 leaves it
         # free) would otherwise set the basis (measured: l = 0.0085 m on a 12 cm
         # rectangle in Earth's field, and GP-SLAM hit the iteration limit).
-        pre = field_evidence(st1.P, sd.rotate(st1.Q, kf.Y), m.gp.kernel, est)
+        pre = field_evidence(
+            st1.P, sd.rotate(st1.Q, kf.Y), m.gp.kernel, est, hyper_windows(m.gp, K)
+        )
         if pre.homogeneous:
             return ImuSolution(s1, kf, strap, st1, None, hyper, source, None, [], pre, True)
     passes: list[ImuSolveStage] = []
     prev = st1
     s2, size = s1, None
-    for factor in m.gp.anneal:
-        st, s2, size = _slam_pass(problem, data, kf, base, prev, hyper, factor, progress)
+    # model.gp.grow: the first pass (or, with grow_anneal, every pass: the whole schedule per
+    # prefix) on growing prefixes of the keyframes.
+    schedule: list[list[float]] = [[f] for f in m.gp.anneal]
+    if m.gp.grow is not None and m.gp.grow_anneal:
+        schedule = [list(m.gp.anneal)]
+    for i, factors in enumerate(schedule):
+        if i == 0 and m.gp.grow is not None:
+            st, s2, size = _grown_pass(
+                problem, data, kf, base, prev, hyper, factors, m.gp.grow, progress
+            )
+        else:
+            st, s2, size = _slam_pass(problem, data, kf, base, prev, hyper, factors[0], progress)
         passes.append(st)
         if not st.solution.success:
             break
@@ -804,7 +829,9 @@ def solve_imu_stages(
         # IMU-only one, orientation errors rotate Earth's field into apparent variation
         # (measured outdoors: log Bayes factor +21 there, -6.7 on the true path).
         last = passes[-1]
-        evidence = field_evidence(last.P, sd.rotate(last.Q, kf.Y), m.gp.kernel)
+        evidence = field_evidence(
+            last.P, sd.rotate(last.Q, kf.Y), m.gp.kernel, windows=hyper_windows(m.gp, K)
+        )
         fallback = evidence.homogeneous
     return ImuSolution(
         s2, kf, strap, st1, passes[-1], hyper, source, size, passes, evidence, fallback
@@ -822,13 +849,11 @@ def _hyperparameters(
     source = "given"
     est = None
     if "estimate" in (sigma_f, ell):
-        # Short windows (3 s at 10 Hz): the previous trajectory drifts little within one.
+        # Short windows (default 30 keyframes, 6 s at 5 Hz): the previous trajectory drifts
+        # little within one (model.gp.hyper_window, hyper_windows).
+        window, count = hyper_windows(m.gp, kf.idx.size)
         est = estimate_hyperparameters(
-            prev.P,
-            sd.rotate(prev.Q, kf.Y),
-            kernel=m.gp.kernel,
-            window=HYPER_WINDOW,
-            max_windows=HYPER_WINDOWS,
+            prev.P, sd.rotate(prev.Q, kf.Y), kernel=m.gp.kernel, window=window, max_windows=count
         )
         source = f"marginal likelihood on the {prev_name} trajectory"
         if sigma_f == "estimate":
@@ -846,6 +871,121 @@ def _hyperparameters(
     )
 
 
+def _slam_setup(
+    problem: ImuProblem, prev: ImuSolveStage, hyper: dict[str, float]
+) -> tuple[tuple | None, bool]:
+    """The map's basis key (built around the previous stage's trajectory) and whether the
+    magnetometer's second-order terms are used."""
+    m = problem.spec.model
+    basis_key = None
+    if m.gp.form == "reduced_rank":
+        num_basis = m.gp.num_basis
+        if num_basis is None:
+            full = make_basis(m.gp.kernel, prev.P, hyper["lengthscale"], None, m.gp.margin)
+            num_basis = min(full.num_basis, m.gp.max_num_basis)
+        hb = make_basis(m.gp.kernel, prev.P, hyper["lengthscale"], num_basis, m.gp.margin)
+        basis_key = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
+    variation = hyper["sigma_f"] / (hyper["lengthscale"] if m.gp.kernel == "curl_free" else 1.0)
+    curvature = m.gp.curvature is True or (
+        m.gp.curvature == "auto" and variation < CURVATURE_BELOW * problem.sigma_m
+    )
+    return basis_key, curvature
+
+
+def _slam_solve(
+    problem: ImuProblem,
+    data: ImuData,
+    kf: Keyframes,
+    base: dict[str, Any],
+    basis_key: tuple | None,
+    curvature: bool,
+    hyper: dict[str, float],
+    sigma_m: float,
+    start: dict[str, Any],
+    progress: Progress | None,
+) -> tuple[ImuSolveStage, ImuStructure]:
+    """One GP-SLAM solve on the keyframes kf (all, or a prefix) from ``start``: P, V, Q (the
+    nominal orientations), BW, BA, zero_centre and optionally the whitened map weights W
+    and the constant field c (else the posterior mean of the map given the data rotated by
+    Q at P)."""
+    m = problem.spec.model
+    K = kf.idx.size
+    Qnom = start["Q"]
+    s2 = ImuStructure(
+        form=m.gp.form,
+        basis=basis_key,
+        imu_hessian=IMU_HESSIAN_SLAM,
+        curvature=curvature,
+        **{**base, "K": K},
+    )
+    nlp2 = cached_imu_nlp(s2)
+    params = _imu_params(problem, data, kf, Qnom, s2)
+    params.update(
+        Y=kf.Y,
+        sigma_m=sigma_m,
+        sigma_f=hyper["sigma_f"],
+        lengthscale=hyper["lengthscale"],
+        sigma_lin=m.gp.sigma_lin,
+    )
+    x0 = {
+        "P": start["P"],
+        "V": start["V"],
+        "D": np.zeros((K, 3)),
+        "BW": start["BW"],
+        "BA": start["BA"],
+        "zero_centre": start["zero_centre"],
+    }
+    Y_local = sd.rotate(Qnom, kf.Y)
+    c0 = Y_local.mean(axis=0)
+    if m.gp.form == "reduced_rank":
+        basis = s2.hilbert_basis()
+        if "W" in start:
+            x0["W"], x0["c"] = start["W"], start["c"]
+        else:
+            x0["W"] = whiten(
+                basis,
+                m.gp.kernel,
+                hyper["sigma_f"],
+                hyper["lengthscale"],
+                ridge_weights(
+                    basis,
+                    m.gp.kernel,
+                    start["P"],
+                    Y_local,
+                    c0,
+                    sigma_m,
+                    hyper["sigma_f"],
+                    hyper["lengthscale"],
+                ),
+            )
+            x0["c"] = c0.reshape(3, 1)
+    else:
+        # The GP posterior mean of the field variation at the previous stage's positions:
+        # the data themselves (Y - c0) would cost 7.5e7 in the prior on handwriting, where
+        # centimetre position errors make neighbouring samples disagree.
+        kern = get_kernel(m.gp.kernel)
+        Kf = field_covariance(kern, start["P"], hyper["sigma_f"], hyper["lengthscale"])
+        r = (Y_local - c0).ravel(order="F")
+        mean = Kf @ np.linalg.solve(Kf + sigma_m**2 * np.eye(r.size), r)
+        x0["M"] = mean.reshape(K, FIELD_DIM, order="F")
+        x0["c"] = c0.reshape(3, 1)
+    sol2 = nlp2.solve(params, x0, progress=progress)
+    st2 = ImuSolveStage(solution=sol2, nlp=nlp2, **_stage_estimates(sol2, Qnom, K))
+    return st2, s2
+
+
+def _start_from(st: ImuSolveStage, data: ImuData) -> dict[str, Any]:
+    sol = st.solution
+    return {
+        "P": st.P,
+        "V": st.V,
+        "Q": st.Q,
+        "BW": sol.x["BW"],
+        "BA": sol.x["BA"],
+        "zero_centre": sol.x.get("zero_centre", data.p0.reshape(1, 3)),
+    }
+
+
 def _slam_pass(
     problem: ImuProblem,
     data: ImuData,
@@ -859,81 +999,128 @@ def _slam_pass(
     """One GP-SLAM solve starting from a previous stage's estimates, with the map's basis
     built around that stage's trajectory and the magnetometer noise scaled by
     sigma_m_factor."""
-    m = problem.spec.model
-    K = kf.idx.size
+    basis_key, curvature = _slam_setup(problem, prev, hyper)
     sigma_m = problem.sigma_m * sigma_m_factor
-    Y_local = sd.rotate(prev.Q, kf.Y)
-    basis_key = None
-    if m.gp.form == "reduced_rank":
-        num_basis = m.gp.num_basis
-        if num_basis is None:
-            full = make_basis(m.gp.kernel, prev.P, hyper["lengthscale"], None, m.gp.margin)
-            num_basis = min(full.num_basis, m.gp.max_num_basis)
-        hb = make_basis(m.gp.kernel, prev.P, hyper["lengthscale"], num_basis, m.gp.margin)
-        basis_key = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
-    variation = hyper["sigma_f"] / (hyper["lengthscale"] if m.gp.kernel == "curl_free" else 1.0)
-    curvature = m.gp.curvature is True or (
-        m.gp.curvature == "auto" and variation < CURVATURE_BELOW * problem.sigma_m
-    )
-    s2 = ImuStructure(
-        form=m.gp.form,
-        basis=basis_key,
-        imu_hessian=IMU_HESSIAN_SLAM,
-        curvature=curvature,
-        **base,
-    )
-    nlp2 = cached_imu_nlp(s2)
-    params = _imu_params(problem, data, kf, prev.Q, s2)
-    params.update(
-        Y=kf.Y,
-        sigma_m=sigma_m,
-        sigma_f=hyper["sigma_f"],
-        lengthscale=hyper["lengthscale"],
-        sigma_lin=m.gp.sigma_lin,
-    )
-    sol_prev = prev.solution
-    x0 = {
-        "P": prev.P,
-        "V": prev.V,
-        "D": np.zeros((K, 3)),
-        "BW": sol_prev.x["BW"],
-        "BA": sol_prev.x["BA"],
-        "zero_centre": sol_prev.x.get("zero_centre", data.p0.reshape(1, 3)),
-    }
-    c0 = Y_local.mean(axis=0)
-    if m.gp.form == "reduced_rank":
-        basis = s2.hilbert_basis()
-        x0["W"] = whiten(
-            basis,
-            m.gp.kernel,
-            hyper["sigma_f"],
-            hyper["lengthscale"],
-            ridge_weights(
-                basis,
-                m.gp.kernel,
-                prev.P,
-                Y_local,
-                c0,
-                sigma_m,
-                hyper["sigma_f"],
-                hyper["lengthscale"],
-            ),
-        )
-        x0["c"] = c0.reshape(3, 1)
-    else:
-        # The GP posterior mean of the field variation at the previous stage's positions:
-        # the data themselves (Y - c0) would cost 7.5e7 in the prior on handwriting, where
-        # centimetre position errors make neighbouring samples disagree.
-        kern = get_kernel(m.gp.kernel)
-        Kf = field_covariance(kern, prev.P, hyper["sigma_f"], hyper["lengthscale"])
-        r = (Y_local - c0).ravel(order="F")
-        mean = Kf @ np.linalg.solve(Kf + sigma_m**2 * np.eye(r.size), r)
-        x0["M"] = mean.reshape(K, FIELD_DIM, order="F")
-        x0["c"] = c0.reshape(3, 1)
-    sol2 = nlp2.solve(params, x0, progress=progress)
-    st2 = ImuSolveStage(solution=sol2, nlp=nlp2, **_stage_estimates(sol2, prev.Q, K))
-    size = s2.hilbert_basis().num_basis if m.gp.form == "reduced_rank" else None
+    st2, s2 = _slam_solve(
+        problem, data, kf, base, basis_key, curvature, hyper, sigma_m,
+        _start_from(prev, data), progress,
+    )  # fmt: skip
+    size = s2.hilbert_basis().num_basis if problem.spec.model.gp.form == "reduced_rank" else None
     return st2, s2, size
+
+
+def prefix_keyframes(kf: Keyframes, K: int) -> Keyframes:
+    """The first K keyframes' data."""
+    return Keyframes(
+        idx=kf.idx[:K], DQ=kf.DQ[: K - 1], DV=kf.DV[: K - 1], LINV=kf.LINV[: K - 1], Y=kf.Y[:K]
+    )
+
+
+def grow_sizes(K: int, fractions: list[float]) -> list[int]:
+    """Keyframes of each prefix: round(f K), at least 2, strictly increasing, the last K."""
+    sizes: list[int] = []
+    for f in fractions:
+        k = K if f >= 1.0 else min(K, max(2, round(f * K)))
+        if not sizes or k > sizes[-1]:
+            sizes.append(k)
+    if sizes[-1] != K:
+        sizes.append(K)
+    return sizes
+
+
+def continue_start(
+    start: dict[str, Any], prefix: ImuSolveStage, ref: ImuSolveStage, K: int
+) -> dict[str, Any]:
+    """The start of a longer prefix (K keyframes): the prefix's solution for its keyframes,
+    then the reference (IMU-only) trajectory continued from the prefix's last state:
+    positions and velocities shifted to join it, orientations turned by its orientation
+    correction, biases the prefix's last; map weights and constant field carried over."""
+    Kp = prefix.P.shape[0]
+    j = Kp - 1
+    corr = sd.quat_mul(prefix.Q[j : j + 1], sd.quat_conj(ref.Q[j : j + 1]))
+    Qn = sd.quat_mul(np.repeat(corr, K - Kp, 0), ref.Q[Kp:K])
+    sol = prefix.solution
+    out = {
+        "P": np.vstack([prefix.P, ref.P[Kp:K] + (prefix.P[j] - ref.P[j])]),
+        "V": np.vstack([prefix.V, ref.V[Kp:K] + (prefix.V[j] - ref.V[j])]),
+        "Q": np.vstack([prefix.Q, Qn]),
+        "zero_centre": sol.x.get("zero_centre", start["zero_centre"]),
+    }
+    for b in ("BW", "BA"):
+        v = sol.x[b]
+        out[b] = v if v.shape[0] == 1 else np.vstack([v, np.repeat(v[-1:], K - Kp, 0)])
+    for name in ("W", "c"):
+        if name in sol.x:
+            out[name] = sol.x[name]
+    return out
+
+
+def _grown_pass(
+    problem: ImuProblem,
+    data: ImuData,
+    kf: Keyframes,
+    base: dict[str, Any],
+    prev: ImuSolveStage,
+    hyper: dict[str, float],
+    factors: list[float],
+    fractions: list[float],
+    progress: Progress | None,
+) -> tuple[ImuSolveStage, ImuStructure, int | None]:
+    """GP-SLAM solved on growing prefixes of the keyframes (``model.gp.grow``), each prefix
+    with sigma_m scaled by each of ``factors`` in turn, the map basis that of the full
+    problem (around prev's trajectory), so weights carry over. Returns the last stage (the
+    full problem with the last factor, or the solve that failed) with every solve's record
+    in ``grow`` (build_seconds 0 when the NLP was built for an earlier solve). A solve before
+    the last that stops at the iteration limit still starts the next (measured, handwriting
+    seed 7: the first 31-keyframe prefix, without a revisit, at sigma_m x1)."""
+    basis_key, curvature = _slam_setup(problem, prev, hyper)
+    K = kf.idx.size
+    full = _start_from(prev, data)
+    records: list[dict[str, Any]] = []
+    st: ImuSolveStage | None = None
+    start: dict[str, Any] = {}
+    stopped = False
+    for k in grow_sizes(K, fractions):
+        if st is None:
+            start = {
+                name: (v[:k] if name in ("P", "V", "Q") or v.shape[0] == K else v)
+                for name, v in full.items()
+            }
+        else:
+            start = continue_start(start, st, prev, k)
+        for i, factor in enumerate(factors):
+            if i > 0:  # the same basis: the map weights carry over (reduced rank)
+                start = _start_from(st, data)
+                start.update({n: st.solution.x[n] for n in ("W", "c") if n in st.solution.x})
+            st, s2 = _slam_solve(
+                problem, data, prefix_keyframes(kf, k), base, basis_key, curvature, hyper,
+                problem.sigma_m * factor, start, progress,
+            )  # fmt: skip
+            sol = st.solution
+            records.append(
+                {
+                    "keyframes": k,
+                    "sigma_m_factor": factor,
+                    "status": sol.status,
+                    "success": sol.success,
+                    "iterations": sol.iterations,
+                    "solve_seconds": sol.solve_seconds,
+                    "build_seconds": st.nlp.build_seconds if i == 0 else 0.0,
+                    "cost": float(sol.objective),
+                }
+            )
+            st.grow = list(records)
+            last = k == K and i == len(factors) - 1
+            # An earlier solve only starts the next: the iteration limit does not stop the
+            # growth (as casmag.windowing's stages); any other failure does.
+            if not (sol.success or (not last and sol.status == "Maximum_Iterations_Exceeded")):
+                stopped = True
+                break
+        if stopped:
+            break
+    assert st is not None
+    size = s2.hilbert_basis().num_basis if problem.spec.model.gp.form == "reduced_rank" else None
+    return st, s2, size
 
 
 # --------------------------------------------------------------------------- result
@@ -947,7 +1134,10 @@ class ImuResult:
     truth's, the IMU-only adjustment's and GP-SLAM's (the layout of the paper's Table 6).
     A failed stage (``failed_stage``: "imu_only" or "gp_slam") leaves its errors and those
     of the stages after it None; ``status`` and ``iterations`` are the last solve's,
-    ``solve_seconds`` sums the GP-SLAM passes (each listed in ``gp_slam_passes``).
+    ``solve_seconds`` sums the GP-SLAM passes (each listed in ``gp_slam_passes``; a pass
+    grown on prefixes, ``model.gp.grow``, lists each solve under ``grow`` with
+    ``iterations_total`` and ``solve_seconds_total`` over them, its ``iterations`` being
+    the last solve's, and ``solve_seconds`` counts all of them).
 
     ``map_decision``: ``map`` (the GP-SLAM estimate), ``homogeneous: IMU only`` (the field
     check found no position information in the field, ``model.gp.homogeneous``: the
@@ -1289,8 +1479,15 @@ def solve_imu(
         failed_stage=None if ok else ("imu_only" if not ok1 else "gp_slam"),
         # Passes with the same structure share one (cached) build: count each build once.
         build_seconds=s1.nlp.build_seconds
-        + sum({id(p.nlp): p.nlp.build_seconds for p in res.slam_passes}.values()),
-        solve_seconds=sum(p.solution.solve_seconds for p in res.slam_passes)
+        + sum({id(p.nlp): p.nlp.build_seconds for p in res.slam_passes}.values())
+        + sum(
+            g["build_seconds"] for p in res.slam_passes for g in p.grow if g["keyframes"] < idx.size
+        ),
+        # A grown pass counts its prefix stages' seconds too.
+        solve_seconds=sum(
+            sum(g["solve_seconds"] for g in p.grow) if p.grow else p.solution.solve_seconds
+            for p in res.slam_passes
+        )
         if res.slam_passes
         else s1.solution.solve_seconds,
         solve_seconds_imu_only=s1.solution.solve_seconds,
@@ -1300,6 +1497,15 @@ def solve_imu(
                 "iterations": p.solution.iterations,
                 "solve_seconds": p.solution.solve_seconds,
                 "build_seconds": p.nlp.build_seconds,
+                **(
+                    {
+                        "grow": p.grow,
+                        "iterations_total": sum(g["iterations"] for g in p.grow),
+                        "solve_seconds_total": sum(g["solve_seconds"] for g in p.grow),
+                    }
+                    if p.grow
+                    else {}
+                ),
             }
             for p in res.slam_passes
         ],
