@@ -22,6 +22,9 @@ shared map and the table gets one row per session, named ``<name>: <sequence>``.
 process and writes DIR/<name>/ (result.json with the protocol record in ``info.protocol``,
 trajectory.csv, figures) and DIR/table.md, DIR/table.json (rows of files not run this time
 are kept from the previous table). Exit 1 when a solve failed (its row says so).
+A single translational recording is also solved once more from its true trajectory
+(:func:`truth_start`, ``info.truth_start``, the table's "from the truth" column): a
+diagnostic of why a recording fails, never part of the estimate.
 """
 
 from __future__ import annotations
