@@ -182,6 +182,12 @@ class ZeroPositionSpec(_Strict):
     centre: Literal["start", "free"] = "start"
 
 
+#: Keyframes per marginal-likelihood window and the most windows used (``casmag.hyper``):
+#: the defaults of ``model.gp.hyper_window`` and ``hyper_windows``.
+HYPER_WINDOW = 30
+HYPER_WINDOWS = 16
+
+
 class ImuGPSpec(_Strict):
     """The field map.
 
@@ -282,8 +288,8 @@ class ImuGPSpec(_Strict):
     homogeneous: Literal["imu_only", "keep"] = "imu_only"
     grow: Annotated[list[float], Field(min_length=1, max_length=10)] | None = None
     grow_anneal: bool = False
-    hyper_window: Annotated[int, Field(ge=3, le=10000)] = 30
-    hyper_windows: Annotated[int, Field(ge=1, le=10000)] | Literal["all"] = 16
+    hyper_window: Annotated[int, Field(ge=3, le=10000)] = HYPER_WINDOW
+    hyper_windows: Annotated[int, Field(ge=1, le=10000)] | Literal["all"] = HYPER_WINDOWS
 
     @field_validator("grow")
     @classmethod

@@ -55,7 +55,7 @@ from casmag.config import SolverSpec
 from casmag.exactgp import add_exact_prior
 from casmag.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
 from casmag.hyper import field_evidence as _field_evidence
-from casmag.imuconfig import ImuProblem, load_imu_problem
+from casmag.imuconfig import HYPER_WINDOW, HYPER_WINDOWS, ImuProblem, load_imu_problem
 from casmag.imusim import ImuData, simulate_imu
 from casmag.kernels import FIELD_DIM, field_covariance, get_kernel
 from casmag.knots import Knots
@@ -71,10 +71,6 @@ IMU_HESSIAN_SLAM = "gauss-newton"
 #: ``curvature: auto`` adds the magnetometer's second-order terms when the field's standard
 #: deviation per component is below this many sigma_m (``casmag.imuconfig.ImuGPSpec``).
 CURVATURE_BELOW = 5.0
-
-#: Keyframes per marginal-likelihood window and the most windows used (``casmag.hyper``).
-HYPER_WINDOW = 30
-HYPER_WINDOWS = 16
 
 
 # --------------------------------------------------------------------------- builder
