@@ -5,16 +5,20 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-all lint clean bench-scale bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest lock lint clean bench-imu bench-imu-latest bench-scale bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
 	@grep -E '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
 
-$(STAMP): pyproject.toml
+# Installed from the committed lock (requirements.lock: every package, transitive ones
+# included, with hashes), then casmag itself without dependencies. `make lock` refreshes it.
+LOCK   := requirements.lock
+$(STAMP): pyproject.toml $(LOCK)
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet --require-hashes --no-deps -r $(LOCK)
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	$(PY) -m pip check
 	touch $(STAMP)
 
 install: $(STAMP) ## Create .venv and install casmag with its test tools
@@ -26,6 +30,28 @@ demo: $(STAMP) ## Solve the paper's base case; writes results/demo/ (table, figu
 
 test: $(STAMP) ## Run the test suite (under 10 minutes)
 	$(PY) -m pytest -q
+
+# uv resolves the lock for every platform (--universal) at Python 3.11; the lock's own tool
+# lives in its own environment so that it never enters casmag's.
+UV_VERSION ?= 0.13.9
+LOCKVENV   := .venv-lock
+lock: ## Refresh requirements.lock from pyproject.toml (newest versions the ranges allow)
+	$(PYTHON) -m venv $(LOCKVENV)
+	$(LOCKVENV)/bin/python -m pip install --quiet uv==$(UV_VERSION)
+	printf 'setuptools>=77\nwheel\n' | $(LOCKVENV)/bin/uv pip compile pyproject.toml - \
+	  --extra dev --universal --python-version 3.11 --generate-hashes --quiet \
+	  --custom-compile-command 'make lock' -o $(LOCK)
+
+# The whole suite on the newest versions the ranges in pyproject.toml allow (no lock), in
+# its own environment made anew each time.
+LATEST := .venv-latest
+test-latest: ## Run the test suite on the newest versions pyproject.toml allows (.venv-latest)
+	rm -rf $(LATEST)
+	$(PYTHON) -m venv $(LATEST)
+	$(LATEST)/bin/python -m pip install --quiet --upgrade pip
+	$(LATEST)/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -e '.[dev]'
+	$(LATEST)/bin/python -m casmag.versions
+	$(LATEST)/bin/python -m pytest -q
 
 # The paper's Tables 1-5 (problems/paper/table*.yaml): SEEDS seeds per row, runs saved under
 # $(PAPER)/runs/ (resumable: finished runs are skipped), tables and figures in $(PAPER)/.
@@ -75,7 +101,7 @@ lint: $(STAMP) ## ruff check and format check
 	$(VENV)/bin/ruff format --check casmag tests
 
 clean: ## Remove the environment and caches
-	rm -rf $(VENV) .pytest_cache .ruff_cache build *.egg-info
+	rm -rf $(VENV) $(LATEST) $(LOCKVENV) .pytest_cache .ruff_cache build *.egg-info
 
 bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences x 2 drifts + 2 homogeneous -> results/real/table.md
 	$(PY) -m casmag.realbench problems/real/*.yaml --out results/real

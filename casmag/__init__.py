@@ -11,8 +11,7 @@ from casmag.api import solve
 from casmag.config import Problem, load_problem
 from casmag.errors import CasmagError, DataError, ProblemError, SolverError
 from casmag.result import Result
-
-__version__ = "0.1.0"
+from casmag.versions import __version__
 
 __all__ = [
     "CasmagError",

@@ -15,6 +15,7 @@ from casmag.metrics import rmse_and_max
 from casmag.result import Result
 from casmag.simulate import Dataset, simulate_problem
 from casmag.slam import HYPERPARAMETERS, field_on_grid, solve_translational
+from casmag.versions import versions
 from casmag.windowing import Stage, continued, solve_growing
 
 
@@ -88,6 +89,7 @@ def solve(
         "linear_solver": problem.spec.solver.linear_solver,
         "casmag": __version__,
         "casadi": ca.__version__,
+        "versions": versions(),
     }
     initial = {
         "sigma_f": problem.assumed_sigma_f,
@@ -358,6 +360,7 @@ def odometry_only(problem: Problem, data: Dataset, reason: str) -> Result:
             "n_samples": data.n_samples,
             "fallback": reason,
             "casmag": __version__,
+            "versions": versions(),
         },
         status="Odometry_Only",
         success=True,

@@ -12,6 +12,7 @@ import click
 
 EXIT_SOLVER_FAILED = 1
 EXIT_BAD_INPUT = 2
+EXIT_UNTRUSTED = 3  # solved, but the result is flagged (e.g. a wrong optimum)
 
 
 def fail(message: str, code: int) -> NoReturn:

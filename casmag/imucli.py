@@ -4,7 +4,8 @@
 
 Exit codes: 0 success; 1 IPOPT failed in either stage (its status is printed and recorded in
 result.json with ``success: false``); 2 bad input (one line naming the file, the key and the
-reason; nothing is written).
+reason; nothing is written); 3 solved, but the result is flagged (``flags`` in result.json,
+e.g. ``wrong_basin``; each flag's reason is printed on stderr).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 from casmag.clitools import (
     EXIT_BAD_INPUT,
     EXIT_SOLVER_FAILED,
+    EXIT_UNTRUSTED,
     fail,
     fail_bad_input,
     output_options,
@@ -54,6 +56,8 @@ def imu_command(
             f"{result.iterations} iterations (recorded in {out_dir / 'result.json'})",
             EXIT_SOLVER_FAILED,
         )
+    for flag in result.flags:
+        click.echo(f"{problem}: {flag['name']}: {flag['reason']}", err=True)
     if not quiet:
         e = result.errors
         its = " + ".join(_pass_iterations(p) for p in result.gp_slam_passes) or "0"
@@ -76,6 +80,8 @@ def imu_command(
         click.echo(line)
         click.echo(result.bias_table(), nl=False)
         click.echo(f"wrote {out_dir}/")
+    if result.flags:
+        raise SystemExit(EXIT_UNTRUSTED)
 
 
 # --------------------------------------------------------------------------- planar recordings

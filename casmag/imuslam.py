@@ -62,11 +62,17 @@ from casmag.knots import Knots
 from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.reduced_rank import Domain, HilbertBasis
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
+from casmag.versions import versions
 
 Progress = Callable[[int, float, float, float], None]
 
 #: Hessian of the imu block in the GP-SLAM stage (which starts near the optimum).
 IMU_HESSIAN_SLAM = "gauss-newton"
+
+#: A GP-SLAM estimate whose position RMSE against the truth is above this fraction of the
+#: IMU-only adjustment's, in a field the map was solved in, is flagged ``wrong_basin``: the
+#: magnetometer carried position information and the optimiser did not use it.
+WRONG_BASIN_RATIO = 0.5
 
 #: ``curvature: auto`` adds the magnetometer's second-order terms when the field's standard
 #: deviation per component is below this many sigma_m (``casmag.imuconfig.ImuGPSpec``).
@@ -160,14 +166,18 @@ class RotatedFieldGaussNewton(HessianCallback):
     d(R^T u)/do] / sigma_m; the weight block is that of the unrotated map (R R^T = I); the
     sparsity pattern is fixed at construction and values are filled with numpy.
 
-    When the layout gives the data offset ``Y``, the second-order terms of the rotation are
-    added: with lam = -(y - R^T u) / sigma_m^2 and F(o, u) = lam . (R(o)^T u), the blocks
-    F_oo, F_ou, F_ou dm/dp and F_ou dm/dw (u = m + c is linear in w and c), the
-    position-weight block sum_b (R lam)_b d^2 m_b / dp dw and the field's own curvature in
-    position sum_b (R lam)_b d^2 m_b / dp dp (third derivatives of the basis for
-    curl-free): the block's exact Hessian. Measured on
-    the homogeneous outdoor problem (one loop): 59 iterations without these terms (linear
-    convergence along the accelerometer-bias/tilt direction), 12 with CasADi's exact
+    In mode ``exact``, and in mode ``hybrid`` once the block's cost stalls
+    (:class:`casmag.rrmap.HessianCallback`), the second-order terms are added: with
+    lam = -(y - R^T u) / sigma_m^2 and F(o, u) = lam . (R(o)^T u), the blocks F_oo, F_ou,
+    F_ou dm/dp and F_ou dm/dw (u = m + c is linear in w and c), the position-weight block
+    sum_b (R lam)_b d^2 m_b / dp dw and the field's own curvature in position
+    sum_b (R lam)_b d^2 m_b / dp dp (third derivatives of the basis for curl-free): the
+    block's exact Hessian. Measured on the homogeneous outdoor problem (one loop): 59
+    iterations without these terms (linear convergence along the accelerometer-bias/tilt
+    direction), 12 with CasADi's exact Hessian. In a strongly varying field the terms slow
+    the first iterations (rectangle: over 90 iterations with them from the start) but
+    Gauss-Newton alone converges only linearly near the solution (spiral seed 3: 150
+    iterations at a 3-5 % fall of the dual infeasibility per iteration), hence ``hybrid``
     Hessian."""
 
     def __init__(
@@ -177,8 +187,10 @@ class RotatedFieldGaussNewton(HessianCallback):
         kernel: str,
         rotation: ca.Function,
         layout: RotatedMapLayout,
+        mode: str = "hybrid",
     ):
         ca.Callback.__init__(self)
+        self.set_mode(mode)
         self.basis, self.kernel, self.lay = basis, kernel, layout
         self.n, self.d = layout.pos.shape
         self.r = layout.rot.shape[1]
@@ -274,9 +286,15 @@ class RotatedFieldGaussNewton(HessianCallback):
         G = -inv * np.einsum("kab,kbl->kal", R, L)
         nl = self._nl
         S = np.zeros((n, nl, nl))
-        if lay.Y is not None:
+        exact = False
+        if self.mode != "gauss-newton":
             Y = p[lay.Y : lay.Y + 3 * n].reshape(n, 3, order="F")
-            lam = -(Y - np.einsum("kba,kb->ka", R, m + c)) * inv * inv
+            e = Y - np.einsum("kba,kb->ka", R, m + c)
+            exact = self._use_exact(0.5 * float(np.sum(e**2)) * inv * inv)
+            lam = -e * inv * inv
+        else:
+            self._use_exact(0.0)
+        if exact:
             Foo, Fou = self._curv(o.T, aux.T, (m + c).T, lam.T)
             Foo = np.asarray(Foo).T.reshape(n, self.r, self.r, order="F")
             Fou = np.asarray(Fou).T.reshape(n, self.r, 3, order="F")
@@ -303,7 +321,7 @@ class RotatedFieldGaussNewton(HessianCallback):
                 blk = blk.reshape(n, -1)
             else:
                 blk = sum(G[:, b, i][:, None] * A[b] for b in range(FIELD_DIM))
-            if lay.Y is not None and i < d:
+            if exact and i < d:
                 blk = blk + cross[i]
             out.append(blk * scale)
         iu = np.triu_indices(M)
@@ -385,7 +403,7 @@ def _gauss_newton_for(
     dim: int,
     rot_name: str,
     aux_name: str | None,
-    curvature: bool = True,
+    mode: str = "hybrid",
 ) -> tuple[str, RotatedFieldGaussNewton]:
     n_x, n_p = b.sizes
     r = 3 if rot_name == "D" else 1
@@ -405,12 +423,12 @@ def _gauss_newton_for(
         W=b.offset("W"),
         c=b.offset("c"),
         sigma_m=b.offset("sigma_m", "p"),
-        Y=b.offset("Y", "p") if curvature else None,
+        Y=b.offset("Y", "p"),
         sigma_f=b.offset("sigma_f", "p"),
         lengthscale=b.offset("lengthscale", "p"),
     )
     return "magnetometer", RotatedFieldGaussNewton(
-        "rotated_mag_gauss_newton", basis, kernel, rotation, layout
+        "rotated_mag_gauss_newton", basis, kernel, rotation, layout, mode
     )
 
 
@@ -463,7 +481,6 @@ class ImuStructure:
     jitter: float
     solver: str  # SolverSpec as JSON
     imu_hessian: str = "gauss-newton"  # or "exact": CasADi's Hessian of the imu block
-    curvature: bool = False  # magnetometer second-order terms (RotatedFieldGaussNewton)
     zero_centre: str = "start"  # or "free": the zero-position sphere's centre is estimated
 
     def hilbert_basis(self) -> HilbertBasis:
@@ -591,7 +608,7 @@ def build_imu(s: ImuStructure) -> NLP:
         return b.build_gauss_newton(solver, name="casmag_imu_exact", callbacks=dict([gp]))
     basis = s.hilbert_basis()
     _add_reduced_rank_map(b, basis, s.kernel, P, D, RNOM, rotation, K, 3)
-    block, gn = _gauss_newton_for(b, basis, s.kernel, rotation, K, 3, "D", "RNOM", s.curvature)
+    block, gn = _gauss_newton_for(b, basis, s.kernel, rotation, K, 3, "D", "RNOM")
     return b.build_gauss_newton(solver, name="casmag_imu_rr", callbacks={block: gn})
 
 
@@ -654,6 +671,7 @@ class ImuSolveStage:
     b_w: np.ndarray
     b_a: np.ndarray
     grow: list[dict[str, Any]] = field(default_factory=list)  # prefix stages (model.gp.grow)
+    sigma_m: float | None = None  # the magnetometer noise this solve used (GP-SLAM)
 
 
 def _stage_estimates(sol: Solution, Qnom: np.ndarray, K: int) -> dict[str, np.ndarray]:
@@ -869,9 +887,10 @@ def _hyperparameters(
 
 def _slam_setup(
     problem: ImuProblem, prev: ImuSolveStage, hyper: dict[str, float]
-) -> tuple[tuple | None, bool]:
-    """The map's basis key (built around the previous stage's trajectory) and whether the
-    magnetometer's second-order terms are used."""
+) -> tuple[tuple | None, str]:
+    """The map's basis key (built around the previous stage's trajectory) and the
+    magnetometer block's Hessian mode (``model.gp.curvature``: true ``exact``, false
+    ``gauss-newton``, auto ``exact`` in a field that varies little, else ``hybrid``)."""
     m = problem.spec.model
     basis_key = None
     if m.gp.form == "reduced_rank":
@@ -882,10 +901,11 @@ def _slam_setup(
         hb = make_basis(m.gp.kernel, prev.P, hyper["lengthscale"], num_basis, m.gp.margin)
         basis_key = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
     variation = hyper["sigma_f"] / (hyper["lengthscale"] if m.gp.kernel == "curl_free" else 1.0)
-    curvature = m.gp.curvature is True or (
-        m.gp.curvature == "auto" and variation < CURVATURE_BELOW * problem.sigma_m
-    )
-    return basis_key, curvature
+    if m.gp.curvature == "auto":
+        mode = "exact" if variation < CURVATURE_BELOW * problem.sigma_m else "hybrid"
+    else:
+        mode = "exact" if m.gp.curvature else "gauss-newton"
+    return basis_key, mode
 
 
 def _slam_solve(
@@ -894,7 +914,7 @@ def _slam_solve(
     kf: Keyframes,
     base: dict[str, Any],
     basis_key: tuple | None,
-    curvature: bool,
+    hessian_mode: str,
     hyper: dict[str, float],
     sigma_m: float,
     start: dict[str, Any],
@@ -911,10 +931,11 @@ def _slam_solve(
         form=m.gp.form,
         basis=basis_key,
         imu_hessian=IMU_HESSIAN_SLAM,
-        curvature=curvature,
         **{**base, "K": K},
     )
     nlp2 = cached_imu_nlp(s2)
+    if isinstance(nlp2.keep, tuple) and isinstance(nlp2.keep[1], RotatedFieldGaussNewton):
+        nlp2.keep[1].set_mode(hessian_mode)
     params = _imu_params(problem, data, kf, Qnom, s2)
     params.update(
         Y=kf.Y,
@@ -966,7 +987,7 @@ def _slam_solve(
         x0["M"] = mean.reshape(K, FIELD_DIM, order="F")
         x0["c"] = c0.reshape(3, 1)
     sol2 = nlp2.solve(params, x0, progress=progress)
-    st2 = ImuSolveStage(solution=sol2, nlp=nlp2, **_stage_estimates(sol2, Qnom, K))
+    st2 = ImuSolveStage(solution=sol2, nlp=nlp2, sigma_m=sigma_m, **_stage_estimates(sol2, Qnom, K))
     return st2, s2
 
 
@@ -995,10 +1016,10 @@ def _slam_pass(
     """One GP-SLAM solve starting from a previous stage's estimates, with the map's basis
     built around that stage's trajectory and the magnetometer noise scaled by
     sigma_m_factor."""
-    basis_key, curvature = _slam_setup(problem, prev, hyper)
+    basis_key, mode = _slam_setup(problem, prev, hyper)
     sigma_m = problem.sigma_m * sigma_m_factor
     st2, s2 = _slam_solve(
-        problem, data, kf, base, basis_key, curvature, hyper, sigma_m,
+        problem, data, kf, base, basis_key, mode, hyper, sigma_m,
         _start_from(prev, data), progress,
     )  # fmt: skip
     size = s2.hilbert_basis().num_basis if problem.spec.model.gp.form == "reduced_rank" else None
@@ -1069,7 +1090,7 @@ def _grown_pass(
     in ``grow`` (build_seconds 0 when the NLP was built for an earlier solve). A solve before
     the last that stops at the iteration limit still starts the next (measured, handwriting
     seed 7: the first 31-keyframe prefix, without a revisit, at sigma_m x1)."""
-    basis_key, curvature = _slam_setup(problem, prev, hyper)
+    basis_key, mode = _slam_setup(problem, prev, hyper)
     K = kf.idx.size
     full = _start_from(prev, data)
     records: list[dict[str, Any]] = []
@@ -1089,7 +1110,7 @@ def _grown_pass(
                 start = _start_from(st, data)
                 start.update({n: st.solution.x[n] for n in ("W", "c") if n in st.solution.x})
             st, s2 = _slam_solve(
-                problem, data, prefix_keyframes(kf, k), base, basis_key, curvature, hyper,
+                problem, data, prefix_keyframes(kf, k), base, basis_key, mode, hyper,
                 problem.sigma_m * factor, start, progress,
             )  # fmt: skip
             sol = st.solution
@@ -1139,7 +1160,14 @@ class ImuResult:
     check found no position information in the field, ``model.gp.homogeneous``: the
     ``gp_slam`` errors and biases are then the IMU-only adjustment's, and the GP-SLAM
     pass's are under ``gp_slam_map``) or ``none`` (no map). ``field_evidence``: the check's
-    numbers (:class:`FieldEvidence`)."""
+    numbers (:class:`FieldEvidence`).
+
+    ``flags``: what speaks against a successful estimate, each ``{"name", "reason",
+    "evidence"}``: ``wrong_basin`` (simulations) when the map was solved, GP-SLAM's position
+    RMSE is above :data:`WRONG_BASIN_RATIO` of the IMU-only adjustment's and the last solve
+    started from the truth reaches a lower MAP cost; the evidence also gives the
+    magnetometer's residual mean square per component in units of sigma_m^2 (about 1 at a
+    right optimum) and the field check's log Bayes factor."""
 
     info: dict[str, Any]
     status: str
@@ -1161,11 +1189,17 @@ class ImuResult:
     cost_per_iteration_imu_only: list[float]
     field_evidence: dict[str, Any] | None = None
     map_decision: str = "map"
+    flags: list[dict[str, Any]] = field(default_factory=list)
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
 
     @property
     def rmse_after(self) -> float | None:
         return self.errors["gp_slam"]["rmse"]
+
+    @property
+    def trusted(self) -> bool:
+        """Solved, and no flag raised against the estimate."""
+        return self.success and not self.flags
 
     def to_dict(self) -> dict[str, Any]:
         from casmag.result import _finite
@@ -1395,6 +1429,12 @@ def solve_imu(
             Qt,
         )
 
+    flags = []
+    if slam_map is not None and not res.fallback:
+        flag = _wrong_basin(problem, data, errors, slam_map, res)
+        if flag is not None:
+            flags.append(flag)
+
     def mean_bias(st: ImuSolveStage | None, which: str) -> list[float] | None:
         if st is None:
             return None
@@ -1436,6 +1476,7 @@ def solve_imu(
         "hessian": "gauss-newton" if spec.solver.hessian == "auto" else spec.solver.hessian,
         "casmag": casmag.__version__,
         "casadi": ca.__version__,
+        "versions": versions(),
     }
     blocks = {
         "imu_only": {
@@ -1514,8 +1555,87 @@ def solve_imu(
         cost_per_iteration_imu_only=s1.solution.cost_per_iteration,
         field_evidence=None if res.evidence is None else res.evidence.to_dict(),
         map_decision=decision,
+        flags=flags,
         arrays=arrays,
     )
+
+
+def _truth_start_cost(
+    problem: ImuProblem, data: ImuData, slam: ImuSolveStage, res: ImuSolution
+) -> tuple[float, str]:
+    """The last GP-SLAM solve again (same map basis, sigma_m and Hessian mode), started from
+    the true trajectory and biases: its MAP cost and IPOPT status."""
+    idx = res.keyframes.idx
+    tr = data.truth
+    K = idx.size
+    bw, ba = data.b_w[idx], data.b_a[idx]
+    if problem.spec.model.imu.bias != "random_walk":
+        bw, ba = bw.mean(axis=0, keepdims=True), ba.mean(axis=0, keepdims=True)
+    start = {
+        "P": tr.P[idx],
+        "V": tr.V[idx],
+        "Q": tr.Q[idx],
+        "BW": bw,
+        "BA": ba,
+        "zero_centre": data.p0.reshape(1, 3),
+    }
+    _, mode = _slam_setup(problem, slam, res.hyperparameters)
+    base = {
+        k: getattr(res.structure, k)
+        for k in ("n", "T", "bias", "zero_position", "zero_centre", "kernel", "jitter", "solver")
+    }
+    st, _ = _slam_solve(
+        problem, data, res.keyframes, {**base, "K": K}, res.structure.basis, mode,
+        res.hyperparameters, float(slam.sigma_m), start, None,
+    )  # fmt: skip
+    return float(st.solution.objective), st.solution.status
+
+
+def _wrong_basin(
+    problem: ImuProblem,
+    data: ImuData,
+    errors: dict[str, dict[str, Any]],
+    slam: ImuSolveStage,
+    res: ImuSolution,
+) -> dict[str, Any] | None:
+    """The ``wrong_basin`` flag of a GP-SLAM estimate (None when it does not apply).
+
+    A GP-SLAM RMSE above WRONG_BASIN_RATIO of the IMU-only adjustment's is either a wrong
+    local optimum or a field/path that carries little position information (no revisit);
+    the solve started from the truth tells them apart: flagged when it reaches a MAP cost
+    lower by more than one (a likelihood ratio of e) than the estimate's."""
+    before, after = errors["imu_only"]["rmse"], errors["gp_slam"]["rmse"]
+    if before is None or after is None or after <= WRONG_BASIN_RATIO * before:
+        return None
+    if data.truth is None or data.b_w is None or slam.sigma_m is None:
+        return None
+    cost = float(slam.solution.objective)
+    truth_cost, truth_status = _truth_start_cost(problem, data, slam, res)
+    mag = slam.solution.blocks_after.get("magnetometer")
+    K = res.keyframes.idx.size
+    evidence = {
+        "rmse_imu_only": before,
+        "rmse_gp_slam": after,
+        "ratio": after / before,
+        "threshold": WRONG_BASIN_RATIO,
+        "map_cost": cost,
+        "map_cost_from_truth": truth_cost,
+        "status_from_truth": truth_status,
+        # 0.5 sum |e / sigma_m|^2 -> mean square per component in sigma_m^2 units.
+        "magnetometer_mean_square": None if mag is None else 2.0 * mag / (FIELD_DIM * K),
+        "log_bayes_factor": None if res.evidence is None else res.evidence.log_bayes_factor,
+    }
+    if not truth_cost < cost - 1.0:
+        return None
+    return {
+        "name": "wrong_basin",
+        "reason": (
+            f"GP-SLAM position RMSE {after:.4g} m is {after / before:.2f} of the IMU-only "
+            f"adjustment's {before:.4g} m, and the same problem started from the truth reaches "
+            f"a lower MAP cost ({truth_cost:.6g} against {cost:.6g}): a wrong local optimum"
+        ),
+        "evidence": evidence,
+    }
 
 
 # --------------------------------------------------------------------------- planar model
@@ -1626,7 +1746,8 @@ def build_planar(s: PlanarStructure) -> NLP:
     basis = s.hilbert_basis()
     rotation = planar_rotation_function()
     _add_reduced_rank_map(b, basis, s.kernel, P, psi, None, rotation, n, 2)
-    block, gn = _gauss_newton_for(b, basis, s.kernel, rotation, n, 2, "psi", None, s.curvature)
+    mode = "exact" if s.curvature else "gauss-newton"
+    block, gn = _gauss_newton_for(b, basis, s.kernel, rotation, n, 2, "psi", None, mode)
     solver = SolverSpec.model_validate_json(s.solver)
     return b.build_gauss_newton(solver, name="casmag_planar", callbacks={block: gn})
 
@@ -1880,6 +2001,7 @@ def solve_planar(
             if "estimate" not in (options.sigma_f, options.lengthscale)
             else "marginal likelihood on the dead-reckoned path",
             "casadi": ca.__version__,
+            "versions": versions(),
             "starts": starts,
         },
         arrays={

@@ -299,7 +299,44 @@ class HessianCallback(ca.Callback):
     """A numpy Hessian block for IPOPT's ``hess_lag``: inputs (x, p, lam_f, lam_g), output
     the upper triangle in a pattern fixed at construction from (row, col) triplets, values
     from :meth:`values` in triplet order (not scaled by lam_f; the caller multiplies),
-    written straight into CasADi's output buffer."""
+    written straight into CasADi's output buffer.
+
+    ``mode``: ``gauss-newton`` (J^T J only), ``exact`` (plus the residuals' second-order
+    terms) or ``hybrid``: Gauss-Newton while the block's cost falls fast, the exact Hessian
+    once it falls by less than :attr:`SWITCH` of itself between two Hessian evaluations
+    (Fletcher and Xu's switch): Gauss-Newton is the safer step far from the solution, where
+    large residuals make the exact Hessian indefinite and IPOPT's regularisation crawls;
+    near it the exact Hessian converges quadratically where Gauss-Newton is only linear.
+    ``exact_used`` records the choice per evaluation of the current solve."""
+
+    MODES = ("gauss-newton", "exact", "hybrid")
+    SWITCH = 0.2
+
+    mode: str = "gauss-newton"
+    exact_used: list[bool]
+    _last_cost: float | None = None
+
+    def set_mode(self, mode: str) -> None:
+        """Choose the mode (one of :attr:`MODES`) for the next solves."""
+        if mode not in self.MODES:
+            raise ValueError(f"Hessian mode {mode!r} is not one of {self.MODES}")
+        self.mode = mode
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the previous solve (the hybrid switch starts with Gauss-Newton)."""
+        self._last_cost = None
+        self.exact_used = []
+
+    def _use_exact(self, cost: float) -> bool:
+        """Whether this evaluation adds the second-order terms (the block's cost given)."""
+        if self.mode != "hybrid":
+            exact = self.mode == "exact"
+        else:
+            last, self._last_cost = self._last_cost, cost
+            exact = last is not None and last - cost < self.SWITCH * last
+        self.exact_used.append(exact)
+        return exact
 
     def _set_pattern(self, rows: np.ndarray, cols: np.ndarray, n_x: int, n_p: int) -> None:
         self._rows, self._cols, self._n_x, self._n_p = rows, cols, n_x, n_p
@@ -353,11 +390,10 @@ class HessianCallback(ca.Callback):
 class GaussNewtonHessian(HessianCallback):
     """Hessian of 0.5 sum_k |(y_k - m(p_k)) / sigma_m|^2 (upper triangle): Gauss-Newton
     J^T J, plus the residual-curvature terms (:func:`curvature_terms`) in mode ``exact``, or
-    in mode ``hybrid`` once the cost stalls (large residuals far from the solution make the
-    exact Hessian strongly indefinite, and IPOPT's regularisation then crawls: measured 199
-    iterations against 15 for Gauss-Newton on the curl-free base case; near the solution the
-    exact Hessian converges fast where Gauss-Newton is linear: 9 against 57 iterations on a
-    1,000-sample walk).
+    in mode ``hybrid`` once the cost stalls (:class:`HessianCallback`; measured: the exact
+    Hessian from the start takes 199 iterations against 15 for Gauss-Newton on the
+    curl-free base case; near the solution it converges fast where Gauss-Newton is linear:
+    9 against 57 iterations on a 1,000-sample walk).
 
     The positions are p_k = q_k + sum_j A_kj c_j (casmag.knots), so the per-sample Jacobians
     D_k = dm/dp_k reach the knots through A: the knot block is A^T diag(D^T D) A (block
@@ -368,18 +404,10 @@ class GaussNewtonHessian(HessianCallback):
     O(chunk M)), one BLAS product per chunk for the weight block.
     """
 
-    MODES = ("gauss-newton", "exact", "hybrid")
-    # hybrid: the exact Hessian once the magnetometer cost falls by less than this fraction
-    # between Hessian evaluations, Gauss-Newton before (Fletcher and Xu's switch).
-    SWITCH = 0.2
-
     def __init__(self, name: str, model: MapModel, n_g: int = 0, mode: str = "gauss-newton"):
         ca.Callback.__init__(self)
-        if mode not in self.MODES:
-            raise ValueError(f"Hessian mode {mode!r} is not one of {self.MODES}")
-        self.model, self.mode, self.n_g = model, mode, n_g
-        self.exact_used: list[bool] = []
-        self._last_cost: float | None = None
+        self.set_mode(mode)
+        self.model, self.n_g = model, n_g
         self.basis, self.kernel, self.knots, self.dim, self.lay = (
             model.basis,
             model.kernel,
@@ -430,17 +458,6 @@ class GaussNewtonHessian(HessianCallback):
                 add(np.array([lay.c + b]), np.array([lay.c + b]))
         self._set_pattern(np.concatenate(rows), np.concatenate(cols), lay.n_x, lay.n_p)
 
-    def reset(self) -> None:
-        """Forget the previous solve (the hybrid switch starts with Gauss-Newton)."""
-        self._last_cost = None
-        self.exact_used = []
-
-    def _use_exact(self, cost: float) -> bool:
-        if self.mode != "hybrid":
-            return self.mode == "exact"
-        last, self._last_cost = self._last_cost, cost
-        return last is not None and last - cost < self.SWITCH * last
-
     def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The Gauss-Newton entries in the order of the pattern's triplets."""
         kn, d, M, lay = self.knots, self.dim, self.basis.num_basis, self.lay
@@ -456,8 +473,7 @@ class GaussNewtonHessian(HessianCallback):
                 cost += float(np.sum(residuals[i] ** 2))
             exact = self._use_exact(0.5 * cost * inv2)
         else:
-            exact = False
-        self.exact_used.append(exact)
+            exact = self._use_exact(0.0)
         left, alpha = kn.left, kn.alpha
         A = kn.matrix
         pairs = [(a, b) for a in range(d) for b in range(a, d)]
