@@ -118,3 +118,10 @@ bench-convergence: $(STAMP) ## Windowing convergence grid, 20 seeds per cell; re
 imu: $(STAMP) ## Solve every IMU problem; writes results/imu/<name>/ (about 10 minutes)
 	@for f in problems/imu/*.yaml; do n=$$(basename $$f .yaml); \
 	  $(VENV)/bin/casmag imu $$f --out results/imu/$$n --quiet; echo "$$n: exit $$?"; done
+
+bench-imu: $(STAMP) ## Every IMU scenario over SEEDS seeds (resumable) -> results/bench/imu/imu.json, imu.md
+	$(PY) -m casmag.imubench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu
+
+bench-imu-latest: ## The same on the newest versions (the environment of make test-latest) -> results/bench/imu-latest/
+	test -x $(LATEST)/bin/python || $(MAKE) test-latest
+	$(LATEST)/bin/python -m casmag.imubench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu-latest

@@ -202,14 +202,19 @@ class ImuGPSpec(_Strict):
     and its border in the KKT factorisation): measured 0.9 s at 238 x 773, 13 s at about
     350 x 2000. max_lengthscale [m]: upper limit on an estimated lengthscale.
 
-    curvature (true, false or auto): add the magnetometer's second-order terms in
-    orientation and position-weight to its Gauss-Newton Hessian
-    (``casmag.imuslam.RotatedFieldGaussNewton``); ``auto``: only when the field varies
-    little (sigma_f / l below 5 sigma_m for curl-free, sigma_f below 5 sigma_m for se),
-    where Gauss-Newton converges linearly along the accelerometer-bias/tilt direction
-    (measured, outdoor one loop: 66 iterations without, 23 with); in a strongly varying
-    field the terms slow convergence from afar (rectangle: 47 iterations without, over 90
-    with) and are left out.
+    curvature (true, false or auto): the magnetometer's second-order terms in orientation
+    and position-weight on top of its Gauss-Newton Hessian
+    (``casmag.imuslam.RotatedFieldGaussNewton``): true always (``exact``), false never
+    (``gauss-newton``); ``auto``: always when the field varies little (sigma_f / l below 5
+    sigma_m for curl-free, sigma_f below 5 sigma_m for se), where Gauss-Newton converges
+    linearly along the accelerometer-bias/tilt direction (measured, outdoor one loop: 66
+    iterations without, 23 with); otherwise ``hybrid``: Gauss-Newton while the
+    magnetometer cost falls fast and the exact terms once it falls by less than 20 % between
+    iterations. In a strongly varying field the terms slow convergence from afar
+    (rectangle: over 90 iterations with them from the start) while Gauss-Newton alone is
+    linear near the solution (spiral and rectangle seed 3: 150 iterations, the limit);
+    hybrid measured 11 + 15 and 18 + 11 on rectangle seeds 1 and 3, 18 + 16 and 8 + 26 on
+    spiral seeds 1 and 3 (GP-SLAM passes, all Solve_Succeeded).
 
     anneal: factors on sigma_m of successive GP-SLAM passes, each starting from the previous
     one (a softer magnetometer first widens the basin of the global optimum): measured on

@@ -19,24 +19,44 @@ import numpy as np
 
 from casmag.config import SolverSpec
 
+#: IPOPT's status when :meth:`NLP.solve` with ``stop_when_stalled`` stopped it.
+STALLED = "User_Requested_Stop"
+#: Stalled: the objective changed by at most this fraction of max(1, |f|) over
+#: STALL_ITERATIONS consecutive iterations (no progress measurable in double precision).
+STALL_RELATIVE = 1e-12
+STALL_ITERATIONS = 3
+
 
 class _Progress(ca.Callback):
     """IPOPT iteration callback: hands (iteration, cost, step norm, seconds) to ``sink``
-    when one is set for the current solve; otherwise does nothing."""
+    when one is set for the current solve, and stops IPOPT (status :data:`STALLED`) when
+    ``stop_when_stalled`` is set and the objective has stopped changing."""
 
     def __init__(self, n_x: int, n_p: int):
         ca.Callback.__init__(self)
         self._sizes = {"x": n_x, "f": 1, "g": 0, "lam_x": n_x, "lam_g": 0, "lam_p": n_p}
         self.sink: Callable[[int, float, float, float], None] | None = None
+        self.stop_when_stalled = False
         self._reset()
         self.construct("casmag_progress", {})
 
     def _reset(self) -> None:
         self._k, self._x, self._t0 = 0, None, time.perf_counter()
+        self._costs: list[float] = []
 
-    def start(self, sink: Callable[[int, float, float, float], None] | None) -> None:
+    def start(
+        self, sink: Callable[[int, float, float, float], None] | None, stop_when_stalled: bool
+    ) -> None:
         self.sink = sink
+        self.stop_when_stalled = stop_when_stalled
         self._reset()
+
+    def _stalled(self, cost: float) -> bool:
+        self._costs.append(cost)
+        last = self._costs[-(STALL_ITERATIONS + 1) :]
+        if len(last) <= STALL_ITERATIONS:
+            return False
+        return max(last) - min(last) <= STALL_RELATIVE * max(1.0, abs(cost))
 
     def get_n_in(self) -> int:
         return ca.nlpsol_n_out()
@@ -54,13 +74,14 @@ class _Progress(ca.Callback):
         return ca.Sparsity.dense(self._sizes[ca.nlpsol_out(i)], 1)
 
     def eval(self, args: list[Any]) -> list[Any]:
+        cost = float(args[1])
         if self.sink is not None:
             x = np.asarray(args[0]).ravel()
             step = 0.0 if self._x is None else float(np.max(np.abs(x - self._x)))
-            self.sink(self._k, float(args[1]), step, time.perf_counter() - self._t0)
+            self.sink(self._k, cost, step, time.perf_counter() - self._t0)
             self._x = x
         self._k += 1
-        return [0]
+        return [1 if self.stop_when_stalled and self._stalled(cost) else 0]
 
 
 @dataclass(frozen=True)
@@ -257,6 +278,7 @@ class Solution:
     blocks_before: dict[str, float]
     blocks_after: dict[str, float]
     stats: dict[str, Any] = field(repr=False, default_factory=dict)
+    rounds: int = 1  # IPOPT runs summed in this solution (re-centred solves)
 
 
 @dataclass
@@ -312,11 +334,14 @@ class NLP:
         x0: Mapping[str, Any],
         lam_x0: np.ndarray | None = None,
         progress: Callable[[int, float, float, float], None] | None = None,
+        stop_when_stalled: bool = False,
     ) -> Solution:
         """Solve for the given parameters from the initial guess x0 (every variable named).
 
         progress: called after every IPOPT iteration with (iteration, cost, max-norm of the
-        step, seconds since the solve started).
+        step, seconds since the solve started). stop_when_stalled: stop IPOPT (status
+        :data:`STALLED`) once the objective no longer changes measurably (STALL_RELATIVE
+        over STALL_ITERATIONS iterations), for a caller that re-centres and solves again.
         """
         p = self.p_layout.pack(params)
         x0v = self.x_layout.pack(x0)
@@ -325,7 +350,7 @@ class NLP:
             args["lam_x0"] = lam_x0
         before = self.evaluate_blocks(x0v, p)
         if self.progress is not None:
-            self.progress.start(progress)
+            self.progress.start(progress, stop_when_stalled)
         if self.keep is not None and hasattr(self.keep[1], "reset"):
             self.keep[1].reset()
         t0 = time.perf_counter()
@@ -333,7 +358,7 @@ class NLP:
             out = self.solver(**args)
         finally:
             if self.progress is not None:
-                self.progress.start(None)
+                self.progress.start(None, False)
         seconds = time.perf_counter() - t0
         stats = self.solver.stats()
         xopt = np.asarray(out["x"]).ravel()

@@ -1,0 +1,40 @@
+"""casmag.nlp: the stall stop that lets a caller re-centre and solve again."""
+
+import casadi as ca
+import numpy as np
+
+from casmag.config import SolverSpec
+from casmag.nlp import STALLED, NLPBuilder
+
+
+def _tiny_nlp(tol):
+    b = NLPBuilder()
+    x = b.variable("x", (2, 1))
+    a = b.parameter("a", (1, 1))
+    # Two stiff terms pulling apart: no double zeroes their gradient exactly.
+    stiff = a * ((x[0] - 0.1) ** 2 + np.pi * (x[0] - 0.2) ** 2)
+    b.cost("stiff", stiff + (x[1] - 0.1) ** 2 + 10.0)
+    # No tiny-step exit: IPOPT then iterates on at the optimum (as on the IMU problems,
+    # whose steps there are not tiny relative to the variables).
+    return b.build(SolverSpec(tol=tol, max_iter=200, ipopt={"tiny_step_tol": 0.0}))
+
+
+def test_stop_when_stalled_stops_ipopt_where_the_objective_no_longer_moves():
+    """A tolerance below what double precision can reach (1e-30): without the stall stop
+    IPOPT runs on at the optimum until its acceptable-level exit; with it, it stops with
+    STALLED a few iterations after the objective stopped changing, at the optimum."""
+    nlp = _tiny_nlp(1e-30)
+    plain = nlp.solve({"a": 1e12}, {"x": np.array([0.5, 1.0])})
+    stopped = nlp.solve({"a": 1e12}, {"x": np.array([0.5, 1.0])}, stop_when_stalled=True)
+    assert plain.status != "Solve_Succeeded"
+    assert stopped.status == STALLED and not stopped.success
+    assert stopped.iterations < plain.iterations
+    optimum = [(0.1 + 0.2 * np.pi) / (1 + np.pi), 0.1]
+    np.testing.assert_allclose(stopped.x["x"].ravel(), optimum, atol=1e-8)
+
+
+def test_stop_when_stalled_leaves_a_converging_solve_alone():
+    nlp = _tiny_nlp(1e-8)
+    sol = nlp.solve({"a": 1e12}, {"x": np.array([0.5, 1.0])}, stop_when_stalled=True)
+    assert sol.status == "Solve_Succeeded" and sol.rounds == 1
+    assert ca.__version__  # the solver ran in this CasADi
