@@ -66,3 +66,27 @@ def test_real_sequence_lengthscale_and_noise():
     est = estimate_hyperparameters(X, Y, "curl_free")
     assert 0.2 <= est.lengthscale <= 0.5
     assert 0.25 <= est.sigma_m**2 <= 4.0
+
+
+@pytest.mark.parametrize("kernel", ["se", "curl_free"])
+def test_marginal_likelihood_gradient_is_exact(kernel):
+    """The analytic gradient (complex step in the lengthscale) against central differences
+    of the marginal likelihood itself, at a point away from the optimum."""
+    from casmag.hyper import negative_log_marginal_and_gradient
+
+    rng = np.random.default_rng(11)
+    X = _walk(120, rng)
+    Y = draw_field(X, kernel, 0.5, 0.3, rng) + 0.1 * rng.standard_normal((120, 3))
+    wins = select_windows(X, Y, 60, 2)
+    theta = np.log([0.7, 0.2, 0.15])
+    f, g = negative_log_marginal_and_gradient(theta, wins, kernel, 3.0)
+    assert f == pytest.approx(negative_log_marginal(theta, wins, kernel, 3.0), rel=1e-12)
+    h = 1e-5
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = h
+        fd = (
+            negative_log_marginal(theta + e, wins, kernel, 3.0)
+            - negative_log_marginal(theta - e, wins, kernel, 3.0)
+        ) / (2 * h)
+        assert g[i] == pytest.approx(fd, rel=1e-5, abs=1e-6)
