@@ -1,7 +1,9 @@
 """Command line: thin wrappers over the library.
 
 Exit codes: 0 success; 1 the solver failed (IPOPT's status is printed and recorded);
-2 bad input (one line naming the file, the field and the reason).
+2 bad input (one line naming the file, the field and the reason; also an output path that
+would lose files); 3 solved but flagged (``casmag imu``); 130 / 143 interrupted by Ctrl-C /
+SIGTERM (the previous output kept).
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import click
 from casmag.clitools import (
     EXIT_BAD_INPUT,
     EXIT_SOLVER_FAILED,
+    INPUT_ERRORS,
+    CasmagGroup,
     fail,
     fail_bad_input,
     output_options,
@@ -27,7 +31,7 @@ if TYPE_CHECKING:
     from casmag.result import Result
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=CasmagGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="casmag")
 def main() -> None:
     """casmag: magnetic-field SLAM with a Gaussian-process map (CasADi + IPOPT)."""
@@ -49,7 +53,7 @@ def run(
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
-    except (ValueError, RuntimeError) as exc:
+    except INPUT_ERRORS as exc:
         fail_bad_input(problem, exc)
     _finish(result, problem, out_dir, quiet)
 
@@ -138,7 +142,7 @@ def slam(
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
-    except (ValueError, RuntimeError) as exc:
+    except INPUT_ERRORS as exc:
         fail_bad_input(recording, exc)
     _finish(result, recording, out_dir, quiet)
     if not quiet:

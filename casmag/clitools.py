@@ -3,6 +3,7 @@ the output options every solving command takes."""
 
 from __future__ import annotations
 
+import functools
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -10,9 +11,14 @@ from typing import Any, NoReturn
 
 import click
 
+from casmag import interrupt
+from casmag.interrupt import Interrupted
+from casmag.outdir import OutputError, check_output_dir
+
 EXIT_SOLVER_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_UNTRUSTED = 3  # solved, but the result is flagged (e.g. a wrong optimum)
+# Interrupted by a signal: 128 + its number (130 SIGINT / Ctrl-C, 143 SIGTERM).
 
 
 def fail(message: str, code: int) -> NoReturn:
@@ -20,10 +26,20 @@ def fail(message: str, code: int) -> NoReturn:
     sys.exit(code)
 
 
-def fail_bad_input(source: Path, exc: Exception) -> NoReturn:
-    """Exit 2 with the first line of an unexpected ValueError/RuntimeError, naming the file."""
-    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    fail(f"{source}: {text}", EXIT_BAD_INPUT)
+#: What a value the numerics cannot carry raises past validation (casmag.config refuses inf
+#: and nan; huge values overflow, huge sizes exhaust memory): exit 2 naming the file.
+INPUT_ERRORS = (ValueError, RuntimeError, ArithmeticError, MemoryError)
+
+
+def fail_bad_input(source: Path, exc: BaseException) -> NoReturn:
+    """Exit 2 with the first line of an unexpected error of INPUT_ERRORS, naming the file."""
+    if isinstance(exc, MemoryError):
+        text = f"needs more memory than this machine has ({type(exc).__name__}: {exc})"
+    elif isinstance(exc, ArithmeticError):
+        text = f"a value is too large for the numerics ({type(exc).__name__}: {exc})"
+    else:
+        text = str(exc) or type(exc).__name__
+    fail(f"{source}: {text.splitlines()[0]}", EXIT_BAD_INPUT)
 
 
 def print_progress(k: int, cost: float, step: float, seconds: float) -> None:
@@ -51,6 +67,29 @@ def output_options(command: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--no-figures", is_flag=True, help="Skip the PNG figures."),
         click.option("--quiet", "-q", is_flag=True, help="No progress lines, nothing on success."),
     ]
+
+    @functools.wraps(command)
+    def checked(*args: Any, **kwargs: Any) -> Any:
+        # Before anything is read or solved: an output path that would lose files, or that
+        # cannot be written, is refused with one line (casmag.outdir).
+        try:
+            check_output_dir(kwargs["out_dir"])
+        except OutputError as exc:
+            fail(str(exc), EXIT_BAD_INPUT)
+        return command(*args, **kwargs)
+
     for option in reversed(options):
-        command = option(command)
-    return command
+        checked = option(checked)
+    return checked
+
+
+class CasmagGroup(click.Group):
+    """The command group: Ctrl-C and SIGTERM stop any command cleanly (casmag.interrupt):
+    one line, the previous output kept, exit 130 or 143."""
+
+    def invoke(self, ctx: click.Context) -> Any:
+        interrupt.install()
+        try:
+            return super().invoke(ctx)
+        except Interrupted as exc:
+            fail(f"interrupted ({exc.name}); no output was replaced", exc.exit_code)

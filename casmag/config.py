@@ -37,7 +37,9 @@ NonNegativeFloat = Annotated[float, Field(ge=0)]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True)
+    # No inf or nan anywhere: no model can carry them (they passed validation and failed in
+    # CasADi or the kernels).
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 
 # --------------------------------------------------------------------------- simulation

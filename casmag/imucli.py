@@ -19,6 +19,7 @@ from casmag.clitools import (
     EXIT_BAD_INPUT,
     EXIT_SOLVER_FAILED,
     EXIT_UNTRUSTED,
+    INPUT_ERRORS,
     fail,
     fail_bad_input,
     output_options,
@@ -44,7 +45,7 @@ def imu_command(
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
-    except (ValueError, RuntimeError) as exc:
+    except INPUT_ERRORS as exc:
         fail_bad_input(problem, exc)
     if not result.success:
         stage = "IMU-only adjustment" if result.failed_stage == "imu_only" else "GP-SLAM"
@@ -124,7 +125,7 @@ def planar_slam(
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
-    except (ValueError, RuntimeError) as exc:
+    except INPUT_ERRORS as exc:
         fail_bad_input(recording, exc)
     if not result.success:
         fail(

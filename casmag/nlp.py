@@ -17,6 +17,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from casmag import interrupt
 from casmag.config import SolverSpec
 
 #: IPOPT's status when :meth:`NLP.solve` with ``stop_when_stalled`` stopped it.
@@ -81,7 +82,8 @@ class _Progress(ca.Callback):
             self.sink(self._k, cost, step, time.perf_counter() - self._t0)
             self._x = x
         self._k += 1
-        return [1 if self.stop_when_stalled and self._stalled(cost) else 0]
+        stop = interrupt.pending() or (self.stop_when_stalled and self._stalled(cost))
+        return [1 if stop else 0]
 
 
 @dataclass(frozen=True)
@@ -355,7 +357,8 @@ class NLP:
             self.keep[1].reset()
         t0 = time.perf_counter()
         try:
-            out = self.solver(**args)
+            with interrupt.solving():  # a signal stops IPOPT, then raises Interrupted
+                out = self.solver(**args)
         finally:
             if self.progress is not None:
                 self.progress.start(None, False)

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from casmag.errors import DataError
+from casmag.outdir import record_written
 from casmag.paper import TABLES, PaperRow, PaperTable
 
 # Where the paper's GP-SLAM made the trajectory worse, ours must stay within this factor of
@@ -37,6 +38,16 @@ _REQUIRED = ("status", "success", "rmse_before", "max_before", "rmse_after", "ma
 
 
 # --------------------------------------------------------------------------- reading
+def _visible(root: Path, name: str) -> list[Path]:
+    """Files ``name`` under root, not inside hidden folders (an interrupted save's
+    ``.NAME.tmp-*``, casmag.outdir)."""
+    return sorted(
+        f
+        for f in root.rglob(name)
+        if not any(part.startswith(".") for part in f.relative_to(root).parts[:-1])
+    )
+
+
 def find_results(paths: list[Path]) -> list[Path]:
     """result.json files: the paths themselves, or found recursively under folders."""
     found: list[Path] = []
@@ -44,7 +55,7 @@ def find_results(paths: list[Path]) -> list[Path]:
         if p.is_file():
             found.append(p)
         elif p.is_dir():
-            found.extend(sorted(p.rglob("result.json")))
+            found.extend(_visible(p, "result.json"))
         else:
             raise DataError(f"{p}: no such file or folder")
     if not found:
@@ -172,13 +183,11 @@ def collect(paths: list[Path]) -> list[Table]:
         if p.is_file():
             loose.append(p)
         elif p.is_dir():
-            manifests = sorted(p.rglob("sweep.json"))
+            manifests = _visible(p, "sweep.json")
             sweep_dirs = [m.parent for m in manifests]
             tables.extend(_sweep_table(m) for m in manifests)
             loose.extend(
-                f
-                for f in sorted(p.rglob("result.json"))
-                if not any(d in f.parents for d in sweep_dirs)
+                f for f in _visible(p, "result.json") if not any(d in f.parents for d in sweep_dirs)
             )
         else:
             raise DataError(f"{p}: no such file or folder")
@@ -885,6 +894,8 @@ def write_report(tables: list[Table], out_file: Path, figures: bool = True) -> l
             fig_dir.mkdir(exist_ok=True)
         for src, dst in staged:
             os.replace(src, dst)
+        # Into a result folder: what the report added belongs to casmag too (casmag.outdir).
+        record_written(out_dir, [out_file.with_suffix(s).name for s in texts] + ["figures"])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return [dst for _, dst in staged]

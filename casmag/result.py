@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from casmag.outdir import save_atomic
 
 
 @dataclass
@@ -62,11 +61,11 @@ class Result:
         return _finite(d)
 
     def save(self, out_dir: str | Path, figures: bool = True) -> Path:
-        """Write result.json, trajectory.csv and (if figures) PNGs into out_dir atomically."""
-        out = Path(out_dir)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-        try:
+        """Write result.json, trajectory.csv and (if figures) PNGs into out_dir atomically
+        (:func:`casmag.outdir.save_atomic`: an existing out_dir is replaced only when it
+        holds a previous casmag result)."""
+
+        def write(tmp: Path) -> None:
             (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
             if self.arrays:
                 write_trajectory_csv(self, tmp / "trajectory.csv")
@@ -80,13 +79,8 @@ class Result:
                     plotting.cost_figure(self, tmp / "cost.png")
                 if self.arrays.get("map_field") is not None:
                     plotting.map_figure(self, tmp / "map.png")
-            if out.exists():
-                shutil.rmtree(out)
-            os.replace(tmp, out)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return out
+
+        return save_atomic(out_dir, write)
 
 
 def _finite(obj: Any) -> Any:

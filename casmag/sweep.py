@@ -39,6 +39,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from casmag.clitools import EXIT_BAD_INPUT, EXIT_SOLVER_FAILED, fail
 from casmag.config import Problem, load_problem, parse_override, read_yaml
 from casmag.errors import CasmagError, ProblemError, one_line
+from casmag.interrupt import Interrupted
+from casmag.outdir import check_output_dir, save_atomic
 from casmag.paper import TABLES
 
 if TYPE_CHECKING:
@@ -490,15 +492,14 @@ def _record(outcome: RunOutcome) -> None:
         outcome.result.save(out, figures=outcome.task.figures)
         outcome.result = None
     elif outcome.error is not None:
-        _write_json_atomic(
-            out / "error.json",
-            {
-                "seed": outcome.task.seed,
-                "row": outcome.task.row,
-                "error": outcome.error,
-                "traceback": outcome.traceback,
-            },
-        )
+        record = {
+            "seed": outcome.task.seed,
+            "row": outcome.task.row,
+            "error": outcome.error,
+            "traceback": outcome.traceback,
+        }
+        # A run folder as any other (casmag.outdir's marker), so the retry may replace it.
+        save_atomic(out, lambda d: (d / "error.json").write_text(json.dumps(record, indent=2)))
 
 
 @contextlib.contextmanager
@@ -747,6 +748,7 @@ def sweep_command(
     an error (error.json in their folders; they are retried next time); 2 bad input.
     """
     try:
+        check_output_dir(out_dir, kind="tree")
         plans = []
         for f in files:
             plans.append(load_sweep(f, out_dir, seeds, first_seed, grid, overrides))
@@ -764,6 +766,11 @@ def sweep_command(
         fail(str(exc), EXIT_BAD_INPUT)
     except KeyboardInterrupt:
         fail("interrupted; saved runs are kept, rerun the same command to resume", 130)
+    except Interrupted as exc:
+        fail(
+            f"interrupted ({exc.name}); saved runs are kept, rerun the same command to resume",
+            exc.exit_code,
+        )
     if not quiet:
         line = (
             f"{summary.planned} runs: {summary.skipped} already saved, {summary.solved} solved, "

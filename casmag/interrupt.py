@@ -1,0 +1,62 @@
+"""Ctrl-C and SIGTERM as a clean stop.
+
+The command line installs :func:`install`: a SIGINT or SIGTERM then raises
+:class:`Interrupted` (a BaseException, so every ``finally`` and atomic writer cleans up),
+except while IPOPT runs (:func:`solving`), where an exception raised inside CasADi's
+callbacks would turn into a solver failure. There the signal is only recorded; the IPOPT
+iteration callback (casmag.nlp) stops IPOPT at its next iteration and :func:`solving`
+raises Interrupted once IPOPT has returned. Library users who do not call :func:`install`
+keep Python's own handling.
+"""
+
+from __future__ import annotations
+
+import signal
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+
+class Interrupted(BaseException):
+    """The run was stopped by a signal; ``exit_code`` is 128 + the signal number."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        self.exit_code = 128 + signum
+        self.name = signal.Signals(signum).name
+        super().__init__(f"interrupted by {self.name}")
+
+
+_state: dict[str, Any] = {"depth": 0, "pending": None}
+
+
+def _handler(signum: int, frame: Any) -> None:
+    if _state["depth"] > 0:
+        _state["pending"] = signum
+        return
+    raise Interrupted(signum)
+
+
+def install() -> None:
+    """Handle SIGINT and SIGTERM as described in the module docstring."""
+    signal.signal(signal.SIGINT, _handler)
+    signal.signal(signal.SIGTERM, _handler)
+
+
+def pending() -> bool:
+    """A signal arrived during the current solve."""
+    return _state["pending"] is not None
+
+
+@contextmanager
+def solving() -> Iterator[None]:
+    """Around a call into IPOPT: signals are recorded, then raised as Interrupted after."""
+    _state["depth"] += 1
+    try:
+        yield
+    finally:
+        _state["depth"] -= 1
+        signum = _state["pending"]
+        if _state["depth"] == 0 and signum is not None:
+            _state["pending"] = None
+            raise Interrupted(signum)
