@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest lock lint clean bench-imu bench-imu-latest bench-scale bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint clean bench-imu bench-imu-latest bench-scale bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -42,6 +42,20 @@ lock: ## Refresh requirements.lock from pyproject.toml (newest versions the rang
 	  --extra dev --universal --python-version 3.11 --generate-hashes --quiet \
 	  --custom-compile-command 'make lock' -o $(LOCK)
 
+# The whole suite on the lowest versions pyproject.toml names for casmag's direct dependencies
+# (their own dependencies as those versions allow), in its own environment made anew.
+LOWEST := .venv-lowest
+test-lowest: ## Run the test suite on the lower bounds in pyproject.toml (.venv-lowest)
+	rm -rf $(LOWEST)
+	$(PYTHON) -m venv $(LOWEST)
+	test -x $(LOCKVENV)/bin/uv || { $(PYTHON) -m venv $(LOCKVENV) && $(LOCKVENV)/bin/python -m pip install --quiet uv==$(UV_VERSION); }
+	$(LOCKVENV)/bin/uv pip compile pyproject.toml --extra dev --resolution lowest-direct \
+	  --python-version 3.11 --quiet -o $(LOWEST)/requirements.txt
+	$(LOWEST)/bin/python -m pip install --quiet -r $(LOWEST)/requirements.txt
+	$(LOWEST)/bin/python -m pip install --quiet --no-deps -e .
+	$(LOWEST)/bin/python -c 'import casmag.versions as v; print(v.line())'
+	$(LOWEST)/bin/python -m pytest -q
+
 # The whole suite on the newest versions the ranges in pyproject.toml allow (no lock), in
 # its own environment made anew each time.
 LATEST := .venv-latest
@@ -50,7 +64,7 @@ test-latest: ## Run the test suite on the newest versions pyproject.toml allows 
 	$(PYTHON) -m venv $(LATEST)
 	$(LATEST)/bin/python -m pip install --quiet --upgrade pip
 	$(LATEST)/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -e '.[dev]'
-	$(LATEST)/bin/python -m casmag.versions
+	$(LATEST)/bin/python -c 'import casmag.versions as v; print(v.line())'
 	$(LATEST)/bin/python -m pytest -q
 
 # The paper's Tables 1-5 (problems/paper/table*.yaml): SEEDS seeds per row, runs saved under
@@ -101,7 +115,7 @@ lint: $(STAMP) ## ruff check and format check
 	$(VENV)/bin/ruff format --check casmag tests
 
 clean: ## Remove the environment and caches
-	rm -rf $(VENV) $(LATEST) $(LOCKVENV) .pytest_cache .ruff_cache build *.egg-info
+	rm -rf $(VENV) $(LATEST) $(LOWEST) $(LOCKVENV) .pytest_cache .ruff_cache build *.egg-info
 
 bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences x 2 drifts + 2 homogeneous -> results/real/table.md
 	$(PY) -m casmag.realbench problems/real/*.yaml --out results/real

@@ -83,6 +83,13 @@ def negative_log_marginal_and_gradient(
     no difference is taken). With finite differences of the marginal likelihood, L-BFGS-B
     ended in a failed line search on some machines and not on others (the estimate good,
     ``converged`` false)."""
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # overflow: inf cost
+        return _nlml_and_gradient(log_theta, windows, kernel_name, sigma_lin)
+
+
+def _nlml_and_gradient(
+    log_theta: np.ndarray, windows: list[tuple], kernel_name: str, sigma_lin: float
+) -> tuple[float, np.ndarray]:
     sigma_f, ell, sigma_m = np.exp(log_theta)
     kernel = get_kernel(kernel_name)
     total, grad = 0.0, np.zeros(3)
@@ -94,6 +101,8 @@ def negative_log_marginal_and_gradient(
         K = Kf + sigma_lin**2 * np.kron(np.eye(FIELD_DIM), np.ones((n, n)))
         K[np.diag_indices_from(K)] += sigma_m**2
         y = Yw.ravel(order="F")
+        if not (np.isfinite(K).all() and np.isfinite(dK_ell).all()):
+            return np.inf, np.zeros(3)  # overflow at an extreme trial point of the search
         try:
             cho = scipy.linalg.cho_factor(K, lower=True)
         except np.linalg.LinAlgError:

@@ -1,8 +1,8 @@
 """The versions a result depends on: casmag, Python, CasADi, the IPOPT inside CasADi's wheel,
 numpy, scipy and numpy's BLAS, plus the processor architecture.
 
-Every ``result.json`` carries them under ``info.versions``; ``python -m casmag.versions``
-prints them (``make test-latest`` does, before the tests).
+Every ``result.json`` carries them under ``info.versions``; :func:`line` is the one-line form
+``make test-latest`` prints before the tests.
 """
 
 from __future__ import annotations
@@ -58,5 +58,6 @@ def versions() -> dict[str, Any]:
     }
 
 
-if __name__ == "__main__":
-    print(" ".join(f"{k}={v}" for k, v in versions().items()))
+def line() -> str:
+    """``name=version`` pairs on one line."""
+    return " ".join(f"{k}={v}" for k, v in versions().items())

@@ -90,3 +90,16 @@ def test_marginal_likelihood_gradient_is_exact(kernel):
             - negative_log_marginal(theta - e, wins, kernel, 3.0)
         ) / (2 * h)
         assert g[i] == pytest.approx(fd, rel=1e-5, abs=1e-6)
+
+
+def test_marginal_likelihood_is_infinite_not_an_error_where_it_overflows():
+    """An extreme trial point of the search (rectangle seed 10 reached one) costs inf with
+    a zero gradient, and no warning or exception."""
+    from casmag.hyper import negative_log_marginal_and_gradient
+
+    rng = np.random.default_rng(2)
+    X = _walk(60, rng)
+    wins = select_windows(X, rng.standard_normal((60, 3)), 30, 2)
+    for theta in ([400.0, 0.0, 0.0], [0.0, -400.0, 0.0], [0.0, 0.0, 400.0]):
+        f, g = negative_log_marginal_and_gradient(np.array(theta), wins, "curl_free", 3.0)
+        assert f == np.inf and not g.any()
