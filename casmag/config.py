@@ -322,7 +322,7 @@ class SolverSpec(_Strict):
 
 
 class ProblemSpec(_Strict):
-    seed: int
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)]  # numpy's generators take 0 .. 2^32 - 1
     name: str | None = None
     description: str | None = None
     simulation: SimulationSpec = SimulationSpec()
@@ -500,9 +500,13 @@ def apply_overrides(data: dict[str, Any], overrides: Iterable[str], source: str)
 def read_yaml(path: Path) -> dict[str, Any]:
     """Read a YAML mapping, turning I/O and syntax errors into one-line ProblemErrors."""
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ProblemError(str(path), "", f"cannot read file ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise ProblemError(
+            str(path), "", f"not UTF-8 text (byte {exc.start}: {exc.reason}); save it as UTF-8"
+        ) from None
     try:
         data = _yaml(text)
     except yaml.YAMLError as exc:

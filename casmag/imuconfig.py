@@ -332,7 +332,7 @@ class ImuProblemModelSpec(_Strict):
 
 
 class ImuProblemSpec(_Strict):
-    seed: int
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)]  # numpy's generators: 0 .. 2^32 - 1
     name: str | None = None
     description: str | None = None
     simulation: ImuSimulationSpec

@@ -177,3 +177,18 @@ def test_values_the_numerics_cannot_carry_are_one_line_exit_2(tmp_path, override
     assert res.exit_code == 2, res.output
     assert res.output.count("\n") == 1 and needle in res.output
     assert not out.exists()
+
+
+def test_a_problem_file_that_is_not_utf8_is_one_line_exit_2(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes(b"seed: 1\n\xff\xfe name: x\n")
+    res = _run(["run", bad, "--out", tmp_path / "out"])
+    assert res.exit_code == 2 and res.output.count("\n") == 1
+    assert "not UTF-8 text" in res.output and str(bad) in res.output
+
+
+@pytest.mark.parametrize("seed", ["-1", "4294967296"])
+def test_a_seed_numpy_cannot_take_is_refused_at_validation(tmp_path, seed):
+    res = _run(["run", BASE, "--out", tmp_path / "out", "--set", f"seed={seed}"])
+    assert res.exit_code == 2 and res.output.count("\n") == 1
+    assert ": seed: Input should be" in res.output
