@@ -239,7 +239,7 @@ def recording_problem(
     times: np.ndarray,
     name: str,
     problem: str | Path | None = None,
-    overrides: tuple[str, ...] | list[str] = (),
+    overrides: str | tuple[str, ...] | list[str] = (),
 ) -> tuple[Problem, dict[str, Any]]:
     """The problem ``casmag slam`` solves on a recording, and how its values were chosen.
 
@@ -251,9 +251,11 @@ def recording_problem(
     problem file (its ``model`` and ``solver`` sections) overrides any of these;
     hyperparameters it leaves null are still estimated.
     """
-    from casmag.config import read_yaml
+    from casmag.config import as_overrides, read_yaml
     from casmag.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
 
+    overrides = as_overrides(overrides)
+    check_recording_overrides(overrides)
     user: dict[str, Any] = {}
     source = name
     if problem is not None:
@@ -286,35 +288,98 @@ def recording_problem(
         else f"{ODOMETRY_NOISE_FRACTION:g} x median step"
     }
     missing = [h for h, path in HYPER_PATHS.items() if _get(merged, path) is None]
-    est = estimate_hyperparameters(data.dead_reckoning(), data.Y, kernel)
-    how["field_evidence"] = field_evidence(data.dead_reckoning(), data.Y, kernel, est).to_dict()
-    # Diagnostic: magnetometer residuals correlated over tau samples make a white-noise
-    # sigma_m over-confident by about sqrt(tau) (measured on real sequence 5: tau 2.0).
-    how["noise_correlation_samples"] = noise_correlation_time(
-        data.dead_reckoning(), data.Y, kernel, est
-    )
-    if missing:
-        how["marginal_likelihood"] = {
-            "sigma_f": est.sigma_f,
-            "lengthscale": est.lengthscale,
-            "sigma_m": est.sigma_m,
-            "windows": est.n_windows,
-            "samples": est.n_samples,
-            "converged": est.converged,
+    scale = float(np.abs(data.Y).max()) or 1.0
+    if constant_magnetometer(data.Y):
+        # Every row the same: no spread to estimate from (the marginal likelihood's noise
+        # goes to 0 and its matrices become singular) and no position information.
+        how["field_evidence"] = {"homogeneous": True, "constant": True, "reason": CONSTANT_FIELD}
+        how["noise_correlation_samples"] = None
+        nominal = {
+            "sigma_f": 1e-3 * scale,
+            "lengthscale": max(float(np.ptp(data.dead_reckoning(), axis=0).max()), 1e-3),
+            "sigma_m": 1e-3 * scale,
         }
+        if missing:
+            how["marginal_likelihood"] = {"not_estimated": CONSTANT_FIELD, **nominal}
         for h in missing:
-            _set(merged, HYPER_PATHS[h], getattr(est, h))
+            _set(merged, HYPER_PATHS[h], nominal[h])
+    else:
+        est = estimate_hyperparameters(data.dead_reckoning(), data.Y, kernel)
+        how["field_evidence"] = field_evidence(data.dead_reckoning(), data.Y, kernel, est).to_dict()
+        # Diagnostic: magnetometer residuals correlated over tau samples make a white-noise
+        # sigma_m over-confident by about sqrt(tau) (measured on real sequence 5: tau 2.0).
+        how["noise_correlation_samples"] = noise_correlation_time(
+            data.dead_reckoning(), data.Y, kernel, est
+        )
+        if missing:
+            how["marginal_likelihood"] = {
+                "sigma_f": est.sigma_f,
+                "lengthscale": est.lengthscale,
+                "sigma_m": est.sigma_m,
+                "windows": est.n_windows,
+                "samples": est.n_samples,
+                "converged": est.converged,
+            }
+            for h in missing:
+                _set(merged, HYPER_PATHS[h], getattr(est, h))
     if (
         merged["model"]["gp"].get("sigma_lin") is None
         and merged["model"]["gp"]["form"] == "reduced_rank"
     ):
-        merged["model"]["gp"]["sigma_lin"] = float(np.abs(data.Y.mean(axis=0)).max() + data.Y.std())
+        sigma_lin = float(np.abs(data.Y.mean(axis=0)).max() + data.Y.std())
+        merged["model"]["gp"]["sigma_lin"] = sigma_lin if sigma_lin > 0 else scale
     how["estimated"] = missing
     return load_problem(merged, overrides, source=source), how
 
 
+CONSTANT_FIELD = (
+    "the magnetometer is constant (every row of mx, my, mz the same), so the field carries "
+    "no position information; result is the odometry"
+)
+
+
+def constant_magnetometer(Y: np.ndarray) -> bool:
+    """Whether every magnetometer row is the same (to 1e-12 of the largest component)."""
+    Y = np.asarray(Y, dtype=float)
+    spread = float(np.ptp(Y, axis=0).max()) if Y.size else 0.0
+    return spread <= 1e-12 * float(np.abs(Y).max()) if Y.size else True
+
+
+def refuse_constant_field(source: Any) -> None:
+    """A solve forced on a constant magnetometer (no field check): one-line DataError."""
+    from casmag.errors import DataError
+
+    raise DataError(
+        f"{source}: mx, my, mz: the magnetometer is constant (every row the same), so GP-SLAM "
+        "has no field to correct the drift with; without --no-field-check the result is the "
+        "odometry (Odometry_Only)"
+    )
+
+
+#: Top-level problem keys a recording's problem does not use: its data come from the file.
+RECORDING_IGNORES = ("simulation", "seed")
+
+
+def check_recording_overrides(overrides: list[str]) -> None:
+    """Refuse ``--set`` keys a solve on a recording would ignore (ProblemError naming the
+    key): the simulation settings and the seed, which only simulated data use."""
+    from casmag.config import parse_override
+
+    for text in overrides:
+        path, _ = parse_override(text)
+        if path[0] in RECORDING_IGNORES:
+            raise ProblemError(
+                "--set",
+                ".".join(path),
+                f"{path[0]} has no meaning for a recording (its data come from the file); "
+                "remove it",
+            )
+
+
 def _evidence_text(how: dict[str, Any]) -> str:
     ev = how["field_evidence"]
+    if ev.get("constant"):
+        return CONSTANT_FIELD
     return (
         f"log Bayes factor {ev['log_bayes_factor']:.1f} <= 0 for a GP map against a constant "
         "field, so the field carries no position information; result is the odometry"
@@ -443,7 +508,7 @@ def solve_from_two_starts(
 def slam(
     recording: str | Path,
     problem: str | Path | None = None,
-    overrides: tuple[str, ...] | list[str] = (),
+    overrides: str | tuple[str, ...] | list[str] = (),
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
 ) -> Result:
@@ -457,11 +522,16 @@ def slam(
     1 at sigma_f = 0.001), so the result is the odometry itself (:func:`odometry_only`),
     with ``info["fallback"]`` saying why. Otherwise the MAP is started twice
     (:func:`solve_from_two_starts`)."""
+    from casmag.config import as_overrides
     from casmag.recording import read_recording
 
+    overrides = as_overrides(overrides)
+    check_recording_overrides(overrides)
     rec = read_recording(recording)
     data = rec.to_dataset()
     prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
+    if not field_check and how["field_evidence"].get("constant"):
+        refuse_constant_field(recording)
     if field_check and how["field_evidence"]["homogeneous"]:
         result = odometry_only(prob, data, "homogeneous field: " + _evidence_text(how))
     else:

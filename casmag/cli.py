@@ -124,7 +124,15 @@ def slam(
 
     recording = recordings[0]
     if len(recordings) == 1 and is_planar_recording(recording):  # the planar heading model
-        planar_slam(recording, out_dir, problem, overrides, no_figures, quiet)
+        planar_slam(
+            recording,
+            out_dir,
+            problem,
+            overrides,
+            no_figures,
+            quiet,
+            field_check=not no_field_check,
+        )
         return
     progress = None if quiet else print_progress
     try:
@@ -170,8 +178,11 @@ def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool) -> 
     sweep.json) in the paper's layout; never re-solves."""
     from casmag.report import collect, markdown, write_report
 
+    def warn(message: str) -> None:
+        click.echo(f"casmag: warning: {message}", err=True)
+
     try:
-        tables = collect(list(paths))
+        tables = collect(list(paths), warn=warn)
         if out_file is None:
             click.echo(markdown(tables), nl=False)
             return

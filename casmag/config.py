@@ -12,7 +12,9 @@ where the model deliberately differs from the world (the paper's "wrong sigma_f"
 from __future__ import annotations
 
 import copy
+import os
 import re
+import sys
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +29,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic_core import PydanticCustomError
 
 from casmag.errors import ProblemError
 
@@ -313,12 +316,58 @@ class SolverSpec(_Strict):
     max_iter: Annotated[int, Field(ge=1, le=100_000)] = 200
     tol: PositiveFloat = 1.0e-6
     hessian: Literal["auto", "exact", "gauss-newton", "limited-memory"] = "auto"
-    linear_solver: Literal["mumps", "ma27", "ma57", "ma86", "ma97"] = "mumps"
+    linear_solver: str = "mumps"
     print_level: Annotated[int, Field(ge=0, le=12)] = 0
     ipopt: dict[str, float | int | str] = {}
     warm_start: WarmStartSpec = WarmStartSpec()
     uncertainty: bool = True
     uncertainty_inflation: Literal["none", "correlation", "long-run"] = "long-run"
+
+    @field_validator("linear_solver")
+    @classmethod
+    def _linear_solver_available(cls, value: str) -> str:
+        # Only what the casadi wheel ships (casmag.ipoptcheck.LINEAR_SOLVERS), checked by a
+        # solve: another name fails every solve with Invalid_Option, or crashes IPOPT.
+        from casmag.ipoptcheck import linear_solver_error
+
+        reason = linear_solver_error(value)
+        if reason is not None:
+            raise ValueError(reason)
+        return value
+
+    @field_validator("ipopt", mode="before")
+    @classmethod
+    def _switches(cls, value: Any) -> Any:
+        # YAML reads yes/no/true/false as booleans; IPOPT's switches are "yes" and "no".
+        if isinstance(value, dict):
+            return {
+                k: ("yes" if v else "no") if isinstance(v, bool) else v for k, v in value.items()
+            }
+        return value
+
+    @field_validator("ipopt")
+    @classmethod
+    def _ipopt_accepts(cls, value: dict[str, Any]) -> dict[str, Any]:
+        # Each option as IPOPT itself checks it (name, type, range), so that a bad one is
+        # refused here, naming it, instead of stopping the build or failing every solve.
+        from casmag.ipoptcheck import option_error
+
+        for name, v in value.items():
+            reason = option_error(name, v)
+            if reason is not None:
+                raise ValidationError.from_exception_data(
+                    "ipopt",
+                    [
+                        {
+                            "type": PydanticCustomError(
+                                "ipopt_option", "{reason}", {"reason": reason}
+                            ),
+                            "loc": (name,),
+                            "input": v,
+                        }
+                    ],
+                )
+        return value
 
 
 class ProblemSpec(_Strict):
@@ -351,6 +400,18 @@ class ProblemSpec(_Strict):
                 "unknowns fit every sample, so the objective is unbounded as sigma_m -> 0); "
                 "set model.magnetometer.sigma_m"
             )
+        samples = self.simulation.trajectory.samples
+        if field.method == "exact":
+            need = exact_field_bytes(samples)
+            have = physical_memory()
+            if have is not None and need > have:
+                raise ValueError(
+                    f"simulation.trajectory.samples: {samples} samples with "
+                    f"simulation.field.method: exact need about {_bytes(need)} for the field's "
+                    f"{3 * samples} x {3 * samples} covariance, more than this machine's "
+                    f"{_bytes(have)} of memory; use simulation.field.method: fourier or fewer "
+                    "samples"
+                )
         if gp.form == "reduced_rank" and {"sigma_f", "lengthscale"} & set(self.model.estimate):
             # Weights the data leave free drive 0.5 w^2 / S + 0.5 log S to -inf as S -> 0:
             # the joint MAP over weights and hyperparameters is unbounded.
@@ -360,6 +421,28 @@ class ProblemSpec(_Strict):
                 "model.gp.form: exact, or estimate sigma_m only"
             )
         return self
+
+
+def exact_field_bytes(samples: int) -> int:
+    """Memory [bytes] the exact field draw (casmag.simulate.draw_field) holds at once: the
+    3N x 3N covariance, its jittered copy and its Cholesky factor, float64."""
+    return 3 * 8 * (3 * samples) ** 2
+
+
+def physical_memory() -> int | None:
+    """This machine's physical memory [bytes] (None where the system does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _bytes(n: float) -> str:
+    for unit in ("bytes", "kB", "MB", "GB", "TB"):
+        if n < 1000 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} TB"  # pragma: no cover
 
 
 # --------------------------------------------------------------------------- resolved values
@@ -418,7 +501,7 @@ class Problem:
             )
         return truth
 
-    def with_overrides(self, overrides: Iterable[str]) -> Problem:
+    def with_overrides(self, overrides: str | Iterable[str]) -> Problem:
         """A new problem with ``key.path=value`` overrides applied and re-validated."""
         data = self.spec.model_dump(mode="python", exclude_unset=False)
         return load_problem(data, overrides, source=self.source)
@@ -427,6 +510,80 @@ class Problem:
 # --------------------------------------------------------------------------- loading
 class _Loader(yaml.SafeLoader):
     """SafeLoader that also reads exponent floats without a dot (1e-3) as numbers."""
+
+
+class DuplicateKeyError(yaml.YAMLError):
+    """A mapping gives the same key twice; ``path`` is the dotted key, ``line`` (1-based)
+    where it is repeated and ``first`` where it was given first."""
+
+    def __init__(self, path: str, line: int, first: int):
+        self.path, self.line, self.first = path, line, first
+        super().__init__(f"duplicate key {path!r} on line {line} (first on line {first})")
+
+
+class YAMLInputError(yaml.YAMLError):
+    """YAML that parses but that casmag will not take (too deep, too large, a number Python
+    will not convert); ``problem`` says why, ``problem_mark`` where (None: the document)."""
+
+    def __init__(self, problem: str, mark: Any = None):
+        self.problem, self.problem_mark = problem, mark
+        super().__init__(problem)
+
+
+#: Nesting and size a problem file may have: far beyond any real one (a few levels, a few
+#: hundred values), well within what the parser's recursion and memory allow. Aliases
+#: count as often as they are used (a few nested aliases can stand for billions of values).
+MAX_YAML_DEPTH = 64
+MAX_YAML_VALUES = 100_000
+
+
+def _check_document(root: yaml.Node) -> None:
+    """Check a composed YAML document: a key given twice in a mapping (YAML keeps the last
+    silently, so a setting would be dropped without a word) raises DuplicateKeyError;
+    nesting deeper than MAX_YAML_DEPTH, more than MAX_YAML_VALUES values with aliases
+    expanded, or an alias inside its own anchor raise YAMLInputError."""
+    sizes: dict[int, int] = {}
+    open_nodes: set[int] = set()
+    stack: list[tuple[yaml.Node, tuple[str, ...], int, bool]] = [(root, (), 0, False)]
+    while stack:
+        node, path, depth, closing = stack.pop()
+        children: list[yaml.Node] = []
+        if isinstance(node, yaml.MappingNode):
+            children = [n for pair in node.value for n in pair]
+        elif isinstance(node, yaml.SequenceNode):
+            children = list(node.value)
+        if closing:
+            open_nodes.discard(id(node))
+            sizes[id(node)] = 1 + sum(sizes.get(id(c), 1) for c in children)
+            if sizes[id(node)] > MAX_YAML_VALUES:
+                raise YAMLInputError(
+                    f"more than {MAX_YAML_VALUES} values (with aliases expanded)", node.start_mark
+                )
+            continue
+        if id(node) in open_nodes:
+            raise YAMLInputError("an alias refers to a node that contains it", node.start_mark)
+        if id(node) in sizes:  # an alias of a node already checked
+            continue
+        if depth > MAX_YAML_DEPTH:
+            raise YAMLInputError(f"nested deeper than {MAX_YAML_DEPTH} levels", node.start_mark)
+        open_nodes.add(id(node))
+        stack.append((node, path, depth, True))
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[tuple[str, str], int] = {}
+            for key, value in node.value:
+                here = path
+                if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                    here = (*path, key.value)
+                    ident = (key.tag, key.value)
+                    line = key.start_mark.line + 1
+                    if ident in seen:
+                        raise DuplicateKeyError(".".join(here), line, seen[ident])
+                    seen[ident] = line
+                stack.append((key, path, depth + 1, False))
+                stack.append((value, here, depth + 1, False))
+        elif isinstance(node, yaml.SequenceNode):
+            for i, item in enumerate(node.value):
+                stack.append((item, (*path, str(i)), depth + 1, False))
 
 
 _Loader.add_implicit_resolver(
@@ -444,7 +601,27 @@ _Loader.add_implicit_resolver(
 
 
 def _yaml(text: str) -> Any:
-    return yaml.load(text, Loader=_Loader)
+    """Parse YAML text (casmag's loader); a key given twice in a mapping raises
+    DuplicateKeyError, a document casmag will not take YAMLInputError (_check_document;
+    also a number Python will not convert)."""
+    loader = _Loader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_document(node)
+        return loader.construct_document(node)
+    except RecursionError:
+        raise YAMLInputError(f"nested deeper than {MAX_YAML_DEPTH} levels") from None
+    except ValueError as exc:  # e.g. an integer of more digits than Python converts
+        reason = str(exc).splitlines()[0] if str(exc) else "a value cannot be read"
+        if "integer string conversion" in reason:
+            reason = (
+                f"an integer has more digits than Python converts ({sys.get_int_max_str_digits()})"
+            )
+        raise YAMLInputError(reason) from None
+    finally:
+        loader.dispose()
 
 
 def _format_loc(loc: tuple[Any, ...]) -> str:
@@ -461,7 +638,19 @@ def _validation_error(source: str, err: ValidationError) -> ProblemError:
     msg = first["msg"]
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, ") :]
-    return ProblemError(source, loc, f"{msg} (got {first.get('input')!r})")
+    if not loc:
+        # A whole-file consistency check: its message starts with the key it is about, and
+        # the input (the whole file) is not repeated.
+        key, sep, reason = msg.partition(": ")
+        if sep and key and " " not in key:
+            return ProblemError(source, key, reason)
+        return ProblemError(source, "", msg)
+    return ProblemError(source, loc, f"{msg} (got {_short_repr(first.get('input'))})")
+
+
+def _short_repr(value: Any, limit: int = 200) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def parse_override(text: str, source: str = "--set") -> tuple[list[str], Any]:
@@ -474,15 +663,41 @@ def parse_override(text: str, source: str = "--set") -> tuple[list[str], Any]:
         raise ProblemError(source, key or text, "empty key in override")
     try:
         value = _yaml(raw) if raw.strip() else None
+    except DuplicateKeyError as exc:
+        raise ProblemError(source, key, f"value gives the key {exc.path!r} twice") from None
     except yaml.YAMLError as exc:
-        raise ProblemError(source, key, f"value is not valid YAML: {exc.problem}") from None
+        reason = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ProblemError(source, key, f"value is not valid YAML: {reason}") from None
     return key.split("."), value
 
 
-def apply_overrides(data: dict[str, Any], overrides: Iterable[str], source: str) -> dict[str, Any]:
+def as_overrides(overrides: str | Iterable[str] | None) -> list[str]:
+    """Overrides as a list of ``key.path=value`` strings: one string is one override (not
+    its characters); None is none. Raises TypeError for anything else."""
+    if overrides is None:
+        return []
+    if isinstance(overrides, str):
+        return [overrides]
+    if isinstance(overrides, (bytes, bytearray, Mapping)) or not isinstance(overrides, Iterable):
+        raise TypeError(
+            "overrides must be a 'key.path=value' string or a list of them, "
+            f"not {type(overrides).__name__}"
+        )
+    items = list(overrides)
+    for item in items:
+        if not isinstance(item, str):
+            raise TypeError(
+                f"overrides must be 'key.path=value' strings, got {type(item).__name__} {item!r}"
+            )
+    return items
+
+
+def apply_overrides(
+    data: dict[str, Any], overrides: str | Iterable[str], source: str
+) -> dict[str, Any]:
     """Apply ``key.path=value`` overrides to a nested dictionary (copied)."""
     data = copy.deepcopy(data)
-    for text in overrides:
+    for text in as_overrides(overrides):
         path, value = parse_override(text)
         node = data
         for i, part in enumerate(path[:-1]):
@@ -509,6 +724,10 @@ def read_yaml(path: Path) -> dict[str, Any]:
         ) from None
     try:
         data = _yaml(text)
+    except DuplicateKeyError as exc:
+        raise ProblemError(
+            str(path), exc.path, f"duplicate key on line {exc.line} (first on line {exc.first})"
+        ) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}" if mark is not None else ""
@@ -526,18 +745,21 @@ SpecT = TypeVar("SpecT", bound=BaseModel)
 def validate_spec(
     spec_class: type[SpecT],
     problem: str | Path | Mapping[str, Any],
-    overrides: Iterable[str] = (),
+    overrides: str | Iterable[str] = (),
     source: str | None = None,
     to_error: Callable[[str, ValidationError], ProblemError] | None = None,
 ) -> tuple[SpecT, str]:
     """Read a YAML path (or take a dictionary), apply ``key.path=value`` overrides and
     validate against ``spec_class``. Returns the spec and its source name; raises
     ProblemError naming the file, the key and the reason (worded by ``to_error``)."""
+    overrides = as_overrides(overrides)
     if isinstance(problem, Mapping):
         data, src = dict(problem), source or "<dict>"
-    else:
+    elif isinstance(problem, (str, os.PathLike)):
         path = Path(problem)
         data, src = read_yaml(path), source or str(path)
+    else:
+        raise TypeError(f"a problem is a YAML path or a dictionary, not {type(problem).__name__}")
     data = apply_overrides(data, overrides, src)
     try:
         return spec_class.model_validate(data), src
@@ -547,14 +769,16 @@ def validate_spec(
 
 def load_problem(
     problem: str | Path | Mapping[str, Any] | Problem,
-    overrides: Iterable[str] = (),
+    overrides: str | Iterable[str] = (),
     source: str | None = None,
 ) -> Problem:
     """Load and validate a problem from a YAML path, a dictionary or a Problem.
 
-    overrides: ``key.path=value`` strings (values parsed as YAML), applied before validation.
-    Raises ProblemError naming the file, the key and the reason.
+    overrides: ``key.path=value`` strings (values parsed as YAML), applied before validation;
+    one string is one override. Raises ProblemError naming the file, the key and the reason
+    (TypeError for overrides that are not strings).
     """
+    overrides = as_overrides(overrides)
     if isinstance(problem, Problem):
         return problem.with_overrides(overrides) if overrides else problem
     spec, src = validate_spec(ProblemSpec, problem, overrides, source)

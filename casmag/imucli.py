@@ -11,6 +11,7 @@ e.g. ``wrong_basin``; each flag's reason is printed on stderr).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import click
 import numpy as np
@@ -27,6 +28,9 @@ from casmag.clitools import (
 )
 from casmag.errors import CasmagError
 
+if TYPE_CHECKING:
+    from casmag.recording import Recording
+
 
 @click.command("imu")
 @click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
@@ -40,6 +44,7 @@ def imu_command(
     from casmag.imuslam import solve_imu
 
     try:
+        refuse_unused_solver_keys(overrides, "casmag imu")
         prob = load_imu_problem(problem, overrides)
         result = solve_imu(prob, progress=None if quiet else print_progress)
         result.save(out_dir, figures=not no_figures)
@@ -85,6 +90,26 @@ def imu_command(
         raise SystemExit(EXIT_UNTRUSTED)
 
 
+#: Solver settings only the translational solver uses (warm starts, the Laplace
+#: covariance); the IMU and planar models ignore them.
+UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncertainty_inflation")
+
+
+def refuse_unused_solver_keys(overrides: tuple[str, ...], command: str) -> None:
+    """Refuse ``--set`` keys the IMU and planar models would ignore (ProblemError naming
+    the key), so that a setting never silently does nothing."""
+    from casmag.config import as_overrides, parse_override
+    from casmag.errors import ProblemError
+
+    for text in as_overrides(overrides):
+        key = ".".join(parse_override(text)[0])
+        for unused in UNUSED_SOLVER_KEYS:
+            if key == unused or key.startswith(unused + "."):
+                raise ProblemError(
+                    "--set", key, f"{command} does not use {unused} (translational problems only)"
+                )
+
+
 # --------------------------------------------------------------------------- planar recordings
 def is_planar_recording(path: Path) -> bool:
     """Whether a recording's header names the planar motion columns ``dfwd,dleft,dyaw``
@@ -108,20 +133,38 @@ def planar_slam(
     overrides: tuple[str, ...],
     no_figures: bool,
     quiet: bool,
+    field_check: bool = True,
 ) -> None:
     """``casmag slam`` on a planar recording (``dfwd,dleft,dyaw``): the planar model with a
     heading-rate bias (:func:`casmag.imuslam.solve_planar_recording`). Settings from the
     problem file's ``model``/``solver`` sections and ``--set model.KEY=...`` overrides
     (:class:`casmag.imuconfig.PlanarModelSpec`). Writes result.json, trajectory.csv,
-    trajectory.png and cost.png; exits as every command does (0, 1 with IPOPT's status, 2)."""
+    trajectory.png and cost.png; exits as every command does (0, 1 with IPOPT's status, 2).
+    A constant magnetometer carries no position information: the result is the dead
+    reckoning, status ``Odometry_Only`` (:func:`planar_odometry_only`; with ``field_check``
+    off, exit 2)."""
+    from casmag.api import constant_magnetometer, refuse_constant_field
     from casmag.imuconfig import load_planar_options
     from casmag.imuslam import solve_planar_recording
+    from casmag.recording import read_recording
 
     try:
+        refuse_unused_solver_keys(overrides, "casmag slam on a planar recording")
         options = load_planar_options(problem, overrides)
-        result = solve_planar_recording(
-            recording, options, progress=None if quiet else print_progress
-        )
+        rec = read_recording(recording)
+        if constant_magnetometer(rec.Y):
+            if not field_check:
+                refuse_constant_field(recording)
+            result = planar_odometry_only(rec)
+        else:
+            result = solve_planar_recording(
+                recording, options, progress=None if quiet else print_progress
+            )
+        a = result.arrays
+        if a.get("P_true") is not None and a.get("psi_true") is None:
+            # True positions without a true heading: the heading column is written empty
+            # (NaN), as trajectory.csv has a heading beside every position.
+            a["psi_true"] = np.full(a["P_true"].shape[0], np.nan)
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
@@ -144,6 +187,63 @@ def planar_slam(
             line += f"; heading-rate bias {np.degrees(result.bias[0]):.4f} deg/s"
         click.echo(line)
         click.echo(f"wrote {out_dir}/")
+
+
+def planar_odometry_only(rec: Recording) -> Any:
+    """The planar dead reckoning as the result of a recording whose magnetometer is constant
+    (status ``Odometry_Only``, the reason in ``info.fallback``), started where
+    :func:`casmag.imuslam.solve_planar` starts: the first true pose, else the origin."""
+    from casmag import __version__
+    from casmag.api import CONSTANT_FIELD
+    from casmag.imuslam import PlanarResult, dead_reckon_planar
+    from casmag.metrics import rmse_and_max
+    from casmag.versions import versions
+
+    P_true = None if rec.P_true is None else rec.P_true[:, :2]
+    p0 = P_true[0] if P_true is not None else np.zeros(2)
+    psi0 = float(rec.yaw_true[0]) if P_true is not None and rec.yaw_true is not None else 0.0
+    P, psi = dead_reckon_planar(rec.increments, np.asarray(p0, dtype=float), psi0)
+    errors = (None, None) if P_true is None else rmse_and_max(P, P_true)
+    heading = None
+    if P_true is not None and rec.yaw_true is not None:
+        wrapped = np.angle(np.exp(1j * (psi - rec.yaw_true)))
+        heading = float(np.degrees(np.sqrt(np.mean(wrapped**2))))
+    name = Path(rec.path).stem
+    return PlanarResult(
+        status="Odometry_Only",
+        success=True,
+        iterations=0,
+        build_seconds=0.0,
+        solve_seconds=0.0,
+        rmse_before=errors[0],
+        max_before=errors[1],
+        rmse_after=errors[0],
+        max_after=errors[1],
+        heading_rms_deg_before=heading,
+        heading_rms_deg_after=heading,
+        bias=None,
+        hyperparameters={},
+        num_basis=0,
+        cost_blocks={},
+        cost_per_iteration=[],
+        info={
+            "name": name,
+            "samples": int(rec.n_samples),
+            "fallback": "homogeneous field: " + CONSTANT_FIELD,
+            "recording": str(rec.path),
+            "casmag": __version__,
+            "versions": versions(),
+        },
+        arrays={
+            "t": rec.t,
+            "P_odometry": P,
+            "psi_odometry": psi,
+            "P_estimate": P,
+            "psi_estimate": psi,
+            "P_true": P_true,
+            "psi_true": rec.yaw_true if P_true is not None else None,
+        },
+    )
 
 
 def _pass_iterations(p: dict) -> str:

@@ -7,6 +7,11 @@ callbacks would turn into a solver failure. There the signal is only recorded; t
 iteration callback (casmag.nlp) stops IPOPT at its next iteration and :func:`solving`
 raises Interrupted once IPOPT has returned. Library users who do not call :func:`install`
 keep Python's own handling.
+
+Worker processes (casmag.sweep) install it with ``defer``: the handler then only records
+the signal, as it does during a solve, since raising inside a CasADi callback evaluated
+outside IPOPT would print a traceback and turn into an error; :func:`check` raises
+Interrupted at the next safe point, and IPOPT stops at its next iteration.
 """
 
 from __future__ import annotations
@@ -37,10 +42,24 @@ def _handler(signum: int, frame: Any) -> None:
     raise Interrupted(signum)
 
 
-def install() -> None:
-    """Handle SIGINT and SIGTERM as described in the module docstring."""
-    signal.signal(signal.SIGINT, _handler)
-    signal.signal(signal.SIGTERM, _handler)
+def _record(signum: int, frame: Any) -> None:
+    _state["pending"] = signum
+
+
+def install(defer: bool = False) -> None:
+    """Handle SIGINT and SIGTERM as described in the module docstring (``defer``: record
+    them only, for :func:`check` and :func:`solving` to raise)."""
+    handler = _record if defer else _handler
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def check() -> None:
+    """Raise Interrupted for a signal recorded outside a solve (a no-op without one)."""
+    signum = _state["pending"]
+    if signum is not None and _state["depth"] == 0:
+        _state["pending"] = None
+        raise Interrupted(signum)
 
 
 def pending() -> bool:

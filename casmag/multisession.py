@@ -291,7 +291,7 @@ def session_rows(data: Dataset, result: Result, names: Sequence[str]) -> list[di
 def slam_sessions(
     recordings: Sequence[str | Path],
     problem: str | Path | None = None,
-    overrides: tuple[str, ...] | list[str] = (),
+    overrides: str | tuple[str, ...] | list[str] = (),
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
     name: str | None = None,
@@ -299,8 +299,12 @@ def slam_sessions(
     """GP-SLAM on several recordings of the same field with one shared map
     (:func:`casmag.api.slam`'s defaults, computed on all sessions together). The stacked
     result's RMSE is over all samples; ``info["sessions"]`` has each session's."""
-    from casmag.api import odometry_only, recording_problem
+    from casmag.api import check_recording_overrides, odometry_only, recording_problem
+    from casmag.config import as_overrides
     from casmag.recording import read_recording
+
+    overrides = as_overrides(overrides)
+    check_recording_overrides(overrides)
 
     recs = [read_recording(r) for r in recordings]
     datasets = [r.to_dataset() for r in recs]
@@ -323,6 +327,10 @@ def slam_sessions(
         raise ProblemError(
             prob.source, "model.gp.form", "several sessions need the reduced-rank map"
         )
+    if not field_check and how["field_evidence"].get("constant"):
+        from casmag.api import refuse_constant_field
+
+        refuse_constant_field(", ".join(map(str, recordings)))
     if field_check and how["field_evidence"]["homogeneous"]:
         from casmag.api import _evidence_text
 

@@ -220,6 +220,9 @@ class NLPBuilder:
             "ipopt.linear_solver": solver.linear_solver,
             "ipopt.hessian_approximation": hessian,
             "ipopt.sb": "yes",  # no IPOPT banner
+            # No ipopt.opt from the working folder: every option comes from the problem
+            # file, where it is checked (casmag.ipoptcheck).
+            "ipopt.option_file_name": "",
             "print_time": False,
         }
         residuals = dict(residuals or {})

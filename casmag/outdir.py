@@ -13,17 +13,30 @@ marker written first), then swaps it in: the previous result is renamed aside
 any moment leaves either the previous result or the new one in place; the next save of the
 same output cleans what a killed run left (and puts a previous result back if a kill came
 between the two renames).
+
+Several processes may save into the same output at once (two runs given the same --out):
+each writes its own hidden folder, held with an advisory lock (``flock``) so that no other
+save takes it for a leftover, and the swaps take turns under a lock on the parent folder,
+where the output is checked again. The last swap wins; the output is never half written,
+and a save that cannot be made raises OutputError (one line), never a bare OSError.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import stat
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on POSIX: saves are not serialised
+    fcntl = None  # type: ignore[assignment]
 
 from casmag.errors import CasmagError, one_line
 
@@ -52,6 +65,12 @@ def check_output_dir(out: Any, kind: str = "result") -> Path:
     marker or be empty). kind ``tree``: a folder casmag adds results under (a sweep's), which
     may hold anything, but is still never the current folder, an ancestor of it, home or
     root."""
+    return _check(out, kind, lock=True)
+
+
+def _check(out: Any, kind: str, lock: bool) -> Path:
+    """check_output_dir; ``lock``: look into the folder under its parent's lock (off where
+    the caller holds it), so that a concurrent save's swap is never seen half done."""
     raw = "" if out is None else str(out)
     if not raw.strip():
         raise OutputError(raw, "an empty path is not an output folder; name a new folder")
@@ -63,17 +82,27 @@ def check_output_dir(out: Any, kind: str = "result") -> Path:
         raise OutputError(raw, f"is {where}, which casmag would replace; name a new folder")
     if full == Path.home().resolve() or full == Path(full.anchor):
         raise OutputError(raw, "is the home or root folder; name a new folder")
-    if full.exists() and not full.is_dir():
+    held = _locked(full.parent) if lock and full.parent.is_dir() else contextlib.nullcontext()
+    with held:
+        try:
+            mode: int | None = full.stat().st_mode
+        except FileNotFoundError:
+            mode = None
+        except OSError as exc:
+            raise OutputError(raw, f"cannot be read ({exc.strerror or exc})") from None
+        others: list[str] = []
+        if kind == "result" and mode is not None and stat.S_ISDIR(mode):
+            written = _written(full)
+            others = [p.name for p in full.iterdir() if p.name not in written]
+    if mode is not None and not stat.S_ISDIR(mode):
         raise OutputError(raw, "exists and is not a folder")
-    if kind == "result" and full.is_dir():
-        others = [p.name for p in full.iterdir() if p.name not in _written(full)]
-        if others:
-            raise OutputError(
-                raw,
-                f"holds files casmag did not write ({_names(others)}), which replacing it "
-                "would delete; name a new or empty folder",
-            )
-    parent = full
+    if others:
+        raise OutputError(
+            raw,
+            f"holds files casmag did not write ({_names(others)}), which replacing it "
+            "would delete; name a new or empty folder",
+        )
+    parent = full.parent  # where the hidden folders are made and the output renamed
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
@@ -122,47 +151,106 @@ def _names(names: list[str]) -> str:
     return shown + (f" and {len(names) - 3} more" if len(names) > 3 else "")
 
 
+@contextlib.contextmanager
+def _locked(folder: Path, blocking: bool = True) -> Iterator[bool]:
+    """Hold an exclusive advisory lock on a folder (released on exit, or when the process
+    dies); yields False when ``blocking`` is off and another process holds it, or where
+    folders cannot be locked."""
+    if fcntl is None:
+        yield True
+        return
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        yield True  # a folder that cannot be opened for reading is not locked
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        except OSError:  # a file system without locks
+            yield True
+            return
+        yield True
+    finally:
+        os.close(fd)
+
+
 def clean_leftovers(out: Path) -> None:
     """Remove what an interrupted save of ``out`` left beside it; if ``out`` is missing
-    and a complete previous result was set aside, put the newest one back."""
+    and a complete previous result was set aside, put the newest one back. Hidden folders
+    that a running save holds (locked) are left alone. Called under the parent's lock."""
     parent = out.parent
     if not parent.is_dir():
         return
     prefix = f".{out.name}"
     tmps = sorted(parent.glob(f"{prefix}{_TMP}*"))
-    olds = sorted(parent.glob(f"{prefix}{_OLD}*"), key=lambda p: p.stat().st_mtime)
-    if not out.exists() and olds and is_result_folder(olds[-1]):
-        os.replace(olds.pop(), out)
-    for p in tmps + olds:
-        if p.is_dir() and (is_result_folder(p) or not any(p.iterdir())):
-            shutil.rmtree(p, ignore_errors=True)
+    olds = []
+    for p in parent.glob(f"{prefix}{_OLD}*"):
+        with contextlib.suppress(FileNotFoundError):
+            olds.append((p.stat().st_mtime, p))
+    olds_sorted = [p for _, p in sorted(olds)]
+    if not out.exists() and olds_sorted and is_result_folder(olds_sorted[-1]):
+        os.replace(olds_sorted.pop(), out)
+    for p in tmps + olds_sorted:
+        try:
+            leftover = p.is_dir() and (is_result_folder(p) or not any(p.iterdir()))
+        except FileNotFoundError:
+            continue
+        if not leftover:
+            continue
+        with _locked(p, blocking=False) as free:
+            if free:
+                shutil.rmtree(p, ignore_errors=True)
 
 
 def save_atomic(out_dir: Any, write: Callable[[Path], None]) -> Path:
     """Run ``write(folder)`` on a new hidden folder beside ``out_dir`` and swap it in (module
-    docstring). Checks the output first (OutputError); never leaves a half-written output."""
+    docstring). Checks the output first and again just before the swap (OutputError);
+    never leaves a half-written output."""
     out = check_output_dir(out_dir)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    clean_leftovers(out)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}{_TMP}", dir=out.parent))
     try:
-        header = "written by casmag, replaced by the next run into it; its files:\n"
-        (tmp / MARKER).write_text(header)
-        write(tmp)
-        names = sorted(p.name for p in tmp.iterdir() if p.name != MARKER)
-        (tmp / MARKER).write_text(header + "".join(f"{n}\n" for n in names))
-        if out.exists():
-            old = out.parent / f".{out.name}{_OLD}{os.getpid()}-{time.time_ns()}"
-            os.replace(out, old)
-            try:
-                os.replace(tmp, out)
-            except BaseException:
-                os.replace(old, out)
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        return _save(out, write)
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+        raise OutputError(out_dir, f"cannot be written: {reason}{where}") from None
+
+
+def _save(out: Path, write: Callable[[Path], None]) -> Path:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with _locked(out.parent):
+        # Made and locked under the parent's lock: no other save's clean-up can take it for
+        # a leftover in between.
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}{_TMP}", dir=out.parent))
+        hold = contextlib.ExitStack()
+        hold.enter_context(_locked(tmp))
+    with hold:
+        try:
+            header = "written by casmag, replaced by the next run into it; its files:\n"
+            (tmp / MARKER).write_text(header)
+            write(tmp)
+            names = sorted(p.name for p in tmp.iterdir() if p.name != MARKER)
+            (tmp / MARKER).write_text(header + "".join(f"{n}\n" for n in names))
+            old = None
+            with _locked(out.parent):
+                clean_leftovers(out)
+                _check(out, "result", lock=False)  # another save or a user may have written
+                if out.exists():
+                    old = out.parent / f".{out.name}{_OLD}{os.getpid()}-{time.time_ns()}"
+                    os.replace(out, old)
+                    try:
+                        os.replace(tmp, out)
+                    except BaseException:
+                        os.replace(old, out)
+                        raise
+                else:
+                    os.replace(tmp, out)
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
     return out

@@ -26,6 +26,7 @@ from __future__ import annotations
 import csv
 import difflib
 import os
+import re
 import secrets
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -71,6 +72,25 @@ _KNOWN_COLUMNS: tuple[str, ...] = (
     *QUATERNION_TRUTH_COLUMNS,
 )
 _MIN_ROWS = 2
+MAX_ABS_VALUE = 1e100
+"""Largest magnitude a recording's value may have: sums over a million rows and their
+squares (distances, residuals) must stay finite in float64 (about 1.8e308)."""
+
+RESOLUTION = 1e12
+"""Largest ratio of a motion column's summed magnitude (how far the dead reckoning can
+reach) to its median non-zero step: beyond it a step is lost in float64 rounding (16
+digits) next to the position, so the dead reckoning stops moving."""
+
+# A number as the recording format writes it: ASCII digits, an optional sign, point and
+# exponent; nan and inf(inity) are read so that the checks below can name them. float()
+# alone also takes underscores (1_000) and non-ASCII digits, which no CSV writer produces.
+_NUMBER = re.compile(
+    r"\s*(?:[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf|infinity))\s*",
+    re.IGNORECASE | re.ASCII,
+)
+# Characters of plain numbers (no letters but the exponent's): text made of these alone
+# needs no field-by-field check.
+_PLAIN = re.compile(r"[^0-9eE.+\-,\s]", re.ASCII)
 
 
 @dataclass(frozen=True)
@@ -250,18 +270,24 @@ def _check_columns(path: str, names: list[str]) -> tuple[str, tuple[str, ...]]:
     return motion, motion_cols
 
 
-def _locate_bad_value(path: str, rows: list[list[str]], names: list[str]) -> DataError:
-    """The error for the first field float() rejects (called only when one does)."""
+def _locate_bad_value(
+    path: str, rows: list[list[str]], names: list[str], every_row: bool = False
+) -> DataError | None:
+    """The error for the first field that is not a plain number (None when all are); rows
+    made of digits, signs, points and exponents alone are looked at field by field only
+    with ``every_row``."""
     for i, fields in enumerate(rows):
+        plain = _PLAIN.search(",".join(fields)) is None and all(f.strip() for f in fields)
+        if plain and not every_row:
+            continue
         for j, value in enumerate(fields):
-            try:
-                float(value)
-            except ValueError:
-                where = f"row {i + 2}, column '{names[j]}'"
-                if not value.strip():
-                    return _error(path, where, "empty value")
-                return _error(path, where, f"not a number ({value.strip()!r})")
-    return _error(path, "", "cannot convert the values to numbers")  # pragma: no cover
+            if _NUMBER.fullmatch(value):
+                continue
+            where = f"row {i + 2}, column '{names[j]}'"
+            if not value.strip():
+                return _error(path, where, "empty value")
+            return _error(path, where, f"not a number ({value.strip()!r})")
+    return None
 
 
 def _parse_values(
@@ -272,16 +298,30 @@ def _parse_values(
     for j in motion_idx:
         if not first[j].strip():
             first[j] = "nan"
+    error = _locate_bad_value(path, rows, names)
+    if error is not None:
+        raise error
     try:
         A = np.array(rows, dtype=np.float64)
     except ValueError:
-        raise _locate_bad_value(path, rows, names) from None
+        error = _locate_bad_value(path, rows, names, every_row=True)
+        raise (error or _error(path, "", "cannot convert the values to numbers")) from None
     bad = ~np.isfinite(A)
     bad[0, motion_idx] = np.isinf(A[0, motion_idx])  # NaN (or empty) allowed there only
     if bad.any():
         i, j = np.argwhere(bad)[0]
         kind = "NaN" if np.isnan(A[i, j]) else "infinite"
         raise _error(path, f"row {i + 2}, column '{names[j]}'", f"value is {kind}")
+    with np.errstate(invalid="ignore"):
+        huge = np.abs(A) > MAX_ABS_VALUE
+    if huge.any():
+        i, j = np.argwhere(huge)[0]
+        raise _error(
+            path,
+            f"row {i + 2}, column '{names[j]}'",
+            f"value {A[i, j]:g} is beyond what the numerics can carry "
+            f"(|value| <= {MAX_ABS_VALUE:g})",
+        )
     return A
 
 
@@ -356,6 +396,8 @@ def read_recording(path: str | Path) -> Recording:
     position_cols = [c for c in POSITION_TRUTH_COLUMNS if c in col]
     increments = columns(motion_cols)
     assert increments is not None
+    if motion in ("translation", "planar"):
+        _check_resolution(path, increments[1:], motion_cols)
     return Recording(
         path=path,
         t=t.copy(),
@@ -367,6 +409,27 @@ def read_recording(path: str | Path) -> Recording:
         yaw_true=A[:, col[YAW_TRUTH_COLUMN]].copy() if YAW_TRUTH_COLUMN in col else None,
         q_true=q_true,
     )
+
+
+def _check_resolution(path: str, U: np.ndarray, names: Sequence[str]) -> None:
+    """Refuse a motion column whose values sum beyond RESOLUTION times its median non-zero
+    step, naming its largest value (U: increments of rows 3.. of the file)."""
+    for j, name in enumerate(names):
+        size = np.abs(U[:, j])
+        steps = size[size > 0]
+        if steps.size == 0:
+            continue
+        typical = float(np.median(steps))
+        reach = float(size.sum())
+        if reach > RESOLUTION * typical:
+            i = int(np.argmax(size))
+            raise _error(
+                path,
+                f"row {i + 3}, column '{name}'",
+                f"value {float(U[i, j]):g} is beyond what the numerics can carry: the column "
+                f"sums to {reach:g}, where its median step {typical:g} is lost in float64 "
+                "rounding",
+            )
 
 
 # --------------------------------------------------------------------------- writing

@@ -10,6 +10,11 @@ LaTeX, with figures in the paper's style.
 
 Runs whose IPOPT solve failed are counted per row (with their statuses) and left out of the
 statistics, never averaged in; runs that raised an error or were never run are counted too.
+
+Results of ``casmag imu`` (position errors of the IMU-only adjustment and of GP-SLAM, no
+odometry-only "before") get a table of their own, one row per problem name. A result.json
+that cannot be read is skipped with a warning naming it; only when none can be read is
+that an error.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import shutil
 import statistics
 import tempfile
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -63,12 +69,14 @@ def find_results(paths: list[Path]) -> list[Path]:
     return found
 
 
-def load_result(path: Path) -> dict[str, Any]:
-    """A result.json, checked for the fields the tables need."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DataError(f"{path}: cannot read result ({exc})") from None
+def load_result(path: Path, data: Any = None) -> dict[str, Any]:
+    """A result.json (read from path unless given parsed), checked for the fields the
+    tables need."""
+    if data is None:
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise DataError(f"{path}: cannot read result ({exc})") from None
     if not isinstance(data, dict):
         raise DataError(f"{path}: a result must be a JSON object")
     for key in _REQUIRED:
@@ -80,7 +88,58 @@ def load_result(path: Path) -> dict[str, Any]:
             raise DataError(f"{path}: field {key!r}: expected a number or null, got {value!r}")
     if data["success"] and data["rmse_after"] is None:
         raise DataError(f"{path}: field 'rmse_after': null in a successful result")
+    if not isinstance(data["info"], dict):
+        raise DataError(f"{path}: field 'info': expected an object")
     return data
+
+
+def is_imu_result(data: Any) -> bool:
+    """A result.json of ``casmag imu``: errors per stage (``errors.imu_only``,
+    ``errors.gp_slam``) instead of the odometry-only and SLAM errors."""
+    return (
+        isinstance(data, dict)
+        and "rmse_before" not in data
+        and isinstance(data.get("errors"), dict)
+        and "gp_slam" in data["errors"]
+    )
+
+
+_IMU_REQUIRED = ("status", "success", "info", "errors")
+
+
+def load_imu_result(path: Path, data: dict[str, Any]) -> dict[str, Any]:
+    """An IMU result.json (already parsed), checked for the fields its table needs."""
+    for key in _IMU_REQUIRED:
+        if key not in data:
+            raise DataError(f"{path}: field {key!r} is missing")
+    if not isinstance(data["info"], dict):
+        raise DataError(f"{path}: field 'info': expected an object")
+    for stage in ("imu_only", "gp_slam"):
+        errors = data["errors"].get(stage)
+        if not isinstance(errors, dict):
+            raise DataError(f"{path}: field 'errors.{stage}': expected an object")
+        for key in ("rmse", "max"):
+            value = errors.get(key)
+            if value is not None and (
+                not isinstance(value, (int, float)) or isinstance(value, bool)
+            ):
+                raise DataError(
+                    f"{path}: field 'errors.{stage}.{key}': expected a number or null, "
+                    f"got {value!r}"
+                )
+    return data
+
+
+def read_result(path: Path) -> tuple[str, dict[str, Any]]:
+    """("slam", data) or ("imu", data) for a result.json; DataError naming the file when
+    it cannot be read or lacks what its table needs."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"{path}: cannot read result ({exc})") from None
+    if is_imu_result(data):
+        return "imu", load_imu_result(path, data)
+    return "slam", load_result(path, data)
 
 
 @dataclass
@@ -114,7 +173,8 @@ class Row:
 
 @dataclass
 class Table:
-    """A group of rows: one sweep (``name`` from its manifest) or loose results."""
+    """A group of rows: one sweep (``name`` from its manifest) or loose results; ``kind``
+    ``imu`` for results of ``casmag imu`` (their own layout, :func:`imu_markdown_table`)."""
 
     name: str
     title: str | None
@@ -122,6 +182,7 @@ class Table:
     paper: PaperTable | None = None
     source: str | None = None
     seeds: list[int] = field(default_factory=list)
+    kind: str = "slam"
 
 
 def _read_manifest(path: Path) -> dict[str, Any]:
@@ -130,7 +191,7 @@ def _read_manifest(path: Path) -> dict[str, Any]:
     return read_manifest(path)
 
 
-def _sweep_table(manifest_path: Path) -> Table:
+def _sweep_table(manifest_path: Path, skip: Callable[[DataError], None] | None = None) -> Table:
     m = _read_manifest(manifest_path)
     folder = manifest_path.parent
     paper = TABLES.get(m.get("paper") or "")
@@ -146,7 +207,15 @@ def _sweep_table(manifest_path: Path) -> Table:
             except ValueError:
                 continue
             if (run_dir / "result.json").is_file():
-                runs.append(Run(run_dir, seed, data=load_result(run_dir / "result.json")))
+                try:
+                    data = load_result(run_dir / "result.json")
+                except DataError as exc:
+                    if skip is None:
+                        raise
+                    skip(exc)
+                    runs.append(Run(run_dir, seed, error="unreadable result.json"))
+                    continue
+                runs.append(Run(run_dir, seed, data=data))
             elif (run_dir / "error.json").is_file():
                 try:
                     err = json.loads((run_dir / "error.json").read_text()).get("error", "error")
@@ -174,34 +243,67 @@ def _sweep_table(manifest_path: Path) -> Table:
     )
 
 
-def collect(paths: list[Path]) -> list[Table]:
-    """Tables from paths: one per sweep folder (``sweep.json``) found, plus one table of the
-    remaining results, one row per problem name (its seeds aggregated)."""
+def collect(paths: list[Path], warn: Callable[[str], None] | None = None) -> list[Table]:
+    """Tables from paths: one per sweep folder (``sweep.json``) found, one table of the
+    remaining results and one of ``casmag imu`` results, one row per problem name (its
+    seeds aggregated).
+
+    A result.json or sweep.json that cannot be read is skipped: with ``warn``, each is
+    passed to it (one line naming the file) once the others have been read; without, the
+    first raises DataError. When no result at all can be read, DataError (the file's own
+    line when it is the only one)."""
     tables: list[Table] = []
     loose: list[Path] = []
+    skipped: list[str] = []
+
+    def skip(exc: DataError) -> None:
+        if warn is None:
+            raise exc
+        skipped.append(str(exc))
+
     for p in paths:
         if p.is_file():
             loose.append(p)
         elif p.is_dir():
-            manifests = _visible(p, "sweep.json")
+            manifests = []
+            for m in _visible(p, "sweep.json"):
+                try:
+                    tables.append(_sweep_table(m, skip))
+                    manifests.append(m)
+                except DataError as exc:  # its runs are reported as loose results
+                    skip(exc)
             sweep_dirs = [m.parent for m in manifests]
-            tables.extend(_sweep_table(m) for m in manifests)
             loose.extend(
                 f for f in _visible(p, "result.json") if not any(d in f.parents for d in sweep_dirs)
             )
         else:
             raise DataError(f"{p}: no such file or folder")
-    if loose:
-        by_name: dict[str, list[Run]] = {}
-        for f in loose:
-            data = load_result(f)
-            name = str(data["info"].get("name", f.parent.name))
-            seed = data["info"].get("seed")
-            by_name.setdefault(name, []).append(Run(f.parent, seed, data=data))
-        rows = [Row(n, n, runs, len(runs)) for n, runs in by_name.items()]
-        tables.append(Table("results", None, rows))
+    by_kind: dict[str, dict[str, list[Run]]] = {"slam": {}, "imu": {}}
+    for f in loose:
+        try:
+            kind, data = read_result(f)
+        except DataError as exc:
+            skip(exc)
+            continue
+        name = str(data["info"].get("name", f.parent.name))
+        seed = data["info"].get("seed")
+        by_kind[kind].setdefault(name, []).append(Run(f.parent, seed, data=data))
+    for kind, table_name, title in (("slam", "results", None), ("imu", "imu", "IMU results")):
+        if by_kind[kind]:
+            rows = [Row(n, n, runs, len(runs)) for n, runs in by_kind[kind].items()]
+            tables.append(Table(table_name, title, rows, kind=kind))
+    where = ", ".join(map(str, paths))
+    if skipped and not any(r.data is not None for t in tables for row in t.rows for r in row.runs):
+        if len(skipped) == 1:
+            raise DataError(skipped[0])
+        raise DataError(
+            f"{where}: no result could be read ({len(skipped)} unreadable; first: {skipped[0]})"
+        )
     if not tables or not any(r.runs for t in tables for r in t.rows):
-        raise DataError(f"{', '.join(map(str, paths))}: no result.json found")
+        raise DataError(f"{where}: no result.json found")
+    for message in skipped:
+        assert warn is not None
+        warn(f"{message}; skipped")
     return tables
 
 
@@ -376,6 +478,166 @@ def table_lines(table: Table) -> list[Line]:
     return lines
 
 
+# --------------------------------------------------------------------------- IMU results
+@dataclass(frozen=True)
+class ImuSummary:
+    """A row of ``casmag imu`` results: position RMSE and max error [m] of the IMU-only
+    adjustment (every run that has them) and of GP-SLAM (solved runs only), IPOPT
+    statuses, flagged runs and mean iterations of each stage."""
+
+    row: Row
+    imu_only: Stats
+    imu_only_max: Stats
+    gp_slam: Stats
+    gp_slam_max: Stats
+    solved: int
+    statuses: Counter
+    flagged: int
+    iterations_imu_only: float | None
+    iterations: float | None
+
+    @classmethod
+    def of(cls, row: Row) -> ImuSummary:
+        runs = [r.data for r in row.runs if r.data is not None]
+        solved = [d for d in runs if d["success"]]
+
+        def values(ds: list[dict[str, Any]], stage: str, key: str) -> list[float]:
+            out = []
+            for d in ds:
+                v = d["errors"][stage].get(key)
+                if v is not None:
+                    out.append(float(v))
+            return out
+
+        def mean(key: str) -> float | None:
+            v = [float(d[key]) for d in runs if isinstance(d.get(key), (int, float))]
+            return statistics.fmean(v) if v else None
+
+        return cls(
+            row=row,
+            imu_only=Stats.of(values(runs, "imu_only", "rmse")),
+            imu_only_max=Stats.of(values(runs, "imu_only", "max")),
+            gp_slam=Stats.of(values(solved, "gp_slam", "rmse")),
+            gp_slam_max=Stats.of(values(solved, "gp_slam", "max")),
+            solved=len(solved),
+            statuses=Counter(str(d["status"]) for d in runs),
+            flagged=sum(bool(d.get("flags")) for d in runs),
+            iterations_imu_only=mean("iterations_imu_only"),
+            iterations=mean("iterations"),
+        )
+
+    def status_text(self) -> str:
+        text = f"{self.solved}/{len(self.row.runs)} solved"
+        notes = [f"{s} x{n}" for s, n in sorted(self.statuses.items())]
+        if self.flagged:
+            notes.append(f"flagged x{self.flagged}")
+        return text + (f" ({', '.join(notes)})" if notes else "")
+
+    def iterations_text(self) -> str:
+        return f"{_m(self.iterations_imu_only, 1)} + {_m(self.iterations, 1)}"
+
+
+def imu_markdown_table(table: Table) -> str:
+    """``casmag imu`` results in markdown: IMU-only and GP-SLAM position RMSE [m] (mean and
+    worst over the runs of a problem name), the runs' IPOPT statuses and iterations."""
+    head = [
+        "",
+        "IMU-only RMSE [m] mean",
+        "worst",
+        "GP-SLAM RMSE [m] mean",
+        "worst",
+        "status",
+        "iterations (IMU only + GP-SLAM)",
+    ]
+    out = [f"### {_heading(table)}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in table.rows:
+        s = ImuSummary.of(row)
+        cells = [
+            row.label,
+            _m(s.imu_only.mean),
+            _m(s.imu_only.worst),
+            _m(s.gp_slam.mean),
+            _m(s.gp_slam.worst),
+            s.status_text(),
+            s.iterations_text(),
+        ]
+        out.append("| " + " | ".join(cells) + " |")
+    out += [
+        "",
+        "Position errors in metres against the truth, no alignment, of the IMU-only adjustment "
+        "and of GP-SLAM (`casmag imu`); GP-SLAM statistics over the solved runs only; "
+        "'iterations' are the mean IPOPT iteration counts of the two stages.",
+        "",
+    ]
+    return "\n".join(out)
+
+
+def imu_latex_table(table: Table) -> str:
+    """``casmag imu`` results as a LaTeX ``table`` (the columns of imu_markdown_table)."""
+    out = [
+        r"\begin{table}[htbp]",
+        r"\centering",
+        r"\begin{tabular}{lrrrrl}",
+        r"\hline",
+        r" & IMU-only RMSE [m] & worst & GP-SLAM RMSE [m] & worst & solved \\",
+        r"\hline",
+    ]
+    for row in table.rows:
+        s = ImuSummary.of(row)
+        cells = [
+            _latex_label(row.label),
+            _m(s.imu_only.mean),
+            _m(s.imu_only.worst),
+            _m(s.gp_slam.mean),
+            _m(s.gp_slam.worst),
+            _latex_label(s.status_text()),
+        ]
+        out.append(" & ".join(cells) + r" \\")
+    caption = _latex_label(_heading(table)) + ": position errors against truth, no alignment."
+    out += [r"\hline", r"\end{tabular}", rf"\caption{{{caption}}}", rf"\label{{tab:{table.name}}}"]
+    out += [r"\end{table}", ""]
+    return "\n".join(out)
+
+
+def _imu_csv_rows(table: Table) -> list[list[Any]]:
+    rows = []
+    for row in table.rows:
+        s = ImuSummary.of(row)
+        failed = {k: n for k, n in s.statuses.items() if k != "Solve_Succeeded"}
+        for line, rmse, worst, iters in (
+            ("imu_only", s.imu_only, s.imu_only_max, s.iterations_imu_only),
+            ("gp_slam", s.gp_slam, s.gp_slam_max, s.iterations),
+        ):
+            rows.append(
+                [
+                    table.name,
+                    row.key,
+                    line,
+                    row.label,
+                    len(row.runs),
+                    s.solved,
+                    len(row.runs) - s.solved,
+                    0,
+                    0,
+                    ";".join(f"{k}:{n}" for k, n in sorted(failed.items())),
+                    _num(rmse.mean),
+                    _num(rmse.std),
+                    _num(rmse.worst),
+                    _num(worst.mean),
+                    _num(worst.std),
+                    _num(worst.worst),
+                    "",
+                    "",
+                    "",
+                    "",
+                    _num(iters),
+                    "",
+                    "",
+                ]
+            )
+    return rows
+
+
 def _m(value: float | None, digits: int = 4) -> str:
     return "n/a" if value is None else f"{value:.{digits}f}"
 
@@ -407,6 +669,8 @@ def _heading(table: Table) -> str:
 
 def markdown_table(table: Table, figures: dict[str, str] | None = None) -> str:
     """One table in markdown; with ``figures`` ({kind: relative path}) links to them."""
+    if table.kind == "imu":
+        return imu_markdown_table(table)
     has_paper = table.paper is not None
     lines = table_lines(table)
     out = [f"### {_heading(table)}", ""]
@@ -532,6 +796,9 @@ def csv_text(tables: list[Table]) -> str:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_COLUMNS)
     for t in tables:
+        if t.kind == "imu":
+            w.writerows(_imu_csv_rows(t))
+            continue
         for ln in table_lines(t):
             s = ln.summary
             target = s.target() if ln.kind == "after" else None
@@ -599,6 +866,8 @@ def _latex_label(text: str) -> str:
 def latex_table(table: Table) -> str:
     """One table as a LaTeX ``table`` (plain tabular, no extra packages): mean +- std and
     worst per error, the paper's value and the ratio ours/paper."""
+    if table.kind == "imu":
+        return imu_latex_table(table)
     has_paper = table.paper is not None
     cols = "l" + ("rrrr" if has_paper else "rr") * 2 + "r"
     head = [r"RMSE [m]", "worst"] + (["paper", "ratio"] if has_paper else [])
@@ -876,6 +1145,8 @@ def write_report(tables: list[Table], out_file: Path, figures: bool = True) -> l
         staged: list[tuple[Path, Path]] = []
         if figures:
             for t in tables:
+                if t.kind != "slam":  # IMU results: their own figures are in their folders
+                    continue
                 for kind, draw in FIGURES.items():
                     name = f"{t.name}_{kind}.png"
                     if draw(t, tmp / name):

@@ -22,6 +22,7 @@ import itertools
 import json
 import os
 import re
+import signal
 import sys
 import tempfile
 import threading
@@ -36,8 +37,9 @@ from typing import TYPE_CHECKING, Annotated, Any
 import click
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from casmag import interrupt
 from casmag.clitools import EXIT_BAD_INPUT, EXIT_SOLVER_FAILED, fail
-from casmag.config import Problem, load_problem, parse_override, read_yaml
+from casmag.config import Problem, as_overrides, load_problem, parse_override, read_yaml
 from casmag.errors import CasmagError, ProblemError, one_line
 from casmag.interrupt import Interrupted
 from casmag.outdir import check_output_dir, save_atomic
@@ -249,8 +251,8 @@ def load_sweep(
     out_dir: str | Path,
     seeds: int = 20,
     first_seed: int | None = None,
-    grid: Sequence[str] = (),
-    overrides: Sequence[str] = (),
+    grid: str | Sequence[str] = (),
+    overrides: str | Sequence[str] = (),
 ) -> SweepPlan:
     """Plan a sweep from a problem file or a table file (one with ``rows``).
 
@@ -260,6 +262,7 @@ def load_sweep(
     Raises ProblemError naming the file (or option), the field and the reason.
     """
     path = Path(path)
+    grid, overrides = as_overrides(grid), as_overrides(overrides)
     data = read_yaml(path)
     src = str(path)
     grids = [parse_grid(g) for g in grid]
@@ -459,6 +462,7 @@ def run_task(task: RunTask, save: bool = True) -> RunOutcome:
         with _SOLVE_LOCK:
             problem = load_problem(task.problem, source=task.source)
             result = solve(problem)
+        interrupt.check()  # a pool worker being stopped: not saved (casmag.interrupt)
         if save:
             result.save(task.out_dir, figures=task.figures)
     except Exception as exc:  # reported per run, never raised into the pool
@@ -526,11 +530,84 @@ def default_jobs() -> int:
         return os.cpu_count() or 1
 
 
+#: Seconds a worker has to stop after the sweep is interrupted (its solve stops at IPOPT's
+#: next iteration, a save in progress completes or is undone) before it is killed.
+STOP_GRACE = 5.0
+
+
+def _worker_init() -> None:
+    """In each pool worker: Ctrl-C (SIGINT, sent to the whole process group by a terminal)
+    is left to the parent, which stops the workers with SIGTERM; SIGTERM is recorded
+    (casmag.interrupt, deferred): IPOPT stops at its next iteration, the run is not saved,
+    and :func:`_call` ends the worker."""
+    interrupt.install(defer=True)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _call(fn: Callable[[Any], Any], item: Any) -> Any:
+    """``fn(item)`` in a pool worker; an interrupted worker exits at once (it must not go
+    on to a queued run)."""
+    try:
+        result = fn(item)
+        interrupt.check()
+        return result
+    except Interrupted as exc:
+        os._exit(exc.exit_code)
+
+
+@contextlib.contextmanager
+def _sigint_blocked() -> Iterator[None]:
+    """Hold back SIGINT in this thread while worker processes are started: a worker
+    inherits the blocked signal (so a Ctrl-C never interrupts its start-up), and a Ctrl-C
+    meanwhile reaches this process once it is unblocked."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _stop_pool(pool: Any) -> None:
+    """Stop a process pool now: queued runs are cancelled, running ones are sent SIGTERM
+    and killed after STOP_GRACE seconds. Further signals wait until it is done."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    main = threading.current_thread() is threading.main_thread()
+    stops = {signal.SIGINT, signal.SIGTERM}
+    saved = signal.pthread_sigmask(signal.SIG_BLOCK, stops) if main else None
+    try:
+        for p in procs:
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                p.terminate()
+        deadline = time.monotonic() + STOP_GRACE
+        for p in procs:
+            with contextlib.suppress(OSError, ValueError, AttributeError, AssertionError):
+                p.join(max(0.0, deadline - time.monotonic()))
+        for p in procs:
+            with contextlib.suppress(OSError, ValueError, AttributeError, AssertionError):
+                if p.is_alive():
+                    p.kill()
+                    p.join(1.0)
+    finally:
+        if saved is not None:
+            # Signals that arrived meanwhile are dropped: the sweep is stopping already.
+            for sig in signal.sigpending() & stops:
+                previous = signal.signal(sig, signal.SIG_IGN)
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, {sig})
+                signal.signal(sig, previous)
+            signal.pthread_sigmask(signal.SIG_SETMASK, saved)
+
+
 def local_map(
     fn: Callable[[Any], Any], items: Sequence[Any], jobs: int, on_done: Callable[[Any], None]
 ) -> None:
     """Call ``fn`` on every item in a pool of ``jobs`` spawned, single-threaded processes and
-    hand each return value to ``on_done`` as it arrives (in completion order)."""
+    hand each return value to ``on_done`` as it arrives (in completion order). An exception
+    or a signal (Ctrl-C, SIGTERM) in the caller stops the pool at once (:func:`_stop_pool`)
+    and is raised; what ``on_done`` has been given is kept."""
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
@@ -538,13 +615,15 @@ def local_map(
     if not items:
         return
     ctx = multiprocessing.get_context("spawn")
-    with single_threaded_environment():
-        pool = ProcessPoolExecutor(max_workers=min(jobs, len(items)), mp_context=ctx)
+    with single_threaded_environment(), _sigint_blocked():
+        pool = ProcessPoolExecutor(
+            max_workers=min(jobs, len(items)), mp_context=ctx, initializer=_worker_init
+        )
         try:
             # Spawned workers start during the first submits, inside this environment.
-            pending = {pool.submit(fn, item) for item in items}
+            pending = {pool.submit(_call, fn, item) for item in items}
         except BaseException:
-            pool.shutdown(wait=False, cancel_futures=True)
+            _stop_pool(pool)
             raise
     try:
         while pending:
@@ -552,10 +631,10 @@ def local_map(
             for fut in done:
                 on_done(fut.result())
     except BrokenProcessPool as exc:
-        pool.shutdown(wait=False, cancel_futures=True)
+        _stop_pool(pool)
         raise SweepAborted(f"a worker process died ({exc}); saved runs are kept") from None
     except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
+        _stop_pool(pool)
         raise
     pool.shutdown(wait=True)
 

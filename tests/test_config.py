@@ -347,3 +347,41 @@ def test_problem_files_exist():
 def test_shipped_problem_loads(path):
     problem = load_problem(path)
     assert problem.source == str(path)
+
+
+# --------------------------------------------------------------------------- one override string
+def test_one_override_string_is_one_override(tmp_path):
+    base = REPO_ROOT / "problems/paper/base.yaml"
+    assert load_problem(base, overrides="seed=3").spec.seed == 3
+    problem = load_problem({"seed": 1}, "simulation.trajectory.samples=12")
+    assert problem.spec.simulation.trajectory.samples == 12
+    assert load_problem(problem, "seed=5").spec.seed == 5
+    assert problem.with_overrides("seed=4").spec.seed == 4
+    assert load_problem(base, None).spec.seed == 1
+
+
+def test_one_override_string_in_the_other_entry_points(tmp_path):
+    from casmag.api import slam
+    from casmag.imuconfig import load_imu_problem
+    from casmag.sweep import load_sweep
+
+    imu = yaml.safe_load((REPO_ROOT / "problems/imu/rectangle.yaml").read_text())
+    assert load_imu_problem(imu, "seed=5").spec.seed == 5
+    plan = load_sweep(
+        REPO_ROOT / "problems/paper/base.yaml",
+        tmp_path / "out",
+        seeds=1,
+        overrides="simulation.trajectory.samples=12",
+        grid="model.gp.jitter=1.0e-6,1.0e-5",
+    )
+    assert [row.problem["simulation"]["trajectory"]["samples"] for row in plan.rows] == [12, 12]
+    assert len(plan.rows) == 2
+    with pytest.raises(ProblemError) as info:
+        slam(tmp_path / "never-read.csv", overrides="seed=3")
+    assert info.value.field == "seed" and "no meaning for a recording" in info.value.reason
+
+
+@pytest.mark.parametrize("bad", [3, b"seed=3", ["seed=3", 4], {"seed": 3}], ids=repr)
+def test_overrides_that_are_not_strings_are_a_type_error(bad):
+    with pytest.raises(TypeError, match="overrides must be"):
+        load_problem({"seed": 1}, bad)

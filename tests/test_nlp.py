@@ -38,3 +38,19 @@ def test_stop_when_stalled_leaves_a_converging_solve_alone():
     sol = nlp.solve({"a": 1e12}, {"x": np.array([0.5, 1.0])}, stop_when_stalled=True)
     assert sol.status == "Solve_Succeeded" and sol.rounds == 1
     assert ca.__version__  # the solver ran in this CasADi
+
+
+def test_an_ipopt_opt_file_in_the_working_folder_is_not_read(tmp_path, monkeypatch):
+    """Options come from the problem file only (where they are checked): an ipopt.opt in
+    the working folder that would stop IPOPT after one iteration is ignored."""
+    monkeypatch.chdir(tmp_path)
+    b = NLPBuilder()
+    x = b.variable("x", (2, 1))
+    a = b.parameter("a", (1, 1))
+    b.cost("rosenbrock", (1 - x[0]) ** 2 + a * (x[1] - x[0] ** 2) ** 2)
+    nlp = b.build(SolverSpec(tol=1e-8, max_iter=200))
+    plain = nlp.solve({"a": 100.0}, {"x": np.array([-1.2, 1.0])})
+    (tmp_path / "ipopt.opt").write_text("max_iter 1\n")
+    again = nlp.solve({"a": 100.0}, {"x": np.array([-1.2, 1.0])})
+    assert plain.status == again.status == "Solve_Succeeded"
+    assert again.iterations == plain.iterations > 1
