@@ -940,6 +940,7 @@ class ImuSolution:
     slam_passes: list[ImuSolveStage] = field(default_factory=list)
     evidence: FieldEvidence | None = None
     fallback: bool = False
+    schedules: list[dict[str, Any]] = field(default_factory=list)
 
 
 def solve_imu_stages(
@@ -1020,6 +1021,27 @@ def solve_imu_stages(
         if not st.solution.success:
             break
         prev = st
+    # The coarse-to-fine schedule when the anneal schedule failed or fits badly; the lower
+    # final MAP cost is kept (both end in the same problem: sigma_m and lengthscale x1).
+    schedules = [_schedule_record("anneal", passes, K)]
+    if m.gp.coarse_to_fine is not None and (
+        not passes[-1].solution.success or schedules[0]["misfit"] > m.gp.refit_misfit
+    ):
+        alt, s2_alt, size_alt = [], s2, size
+        prev = st1
+        for f in m.gp.coarse_to_fine:
+            st, s2_alt, size_alt = _slam_pass(
+                problem, data, kf, base, prev, _coarser(m.gp.kernel, hyper, f), f, progress
+            )
+            alt.append(st)
+            if not st.solution.success:
+                break
+            prev = st
+        schedules.append({**_schedule_record("coarse_to_fine", alt, K), "kept": False})
+        a, b = passes[-1].solution, alt[-1].solution
+        if b.success and (not a.success or b.objective < a.objective):
+            passes, s2, size = alt, s2_alt, size_alt
+            schedules[1]["kept"], schedules[0]["kept"] = True, False
     estimated = "estimate" in (m.gp.sigma_f, m.gp.lengthscale)
     for _ in range(m.gp.refine if estimated else 0):
         if not passes[-1].solution.success:
@@ -1039,8 +1061,53 @@ def solve_imu_stages(
         )
         fallback = evidence.homogeneous
     return ImuSolution(
-        s2, kf, strap, st1, passes[-1], hyper, source, size, passes, evidence, fallback
+        s2, kf, strap, st1, passes[-1], hyper, source, size, passes, evidence, fallback,
+        schedules,
+    )  # fmt: skip
+
+
+def _coarser(kernel: str, hyper: dict[str, float], factor: float) -> dict[str, float]:
+    """The hyperparameters with the lengthscale times ``factor`` and sigma_f scaled so that
+    the field's variance is unchanged (sigma_f^2 / l^2 for curl-free, sigma_f^2 for se)."""
+    if factor == 1.0:
+        return hyper
+    kern = get_kernel(kernel)
+    ell = hyper["lengthscale"]
+    ratio = kern.variance(1.0, ell) / kern.variance(1.0, factor * ell)
+    return {**hyper, "lengthscale": factor * ell, "sigma_f": hyper["sigma_f"] * ratio**0.5}
+
+
+def _schedule_record(name: str, passes: list[ImuSolveStage], K: int) -> dict[str, Any]:
+    """One GP-SLAM schedule's outcome: its last solve's status and MAP cost, the cost per
+    magnetometer component (``misfit``), iterations per solve (a grown pass: each of its
+    solves)."""
+    sol = passes[-1].solution
+    solves = [g for p in passes for g in (p.grow or [_solve_record(p)])]
+    return {
+        "schedule": name,
+        "status": sol.status,
+        "success": bool(sol.success),
+        "cost": float(sol.objective),
+        "misfit": float(sol.objective) / (FIELD_DIM * K),
+        "iterations": [g["iterations"] for g in solves],
+        "solve_seconds": float(sum(g["solve_seconds"] for g in solves)),
+        "passes": len(passes),
+        "kept": True,
+    }
+
+
+def _slam_seconds(res: ImuSolution) -> float:
+    """Seconds of every GP-SLAM solve: each schedule's (kept or not), then the refine
+    passes after the kept one."""
+    kept = next(r for r in res.schedules if r["kept"])
+    refine = res.slam_passes[kept["passes"] :]
+    return sum(r["solve_seconds"] for r in res.schedules) + sum(
+        p.solution.solve_seconds for p in refine
     )
+
+
+def _solve_record(p: ImuSolveStage) -> dict[str, Any]:
+    return {"iterations": p.solution.iterations, "solve_seconds": p.solution.solve_seconds}
 
 
 def _hyperparameters(
@@ -1380,6 +1447,7 @@ class ImuResult:
     cost_per_iteration: list[float]
     cost_per_iteration_imu_only: list[float]
     field_evidence: dict[str, Any] | None = None
+    schedules: list[dict[str, Any]] = field(default_factory=list)
     map_decision: str = "map"
     flags: list[dict[str, Any]] = field(default_factory=list)
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
@@ -1691,13 +1759,8 @@ def solve_imu(
         + sum(
             g["build_seconds"] for p in res.slam_passes for g in p.grow if g["keyframes"] < idx.size
         ),
-        # A grown pass counts its prefix stages' seconds too.
-        solve_seconds=sum(
-            sum(g["solve_seconds"] for g in p.grow) if p.grow else p.solution.solve_seconds
-            for p in res.slam_passes
-        )
-        if res.slam_passes
-        else s1.solution.solve_seconds,
+        # Every schedule's solves (a grown pass: each prefix's), kept or not.
+        solve_seconds=_slam_seconds(res) if res.schedules else s1.solution.solve_seconds,
         solve_seconds_imu_only=s1.solution.solve_seconds,
         gp_slam_passes=[
             {
@@ -1726,6 +1789,7 @@ def solve_imu(
         cost_per_iteration=final.solution.cost_per_iteration,
         cost_per_iteration_imu_only=s1.solution.cost_per_iteration,
         field_evidence=None if res.evidence is None else res.evidence.to_dict(),
+        schedules=res.schedules,
         map_decision=decision,
         flags=flags,
         arrays=arrays,

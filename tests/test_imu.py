@@ -390,6 +390,49 @@ def test_homogeneous_field_keeps_the_imu_only_adjustment(tmp_path):
     assert "no position information" in (out / "biases.md").read_text()
 
 
+@pytest.mark.parametrize("kernel", ["curl_free", "se"])
+def test_coarser_hyperparameters_keep_the_field_variance(kernel):
+    from casmag.imuslam import _coarser
+    from casmag.kernels import get_kernel
+
+    hyper = {"sigma_f": 0.03, "lengthscale": 0.1, "sigma_m": 0.004}
+    c = _coarser(kernel, hyper, 4.0)
+    assert c["lengthscale"] == pytest.approx(0.4) and c["sigma_m"] == hyper["sigma_m"]
+    kern = get_kernel(kernel)
+    assert kern.variance(c["sigma_f"], 0.4) == pytest.approx(kern.variance(0.03, 0.1))
+    assert _coarser(kernel, hyper, 1.0) == hyper
+
+
+def test_both_schedules_run_and_the_lower_cost_is_kept():
+    """refit_misfit 0: the coarse-to-fine schedule ([4, 2, 1]) runs beside the anneal one on
+    the noise-free rectangle; both reach the truth's optimum, the kept one has the lower
+    MAP cost, and the result's passes are its passes."""
+    data = _noise_free(_tiny(gp={"sigma_f": 0.3, "lengthscale": 0.2, "num_basis": 400}))
+    data["simulation"]["scenario"]["loops"] = 2
+    data["model"]["imu"]["bias"] = "constant"
+    data["model"]["zero_position"] = {"sigma": 1.0}
+    data["model"]["gp"]["refit_misfit"] = 0.0
+    r = solve_imu(load_imu_problem(data))
+    assert r.success, r.status
+    names = [s["schedule"] for s in r.schedules]
+    assert names == ["anneal", "coarse_to_fine"]
+    kept = [s for s in r.schedules if s["kept"]]
+    assert len(kept) == 1 and kept[0]["cost"] == min(s["cost"] for s in r.schedules)
+    assert [len(s["iterations"]) for s in r.schedules] == [2, 3]
+    assert len(r.gp_slam_passes) == kept[0]["passes"]
+    # Measured: anneal 12 + 13, coarse-to-fine 39 + 43 + 35 (its first passes fit a map
+    # four and two times smoother than the field).
+    assert all(s["success"] for s in r.schedules), r.schedules
+    assert max(r.schedules[0]["iterations"]) <= 20 and max(r.schedules[1]["iterations"]) <= 60
+    assert np.abs(r.arrays["P_estimate"] - r.arrays["P_true"]).max() < 1e-3
+
+
+def test_coarse_to_fine_must_end_at_one():
+    data = _tiny(gp={"coarse_to_fine": [4.0, 2.0]})
+    with pytest.raises(ProblemError, match="coarse_to_fine"):
+        load_imu_problem(data)
+
+
 @pytest.mark.slow
 def test_rectangle_meets_the_done_criteria():
     """problems/imu/rectangle.yaml (about a minute): GP-SLAM error at most 1/5 of the

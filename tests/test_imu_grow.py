@@ -76,10 +76,11 @@ def test_continuation_joins_the_prefix_rigidly():
     assert out["W"] is W and out["c"] is c
 
 
-def _noise_free_rectangle_data(grow, grow_anneal=False, form="reduced_rank"):
+def _noise_free_rectangle_data(grow, grow_anneal=False, form="reduced_rank", **more):
     """The noise-free rectangle of test_imu (traced twice, constant biases, 400 basis
-    functions or the exact GP, sigma_m x4 then x1) with model.gp.grow."""
-    gp = {"sigma_f": 0.3, "lengthscale": 0.2, "grow": grow, "grow_anneal": grow_anneal}
+    functions or the exact GP, sigma_m x4 then x1) with model.gp.grow (and ``more``
+    model.gp settings)."""
+    gp = {"sigma_f": 0.3, "lengthscale": 0.2, "grow": grow, "grow_anneal": grow_anneal, **more}
     gp.update({"num_basis": 400} if form == "reduced_rank" else {"form": form})
     data = _noise_free(_tiny(gp=gp))
     data["simulation"]["scenario"]["loops"] = 2
@@ -88,8 +89,8 @@ def _noise_free_rectangle_data(grow, grow_anneal=False, form="reduced_rank"):
     return data
 
 
-def _noise_free_rectangle(grow, grow_anneal=False, form="reduced_rank"):
-    return solve_imu(load_imu_problem(_noise_free_rectangle_data(grow, grow_anneal, form)))
+def _noise_free_rectangle(grow, grow_anneal=False, form="reduced_rank", **more):
+    return solve_imu(load_imu_problem(_noise_free_rectangle_data(grow, grow_anneal, form, **more)))
 
 
 @pytest.mark.parametrize(
@@ -156,7 +157,7 @@ def test_failed_prefix_is_reported_with_its_status(monkeypatch):
     """A prefix that fails (other than at the iteration limit) stops the pipeline: that is
     the result, with IPOPT's status."""
     _failing_first_solve(monkeypatch)
-    r = _noise_free_rectangle([0.5, 1.0])
+    r = _noise_free_rectangle([0.5, 1.0], coarse_to_fine=None)
     assert r.status_imu_only == "Solve_Succeeded"
     assert not r.success and r.status == "Restoration_Failed"
     assert r.failed_stage == "gp_slam" and r.errors["gp_slam"]["rmse"] is None
@@ -165,6 +166,18 @@ def test_failed_prefix_is_reported_with_its_status(monkeypatch):
     assert only["status"] == "Restoration_Failed"
     assert [g["keyframes"] for g in only["grow"]] == [round(r.info["keyframes"] / 2)]
     assert only["grow"][0]["success"] is False
+
+
+def test_a_failed_schedule_is_recorded_and_the_coarse_to_fine_one_kept(monkeypatch):
+    """The same failure with the coarse-to-fine schedule on (the default): it runs, reaches
+    the truth, and is the result; the failed anneal schedule is recorded with its status."""
+    _failing_first_solve(monkeypatch)
+    r = _noise_free_rectangle([0.5, 1.0])
+    assert r.success, r.status
+    anneal, c2f = r.schedules
+    assert anneal["status"] == "Restoration_Failed" and not anneal["kept"]
+    assert c2f["success"] and c2f["kept"] and len(r.gp_slam_passes) == 3
+    assert np.abs(r.arrays["P_estimate"] - r.arrays["P_true"]).max() < 1e-3
 
 
 def test_command_names_the_failed_prefix(tmp_path, monkeypatch):
@@ -177,7 +190,7 @@ def test_command_names_the_failed_prefix(tmp_path, monkeypatch):
 
     _failing_first_solve(monkeypatch)
     path = tmp_path / "p.yaml"
-    path.write_text(yaml.safe_dump(_noise_free_rectangle_data([0.5, 1.0])))
+    path.write_text(yaml.safe_dump(_noise_free_rectangle_data([0.5, 1.0], coarse_to_fine=None)))
     out = tmp_path / "out"
     res = CliRunner().invoke(imu_command, [str(path), "--out", str(out), "-q"])
     assert res.exit_code == 1
