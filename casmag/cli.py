@@ -267,4 +267,4 @@ main.add_command(sweep_command)
 main.add_command(imu_command)
 
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    main(prog_name="casmag")

@@ -19,6 +19,7 @@ EXIT_SOLVER_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_UNTRUSTED = 3  # solved, but the result is flagged (e.g. a wrong optimum)
 # Interrupted by a signal: 128 + its number (130 SIGINT / Ctrl-C, 143 SIGTERM).
+EXIT_INTERRUPTED = 130
 
 
 def fail(message: str, code: int) -> NoReturn:
@@ -47,6 +48,18 @@ def print_progress(k: int, cost: float, step: float, seconds: float) -> None:
     click.echo(f"  iter {k:4d}  cost {cost:.6e}  step {step:.2e}  {seconds:7.2f} s", err=True)
 
 
+def distinct_set_keys(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
+    """Callback of ``--set``: a key given twice is refused (the later would silently win,
+    as a key given twice in a YAML file would)."""
+    seen: set[str] = set()
+    for text in value or ():
+        key = text.partition("=")[0].strip()
+        if key in seen:
+            raise click.BadParameter(f"{key} is given twice", ctx=ctx, param=param)
+        seen.add(key)
+    return value
+
+
 def output_options(command: Callable[..., Any]) -> Callable[..., Any]:
     """--out DIR (required), --set KEY.PATH=VALUE (repeatable), --no-figures, --quiet."""
     options = [
@@ -62,6 +75,7 @@ def output_options(command: Callable[..., Any]) -> Callable[..., Any]:
             "overrides",
             multiple=True,
             metavar="KEY.PATH=VALUE",
+            callback=distinct_set_keys,
             help="Override a problem-file value (YAML syntax); repeatable.",
         ),
         click.option("--no-figures", is_flag=True, help="Skip the PNG figures."),
@@ -86,6 +100,23 @@ def output_options(command: Callable[..., Any]) -> Callable[..., Any]:
 class CasmagGroup(click.Group):
     """The command group: Ctrl-C and SIGTERM stop any command cleanly (casmag.interrupt):
     one line, the previous output kept, exit 130 or 143."""
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        """Click's main; a usage error (unknown option, a value out of its range, a missing
+        argument) is one line naming the option and the command's help, exit 2, like
+        every other bad input."""
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except click.UsageError as exc:
+            where = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+            fail(" ".join(exc.format_message().split()) + where, exc.exit_code)
+        except click.ClickException as exc:
+            fail(" ".join(exc.format_message().split()), exc.exit_code)
+        except click.Abort:
+            fail("aborted", EXIT_INTERRUPTED)
+        sys.exit(rv if isinstance(rv, int) else 0)
 
     def invoke(self, ctx: click.Context) -> Any:
         interrupt.install()

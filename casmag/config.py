@@ -624,8 +624,17 @@ def _yaml(text: str) -> Any:
         loader.dispose()
 
 
+#: Parts of a pydantic error location that name the member of a union (``float`` in
+#: ``solver.ipopt.mu_init.float``), not a key.
+_UNION_TAG = re.compile(
+    r"(float|int|str|bool|none|(literal|list|dict|function-\w+|constrained-\w+|is-instance)\[.*\])"
+)
+
+
 def _format_loc(loc: tuple[Any, ...]) -> str:
-    return ".".join(str(part) for part in loc)
+    return ".".join(
+        str(part) for i, part in enumerate(loc) if i == 0 or not _UNION_TAG.fullmatch(str(part))
+    )
 
 
 def _validation_error(source: str, err: ValidationError) -> ProblemError:

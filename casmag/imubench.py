@@ -221,7 +221,8 @@ def table(summary: dict[str, Any], vers: dict[str, Any]) -> str:
         f"adjustment's (map solved) or within {HOMOGENEOUS_TOLERANCE:.0%} of it (field found "
         "homogeneous). Iterations are those of the kept GP-SLAM schedule's solves; the last "
         "column counts the runs whose anneal schedule failed or fitted badly, so that the "
-        "coarse-to-fine schedule ran too, and those where it reached the lower MAP cost."
+        "coarse-to-fine schedule ran too, and those where it was kept (final MAP cost lower by "
+        "more than 5 %)."
     )
     return "\n".join(lines) + f"\n\n{crit}\n\nVersions: {v}.\n"
 

@@ -38,7 +38,7 @@ import click
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from casmag import interrupt
-from casmag.clitools import EXIT_BAD_INPUT, EXIT_SOLVER_FAILED, fail
+from casmag.clitools import EXIT_BAD_INPUT, EXIT_SOLVER_FAILED, distinct_set_keys, fail
 from casmag.config import Problem, as_overrides, load_problem, parse_override, read_yaml
 from casmag.errors import CasmagError, ProblemError, one_line
 from casmag.interrupt import Interrupted
@@ -782,6 +782,7 @@ def run_sweeps(
     "overrides",
     multiple=True,
     metavar="KEY.PATH=VALUE",
+    callback=distinct_set_keys,
     help="Override a problem-file value for every run; repeatable.",
 )
 @click.option(

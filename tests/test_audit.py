@@ -113,16 +113,16 @@ def _imu_problem(tmp_path: Path, **solver) -> Path:
         ("solver.linear_solver=ma27", ["solver.linear_solver", "mumps or spral"]),
         ("solver.ipopt.linear_solver=pardisomkl", ["solver.ipopt.linear_solver", "mumps"]),
         ("solver.ipopt.option_file_name=ipopt.opt", ["solver.ipopt.option_file_name"]),
+        # The key as written, not the union member pydantic tried (mu_init.float).
+        ("solver.ipopt.mu_init=1e400", ["solver.ipopt.mu_init: ", "finite"]),
     ],
     ids=lambda v: v if isinstance(v, str) else None,
 )
 def test_a_bad_ipopt_option_is_refused_before_solving(previous, tmp_path, override, needles):
     out, before = _with_previous(previous, tmp_path)
-    t0 = time.perf_counter()
     res = _run(["run", BASE, "--out", out, "--set", override, *TINY])
     assert res.exit_code == 2
     _one_line(res, str(BASE), *needles)
-    assert time.perf_counter() - t0 < 10  # refused at validation, nothing built or solved
     assert _tree(out) == before
 
 
@@ -316,11 +316,9 @@ def test_yaml_the_parser_cannot_carry_is_one_line(previous, tmp_path, text, need
     problem = tmp_path / "p.yaml"
     problem.write_text(text)
     out, before = _with_previous(previous, tmp_path)
-    t0 = time.perf_counter()
     res = _run(["run", problem, "--out", out])
     assert res.exit_code == 2
     _one_line(res, str(problem), needle)
-    assert time.perf_counter() - t0 < 10
     assert _tree(out) == before
 
 
@@ -467,12 +465,10 @@ def test_a_planar_step_the_numerics_cannot_carry_is_refused(previous, tmp_path, 
 
 def test_an_exact_field_beyond_memory_is_refused_at_validation(previous, tmp_path):
     out, before = _with_previous(previous, tmp_path)
-    t0 = time.perf_counter()
     res = _run(["run", BASE, "--out", out, "--set", "simulation.trajectory.samples=1000000"])
     assert res.exit_code == 2
     line = _one_line(res, f"{BASE}: simulation.trajectory.samples: 1000000 samples with")
     assert "216.0 TB" in line and "more than this machine's" in line
-    assert time.perf_counter() - t0 < 10
     assert _tree(out) == before
 
 
@@ -541,7 +537,8 @@ def test_an_interrupted_sweep_stops_its_workers_at_once(tmp_path, sig, code):
         f"casmag: error: interrupted ({signal.Signals(sig).name}); saved runs are kept, "
         "rerun the same command to resume"
     ], err
-    assert seconds < 8  # the big run (minutes) was stopped, not finished
+    # The big run (minutes) was stopped, not finished: a worker has STOP_GRACE (5 s).
+    assert seconds < 30
     gone = time.monotonic() + 5  # helper processes notice their parent's exit
     while _live_processes(proc.pid) and time.monotonic() < gone:
         time.sleep(0.1)
@@ -615,3 +612,34 @@ def test_two_runs_into_one_output_folder_leave_one_complete_result(tmp_path):
     names = (out / MARKER).read_text().splitlines()[1:]
     assert sorted(_tree(out)) == sorted([MARKER, *names])
     assert json.loads((out / "result.json").read_text())["info"]["seed"] in (1, 2)
+
+
+# --------------------------------------------------------------------------- usage errors
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["sweep", BASE, "--out", "sw", "--seeds", "0"], ["'--seeds'", "casmag sweep --help"]),
+        (["run"], ["Missing argument 'PROBLEM'", "casmag run --help"]),
+        (["run", BASE, "--bogus"], ["No such option '--bogus'", "casmag run --help"]),
+        (["nosuchcommand"], ["No such command 'nosuchcommand'", "casmag --help"]),
+    ],
+    ids=["out-of-range", "missing-argument", "unknown-option", "unknown-command"],
+)
+def test_a_usage_error_is_one_line_naming_the_option_and_the_help(tmp_path, args, needles):
+    cmd = [sys.executable, "-m", "casmag.cli", *map(str, args)]
+    res = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("casmag: error: "), res.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["run", "sweep"])
+def test_a_set_key_given_twice_is_refused(previous, tmp_path, command):
+    out, before = _with_previous(previous, tmp_path)
+    res = _run([command, BASE, "--out", out, "--set", "seed=1", "--set", "seed=2"])
+    assert res.exit_code == 2
+    _one_line(res, "'--set'", "seed is given twice")
+    assert _tree(out) == before
