@@ -188,6 +188,9 @@ class ZeroPositionSpec(_Strict):
 #: the defaults of ``model.gp.hyper_window`` and ``hyper_windows``.
 HYPER_WINDOW = 30
 HYPER_WINDOWS = 16
+#: Seconds of keyframes per window of the re-estimate on short windows
+#: (``model.gp.drift_ratio``).
+HYPER_SECONDS = 2.0
 
 
 class ImuGPSpec(_Strict):
@@ -288,19 +291,35 @@ class ImuGPSpec(_Strict):
     3.3 (coarse-to-fine); started from the truth, 0.51.
     refit_misfit: that threshold (0 runs both schedules always).
 
+    fallback_grow: prefix fractions of a third schedule (null: none), run only when the
+    anneal and coarse-to-fine schedules both failed (it is the slowest: 16 solves with the
+    default eighths): the anneal factors on each growing prefix (as ``grow`` with
+    ``grow_anneal``), from the IMU-only adjustment, kept by the same rule. Measured on
+    handwriting seed 4 (5 magnetometer samples per keyframe, 2-s windows): anneal and coarse-to-fine both stopped at the iteration limit (MAP costs
+    638 and 4562), the grown schedule reached 2.2 mm from 0.153 m (cost 412, at most 30
+    iterations per solve). It replaces the grow settings the handwriting problem used to
+    carry (eighths with grow_anneal as its first schedule).
+
     hyper_window, hyper_windows: keyframes per window of the windowed marginal likelihood
     (``estimate``, and the field check) and the most windows, evenly spread (``all``: every
     whole window, K // hyper_window). Defaults 30 and 16 (6 s at 5 Hz). Short windows keep
-    the previous path's drift within each small. Measured on handwriting, IMU-only path,
-    seeds 3/4/5 (true path: l = 0.102-0.108 m, sigma_m 0.004 = the sensor's): defaults
-    l = 0.084/0.057/0.036 m with sigma_m 0.027-0.033 (the drift taken for noise); 10 and
-    ``all`` (24 windows of 2 s) l = 0.093/0.117/0.126 m, sigma_m 0.008-0.013. With these
-    and grow in eighths all three seeds converge (RMSE 2.5/1.5/1.4 mm; seeds 6/7: 2.0/5.0
-    mm). Each part alone failed (measured while any failed prefix stopped the pipeline):
-    with the default windows the first prefix (31 keyframes, sigma_m x4) stopped at the
-    iteration limit for seeds 4 and 5; with quarters, seed 4 stopped at the limit in the
-    first prefix's x1 solve and seed 5 (its 2-s-window values given) went wrong from the
-    half on (0.12-0.17 m).
+    the previous path's drift within each small.
+    drift_ratio: null (default) or a ratio: when the estimate's magnetometer noise exceeds
+    this many times the assumed keyframe noise (sigma_m / sqrt(samples)), the previous path
+    drifts within the windows (the drift is taken for noise) and the hyperparameters are
+    estimated again on windows of 2 s of keyframes (``HYPER_SECONDS``; 10 at 5 Hz, at least
+    3), all of them; those are used, for the field check too. Off by default: the lengthscale
+    closer to the true path's is not the one that locates best in these fields (dipoles,
+    sharper near them than one lengthscale says): with 3, spiral seed 1 (ratio 25) went
+    from l 0.117 to 0.223 m and GP-SLAM RMSE to 6.7 mm in 125 s (the anneal schedule fitting
+    badly, so coarse-to-fine ran too), against 2-4 mm in about 22 s before. Measured (5 magnetometer samples per
+    keyframe, noise 0.0018 per keyframe) on the IMU-only paths, ratio with 30-keyframe
+    windows: outdoor seed 1 1.02, square table seeds 6/18 1.29/1.07, rectangle seeds 1/9
+    2.28/1.12, spiral seed 1 25, handwriting seeds 3/4/5 15/18/17 (on every true path
+    0.96-1.05). Lengthscale [m] with 30 / 10-keyframe windows against the true path's
+    (10-keyframe windows): handwriting 0.084/0.055/0.036 / 0.093/0.109/0.120 against
+    0.118/0.117/0.107; spiral 0.117 / 0.223 against 0.235. Not shorter windows always:
+    rectangle seed 1 (ratio 2.3) had l 0.158 / 0.188 and GP-SLAM RMSE 4.0 / 7.7 mm.
     """
 
     form: Literal["reduced_rank", "exact", "none"] = "reduced_rank"
@@ -319,6 +338,9 @@ class ImuGPSpec(_Strict):
     homogeneous: Literal["imu_only", "keep"] = "imu_only"
     grow: Annotated[list[float], Field(min_length=1, max_length=10)] | None = None
     grow_anneal: bool = False
+    fallback_grow: Annotated[list[float], Field(min_length=1, max_length=10)] | None = [
+        0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875, 1.0,
+    ]  # fmt: skip
     coarse_to_fine: Annotated[list[PositiveFloat], Field(min_length=1, max_length=6)] | None = [
         4.0,
         2.0,
@@ -327,6 +349,7 @@ class ImuGPSpec(_Strict):
     refit_misfit: Annotated[float, Field(ge=0.0, le=1.0e6)] = 0.55
     hyper_window: Annotated[int, Field(ge=3, le=10000)] = HYPER_WINDOW
     hyper_windows: Annotated[int, Field(ge=1, le=10000)] | Literal["all"] = HYPER_WINDOWS
+    drift_ratio: Annotated[float, Field(gt=1.0, le=1.0e6)] | None = None
 
     @field_validator("coarse_to_fine")
     @classmethod
@@ -335,7 +358,7 @@ class ImuGPSpec(_Strict):
             raise ValueError("the last factor must be 1")
         return v
 
-    @field_validator("grow")
+    @field_validator("grow", "fallback_grow")
     @classmethod
     def _grow_fractions(cls, v: list[float] | None) -> list[float] | None:
         if v is None:
@@ -350,14 +373,33 @@ class ImuGPSpec(_Strict):
 
 
 class MagnetometerModelSpec(_Strict):
-    """Magnetometer noise sigma_m [a.u.] the model assumes (null: truth)."""
+    """Magnetometer noise sigma_m [a.u.] the model assumes per sample (null: truth), and
+    ``samples``: how many consecutive magnetometer samples (odd) make one keyframe's
+    measurement, each rotated into the keyframe's body frame by the gyro increments and
+    averaged, with noise sigma_m / sqrt(samples) (the window is shifted inside the recording
+    at its ends). Default 5: the averaging's own error (the field's variation over the
+    window, gyro bias and noise) measured on the simulated scenarios' noise-free
+    magnetometer, seed 1, at 100 Hz, RMS per component against sigma_m / sqrt(samples) with
+    sigma_m 0.004: 5 samples 1e-5..9e-5 against 1.8e-3 on every scenario; 11 samples
+    1.4e-5..4.2e-4 against 1.2e-3 (handwriting 12 % of the noise variance); 21 samples
+    1.9e-5..1.3e-3 against 8.7e-4 (the error larger than the noise on the handwriting desk).
+    1: the keyframe's own sample only."""
 
     sigma_m: PositiveFloat | None = None
+    samples: Annotated[int, Field(ge=1)] = 5
+
+    @field_validator("samples")
+    @classmethod
+    def _odd(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"must be odd (centred on the keyframe), got {v}")
+        return v
 
 
 class ImuProblemModelSpec(_Strict):
     """keyframe_rate [Hz]: states are kept at this rate, the IMU increments between them
-    composed (the IMU rate must be a whole multiple); the magnetometer is used at keyframes."""
+    composed (the IMU rate must be a whole multiple); the magnetometer is used at keyframes,
+    averaged over ``magnetometer.samples`` samples around each."""
 
     keyframe_rate: PositiveFloat = 10.0
     imu: ImuModelSpec = ImuModelSpec()
@@ -390,6 +432,14 @@ class ImuProblemSpec(_Strict):
                 "model.keyframe_rate: must divide simulation.imu.rate "
                 f"({self.simulation.imu.rate:g}"
                 f" Hz) a whole number of times, got {self.model.keyframe_rate:g} Hz"
+            )
+        samples = self.model.magnetometer.samples
+        if samples > round(ratio) + 1:
+            raise ValueError(
+                "model.magnetometer.samples: at most one keyframe interval's samples plus one "
+                f"({round(ratio) + 1} at {self.simulation.imu.rate:g} Hz and "
+                f"{self.model.keyframe_rate:g} Hz keyframes; neighbouring keyframes would "
+                f"share noise), got {samples}"
             )
         if self.solver.hessian == "gauss-newton" and self.model.gp.form != "reduced_rank":
             raise ValueError("solver.hessian: gauss-newton needs model.gp.form: reduced_rank")

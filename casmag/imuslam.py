@@ -62,7 +62,7 @@ from casmag.config import SolverSpec
 from casmag.exactgp import add_exact_prior
 from casmag.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
 from casmag.hyper import field_evidence as _field_evidence
-from casmag.imuconfig import HYPER_WINDOW, HYPER_WINDOWS, ImuProblem, load_imu_problem
+from casmag.imuconfig import HYPER_SECONDS, ImuProblem, load_imu_problem
 from casmag.imusim import ImuData, simulate_imu
 from casmag.kernels import FIELD_DIM, field_covariance, get_kernel
 from casmag.knots import Knots
@@ -747,17 +747,28 @@ def cached_imu_nlp(s: ImuStructure) -> NLP:
 class Keyframes:
     """The data at keyframe rate: indices (K,) of the keyframe samples, DQ (K-1, 4n),
     DV (K-1, 3n) increments per interval, LINV (K-1, 81) whitening of the composed
-    increments, Y (K, 3) magnetometer at keyframes."""
+    increments, Y (K, 3) magnetometer at keyframes (in the keyframe's body frame, averaged
+    over ``samples`` samples: noise sigma_m * sigma_scale)."""
 
     idx: np.ndarray
     DQ: np.ndarray
     DV: np.ndarray
     LINV: np.ndarray
     Y: np.ndarray
+    samples: int = 1
+
+    @property
+    def sigma_scale(self) -> float:
+        """The keyframe magnetometer's noise over one sample's."""
+        return 1.0 / float(np.sqrt(self.samples))
 
 
-def keyframes(data: ImuData, n: int, gyro_density: float, acc_density: float) -> Keyframes:
-    """Group the increments n at a time (whole groups only) and whiten their composition."""
+def keyframes(
+    data: ImuData, n: int, gyro_density: float, acc_density: float, samples: int = 1
+) -> Keyframes:
+    """Group the increments n at a time (whole groups only) and whiten their composition;
+    the magnetometer at each keyframe averaged over ``samples`` (odd) samples centred on it
+    (``averaged_magnetometer``)."""
     K = (data.dq.shape[0]) // n + 1
     m = (K - 1) * n
     dq, dv = data.dq[:m], data.dv[:m]
@@ -765,13 +776,40 @@ def keyframes(data: ImuData, n: int, gyro_density: float, acc_density: float) ->
     Lc = np.linalg.cholesky(S)
     eye = np.eye(9)
     Linv = np.stack([scipy.linalg.solve_triangular(L, eye, lower=True) for L in Lc])
+    idx = np.arange(K) * n
     return Keyframes(
-        idx=np.arange(K) * n,
+        idx=idx,
         DQ=dq.reshape(K - 1, 4 * n),
         DV=dv.reshape(K - 1, 3 * n),
         LINV=Linv.transpose(0, 2, 1).reshape(K - 1, 81),  # column-major 9x9
-        Y=data.Y[np.arange(K) * n],
+        Y=averaged_magnetometer(data.Y, data.dq, idx, samples),
+        samples=samples,
     )
+
+
+def averaged_magnetometer(
+    Y: np.ndarray, dq: np.ndarray, idx: np.ndarray, samples: int
+) -> np.ndarray:
+    """Magnetometer samples Y (N, 3) averaged over ``samples`` (odd) consecutive samples
+    around each index in idx, each rotated into the body frame at the index by the gyro
+    increments dq (N-1, 4) (R_i^T R_j, the relative rotation integrated from the gyro); the
+    window is shifted to stay inside the recording. The relative rotations come from one
+    cumulative gyro attitude G (G_0 = identity, G_{j+1} = G_j dq_j): R_i^T R_j = G_i^T G_j,
+    so the average is G_i^T mean_j(G_j y_j)."""
+    if samples == 1:
+        return Y[idx].copy()
+    N = Y.shape[0]
+    G = np.empty((N, 4))
+    G[0] = (1.0, 0.0, 0.0, 0.0)
+    for j in range(N - 1):
+        G[j + 1] = sd.quat_mul(G[j : j + 1], dq[j : j + 1])[0]
+    G /= np.linalg.norm(G, axis=1, keepdims=True)
+    Z = np.vstack([np.zeros((1, 3)), np.cumsum(sd.rotate(G, Y), axis=0)])
+    h = samples // 2
+    lo = np.clip(idx - h, 0, max(0, N - samples))
+    hi = np.minimum(lo + samples, N)
+    mean = (Z[hi] - Z[lo]) / (hi - lo)[:, None]
+    return sd.rotate(sd.quat_conj(G[idx]), mean)
 
 
 @dataclass
@@ -915,20 +953,31 @@ def field_evidence(
     Y_local: np.ndarray,
     kernel: str,
     est: HyperEstimate | None = None,
-    windows: tuple[int, int] = (HYPER_WINDOW, HYPER_WINDOWS),
+    *,
+    windows: tuple[int, int],
 ) -> FieldEvidence:
-    """casmag.hyper.field_evidence with the IMU scenarios' windows (``windows``: keyframes
-    per window and the most windows; default HYPER_WINDOW, HYPER_WINDOWS; ``est`` must come
-    from the same windows). Measured on the IMU scenarios' true paths: log Bayes factor
-    about -6.7 outdoors (Earth's field only) against +865 or more on the desk and table."""
+    """casmag.hyper.field_evidence on windows of the keyframes (``windows``: keyframes per
+    window and the most windows, ``hyper_windows``; ``est`` must come from the same
+    windows). Measured on the IMU scenarios' true paths with 30-keyframe windows: log Bayes
+    factor about -6.7 outdoors (Earth's field only) against +865 or more on the desk and
+    table."""
     return _field_evidence(P, Y_local, kernel, est, *windows)
 
 
-def hyper_windows(spec: Any, K: int) -> tuple[int, int]:
+def hyper_windows(model: Any, K: int) -> tuple[int, int]:
     """Keyframes per marginal-likelihood window and the most windows (``model.gp``:
     ``hyper_window``, ``hyper_windows``; ``all``: every whole window of the K keyframes)."""
-    w = spec.hyper_window
-    return w, (max(1, K // w) if spec.hyper_windows == "all" else spec.hyper_windows)
+    gp = model.gp
+    w = gp.hyper_window
+    return w, (max(1, K // w) if gp.hyper_windows == "all" else gp.hyper_windows)
+
+
+def short_windows(model: Any, K: int) -> tuple[int, int]:
+    """The windows of the re-estimate when the path drifts within the configured ones
+    (``model.gp.drift_ratio``): HYPER_SECONDS of keyframes at ``model.keyframe_rate`` (at
+    least 3), every whole window of the K keyframes."""
+    w = max(3, round(HYPER_SECONDS * model.keyframe_rate))
+    return w, max(1, K // w)
 
 
 @dataclass
@@ -964,7 +1013,7 @@ def solve_imu_stages(
     spec = problem.spec
     m = spec.model
     n = problem.substeps
-    kf = keyframes(data, n, problem.gyro_density, problem.acc_density)
+    kf = keyframes(data, n, problem.gyro_density, problem.acc_density, m.magnetometer.samples)
     K = kf.idx.size
     # Plain strapdown integration, no bias removed: the initial trajectory.
     Ps, Vs, Qs = sd.strapdown(
@@ -999,63 +1048,52 @@ def solve_imu_stages(
         return ImuSolution(s1, kf, strap, st1, None, hyper, "none", None)
     # Hyperparameters once, on the IMU-only trajectory; then GP-SLAM passes with sigma_m
     # annealed (a softer magnetometer first widens the basin), each from the previous one.
-    hyper, source, est = _hyperparameters(problem, kf, st1, "IMU-only")
+    hyper, source, est, windows = _hyperparameters(problem, kf, st1, "IMU-only")
     if est is not None and m.gp.homogeneous == "imu_only":
         # Already homogeneous on the IMU-only path (whose orientation errors can only add
         # apparent variation): no map. An unidentified lengthscale (sigma_f -> 0 leaves it
         # free) would otherwise set the basis (measured: l = 0.0085 m on a 12 cm
         # rectangle in Earth's field, and GP-SLAM hit the iteration limit).
-        pre = field_evidence(
-            st1.P, sd.rotate(st1.Q, kf.Y), m.gp.kernel, est, hyper_windows(m.gp, K)
-        )
+        pre = field_evidence(st1.P, sd.rotate(st1.Q, kf.Y), m.gp.kernel, est, windows=windows)
         if pre.homogeneous:
             return ImuSolution(s1, kf, strap, st1, None, hyper, source, None, [], pre, True)
+    # The anneal schedule; then the coarse-to-fine one when it failed or fits badly (misfit
+    # above model.gp.refit_misfit), then the grown one when both failed (it is the slowest:
+    # 16 solves), each from the IMU-only adjustment. A later schedule is kept when it
+    # succeeds and the kept one failed or its final MAP cost is lower by more than
+    # SCHEDULE_MARGIN (all end with sigma_m and the lengthscale x1, on bases around their own
+    # previous passes).
+    ladder = [("anneal", _anneal_schedule(m.gp))]
+    if m.gp.coarse_to_fine is not None:
+        ladder.append(("coarse_to_fine", [("pass", [f], f) for f in m.gp.coarse_to_fine]))
+    if m.gp.fallback_grow is not None:
+        ladder.append(("grown", [("grow", list(m.gp.anneal), 1.0)]))
+    schedules: list[dict[str, Any]] = []
     passes: list[ImuSolveStage] = []
-    prev = st1
     s2, size = s1, None
-    # model.gp.grow: the first pass (or, with grow_anneal, every pass: the whole schedule per
-    # prefix) on growing prefixes of the keyframes.
-    schedule: list[list[float]] = [[f] for f in m.gp.anneal]
-    if m.gp.grow is not None and m.gp.grow_anneal:
-        schedule = [list(m.gp.anneal)]
-    for i, factors in enumerate(schedule):
-        if i == 0 and m.gp.grow is not None:
-            st, s2, size = _grown_pass(
-                problem, data, kf, base, prev, hyper, factors, m.gp.grow, progress
-            )
-        else:
-            st, s2, size = _slam_pass(problem, data, kf, base, prev, hyper, factors[0], progress)
-        passes.append(st)
-        if not st.solution.success:
+    for name, steps in ladder:
+        if (
+            passes
+            and passes[-1].solution.success
+            and (name == "grown" or schedules[_kept(schedules)]["misfit"] <= m.gp.refit_misfit)
+        ):
             break
-        prev = st
-    # The coarse-to-fine schedule when the anneal schedule failed or fits badly; it is kept
-    # when its final MAP cost is lower by more than SCHEDULE_MARGIN (both end with sigma_m
-    # and lengthscale x1, on bases around their own previous passes).
-    schedules = [_schedule_record("anneal", passes, K)]
-    if m.gp.coarse_to_fine is not None and (
-        not passes[-1].solution.success or schedules[0]["misfit"] > m.gp.refit_misfit
-    ):
-        alt, s2_alt, size_alt = [], s2, size
-        prev = st1
-        for f in m.gp.coarse_to_fine:
-            st, s2_alt, size_alt = _slam_pass(
-                problem, data, kf, base, prev, _coarser(m.gp.kernel, hyper, f), f, progress
-            )
-            alt.append(st)
-            if not st.solution.success:
-                break
-            prev = st
-        schedules.append({**_schedule_record("coarse_to_fine", alt, K), "kept": False})
-        a, b = passes[-1].solution, alt[-1].solution
-        if b.success and (not a.success or b.objective < (1.0 - SCHEDULE_MARGIN) * a.objective):
-            passes, s2, size = alt, s2_alt, size_alt
-            schedules[1]["kept"], schedules[0]["kept"] = True, False
+        run, s2_run, size_run = _run_schedule(
+            problem, data, kf, base, st1, hyper, steps,
+            m.gp.grow if name == "anneal" else m.gp.fallback_grow, progress,
+        )  # fmt: skip
+        record = {**_schedule_record(name, run, K), "kept": False}
+        if not passes or _better(run[-1].solution, passes[-1].solution):
+            for r in schedules:
+                r["kept"] = False
+            record["kept"] = True
+            passes, s2, size = run, s2_run, size_run
+        schedules.append(record)
     estimated = "estimate" in (m.gp.sigma_f, m.gp.lengthscale)
     for _ in range(m.gp.refine if estimated else 0):
         if not passes[-1].solution.success:
             break
-        hyper, source, _ = _hyperparameters(problem, kf, passes[-1], "GP-SLAM")
+        hyper, source, _, windows = _hyperparameters(problem, kf, passes[-1], "GP-SLAM")
         st, s2, size = _slam_pass(problem, data, kf, base, passes[-1], hyper, 1.0, progress)
         passes.append(st)
     evidence, fallback = None, False
@@ -1065,14 +1103,69 @@ def solve_imu_stages(
         # IMU-only one, orientation errors rotate Earth's field into apparent variation
         # (measured outdoors: log Bayes factor +21 there, -6.7 on the true path).
         last = passes[-1]
-        evidence = field_evidence(
-            last.P, sd.rotate(last.Q, kf.Y), m.gp.kernel, windows=hyper_windows(m.gp, K)
-        )
+        evidence = field_evidence(last.P, sd.rotate(last.Q, kf.Y), m.gp.kernel, windows=windows)
         fallback = evidence.homogeneous
     return ImuSolution(
         s2, kf, strap, st1, passes[-1], hyper, source, size, passes, evidence, fallback,
         schedules,
     )  # fmt: skip
+
+
+def _anneal_schedule(gp: Any) -> list[tuple[str, list[float], float]]:
+    """The anneal schedule's steps: one pass per ``anneal`` factor on sigma_m, or with
+    ``grow`` the first pass (with ``grow_anneal`` every one) on growing prefixes."""
+    if gp.grow is not None and gp.grow_anneal:
+        return [("grow", list(gp.anneal), 1.0)]
+    steps = [("pass", [f], 1.0) for f in gp.anneal]
+    if gp.grow is not None:
+        steps[0] = ("grow", [gp.anneal[0]], 1.0)
+    return steps
+
+
+def _better(new: Solution, kept: Solution) -> bool:
+    """Whether a later schedule's final solve replaces the kept one's: it succeeded, and the
+    kept one failed or costs more by more than SCHEDULE_MARGIN."""
+    return new.success and (
+        not kept.success or new.objective < (1.0 - SCHEDULE_MARGIN) * kept.objective
+    )
+
+
+def _kept(schedules: list[dict[str, Any]]) -> int:
+    """Index of the kept schedule's record."""
+    return next(i for i, r in enumerate(schedules) if r["kept"])
+
+
+def _run_schedule(
+    problem: ImuProblem,
+    data: ImuData,
+    kf: Keyframes,
+    base: dict[str, Any],
+    start: ImuSolveStage,
+    hyper: dict[str, float],
+    steps: list[tuple[str, list[float], float]],
+    fractions: list[float] | None,
+    progress: Progress | None,
+) -> tuple[list[ImuSolveStage], ImuStructure, int | None]:
+    """One GP-SLAM schedule from ``start``: steps (kind, sigma_m factors, lengthscale
+    factor), each from the previous step's result; ``pass``: one solve with sigma_m x the
+    factor and the hyperparameters made coarser by the lengthscale factor (``_coarser``);
+    ``grow``: the factors in turn on each growing prefix (``fractions``). Stops at the first
+    failed step."""
+    passes: list[ImuSolveStage] = []
+    prev = start
+    for kind, factors, ell_factor in steps:
+        if kind == "grow":
+            st, s2, size = _grown_pass(
+                problem, data, kf, base, prev, hyper, factors, fractions, progress
+            )
+        else:
+            h = _coarser(problem.spec.model.gp.kernel, hyper, ell_factor)
+            st, s2, size = _slam_pass(problem, data, kf, base, prev, h, factors[0], progress)
+        passes.append(st)
+        if not st.solution.success:
+            break
+        prev = st
+    return passes, s2, size
 
 
 def _coarser(kernel: str, hyper: dict[str, float], factor: float) -> dict[str, float]:
@@ -1121,34 +1214,40 @@ def _solve_record(p: ImuSolveStage) -> dict[str, Any]:
 
 def _hyperparameters(
     problem: ImuProblem, kf: Keyframes, prev: ImuSolveStage, prev_name: str
-) -> tuple[dict[str, float], str, HyperEstimate | None]:
+) -> tuple[dict[str, float], str, HyperEstimate | None, tuple[int, int]]:
     """sigma_f and lengthscale given, or by the windowed marginal likelihood on a previous
     stage's trajectory with the magnetometer rotated into the local frame by its
-    orientations; sigma_m as assumed. Also returns the estimate (None when given)."""
+    orientations (``hyper_windows``; on ``short_windows`` when the estimated noise shows
+    drift, ``model.gp.drift_ratio``); sigma_m as assumed. Also returns the estimate (None
+    when given) and the windows used."""
     m = problem.spec.model
     sigma_f, ell = m.gp.sigma_f, m.gp.lengthscale
+    sigma_m = float(problem.sigma_m * kf.sigma_scale)
     source = "given"
     est = None
+    K = kf.idx.size
+    windows = hyper_windows(m, K)
     if "estimate" in (sigma_f, ell):
-        # Short windows (default 30 keyframes, 6 s at 5 Hz): the previous trajectory drifts
-        # little within one (model.gp.hyper_window, hyper_windows).
-        window, count = hyper_windows(m.gp, kf.idx.size)
+        Y_local = sd.rotate(prev.Q, kf.Y)
         est = estimate_hyperparameters(
-            prev.P, sd.rotate(prev.Q, kf.Y), kernel=m.gp.kernel, window=window, max_windows=count
+            prev.P, Y_local, kernel=m.gp.kernel, window=windows[0], max_windows=windows[1]
         )
         source = f"marginal likelihood on the {prev_name} trajectory"
+        if m.gp.drift_ratio is not None and est.sigma_m > m.gp.drift_ratio * sigma_m:
+            windows = short_windows(m, K)
+            est = estimate_hyperparameters(
+                prev.P, Y_local, kernel=m.gp.kernel, window=windows[0], max_windows=windows[1]
+            )
+            source += f" ({windows[0]}-keyframe windows: drift within {m.gp.hyper_window})"
         if sigma_f == "estimate":
             sigma_f = est.sigma_f
         if ell == "estimate":
             ell = min(est.lengthscale, m.gp.max_lengthscale)
     return (
-        {
-            "sigma_f": float(sigma_f),
-            "lengthscale": float(ell),
-            "sigma_m": float(problem.sigma_m),
-        },
+        {"sigma_f": float(sigma_f), "lengthscale": float(ell), "sigma_m": sigma_m},
         source,
         est,
+        windows,
     )
 
 
@@ -1281,7 +1380,7 @@ def _slam_pass(
     built around that stage's trajectory and the magnetometer noise scaled by
     sigma_m_factor."""
     basis_key, mode = _slam_setup(problem, prev, hyper)
-    sigma_m = problem.sigma_m * sigma_m_factor
+    sigma_m = problem.sigma_m * kf.sigma_scale * sigma_m_factor
     st2, s2 = _slam_solve(
         problem, data, kf, base, basis_key, mode, hyper, sigma_m,
         _start_from(prev, data), progress,
@@ -1293,7 +1392,12 @@ def _slam_pass(
 def prefix_keyframes(kf: Keyframes, K: int) -> Keyframes:
     """The first K keyframes' data."""
     return Keyframes(
-        idx=kf.idx[:K], DQ=kf.DQ[: K - 1], DV=kf.DV[: K - 1], LINV=kf.LINV[: K - 1], Y=kf.Y[:K]
+        idx=kf.idx[:K],
+        DQ=kf.DQ[: K - 1],
+        DV=kf.DV[: K - 1],
+        LINV=kf.LINV[: K - 1],
+        Y=kf.Y[:K],
+        samples=kf.samples,
     )
 
 
@@ -1375,7 +1479,7 @@ def _grown_pass(
                 start.update({n: st.solution.x[n] for n in ("W", "c") if n in st.solution.x})
             st, s2 = _slam_solve(
                 problem, data, prefix_keyframes(kf, k), base, basis_key, mode, hyper,
-                problem.sigma_m * factor, start, progress,
+                problem.sigma_m * kf.sigma_scale * factor, start, progress,
             )  # fmt: skip
             sol = st.solution
             records.append(
@@ -1883,6 +1987,11 @@ def _wrong_basin(
     }
 
 
+#: Keyframes per marginal-likelihood window and the most windows of the planar
+#: recordings' hyperparameters (the values their figures were measured with).
+PLANAR_HYPER_WINDOW = (30, 16)
+
+
 # --------------------------------------------------------------------------- planar model
 @dataclass(frozen=True)
 class PlanarOptions:
@@ -2133,7 +2242,11 @@ def solve_planar(
     sigma_f, ell = options.sigma_f, options.lengthscale
     if "estimate" in (sigma_f, ell):
         est = estimate_hyperparameters(
-            P_dr, Y_local, kernel=options.kernel, window=HYPER_WINDOW, max_windows=HYPER_WINDOWS
+            P_dr,
+            Y_local,
+            kernel=options.kernel,
+            window=PLANAR_HYPER_WINDOW[0],
+            max_windows=PLANAR_HYPER_WINDOW[1],
         )
         sigma_f = est.sigma_f if sigma_f == "estimate" else sigma_f
         ell = est.lengthscale if ell == "estimate" else ell

@@ -21,6 +21,7 @@ from casmag.imuslam import (
     GaussNewtonBuilder,
     _add_reduced_rank_map,
     _gauss_newton_for,
+    averaged_magnetometer,
     imu_rotation_function,
     solve_imu,
 )
@@ -67,7 +68,9 @@ def _noise_free(data, biases=True):
         "gyro_bias_walk": 1e-5,
         "acc_bias_walk": 1e-6,
     }
-    data["model"]["magnetometer"] = {"sigma_m": 1e-3}
+    # One sample per keyframe: averaging has an error of its own (the field's variation over
+    # the window, the gyro bias), so only the keyframe's own sample makes the truth the optimum.
+    data["model"]["magnetometer"] = {"sigma_m": 1e-3, "samples": 1}
     data["model"]["zero_position"] = {"sigma": None}
     return data
 
@@ -356,7 +359,7 @@ def test_field_evidence_tells_a_homogeneous_field(moment, homogeneous):
     )
     B = field(P)
     Y = B + 0.004 * rng.standard_normal(B.shape)
-    ev = field_evidence(P, Y, "curl_free")
+    ev = field_evidence(P, Y, "curl_free", windows=(30, 16))
     assert ev.homogeneous is homogeneous, ev
     if homogeneous:
         # The map's field variation sigma_f / l ends below the noise: no information.
@@ -368,9 +371,9 @@ def test_field_evidence_tells_a_homogeneous_field(moment, homogeneous):
 
 def test_homogeneous_field_keeps_the_imu_only_adjustment(tmp_path):
     """Earth's field only (the outdoor case at a tiny size): the field check finds no
-    position information already on the IMU-only path (the estimated field variation
-    sigma_f / l is far below the noise), so no map is solved and the result is the IMU-only
-    adjustment, never worse than it. (The check after a GP-SLAM pass, which the full
+    position information already on the IMU-only path (the estimated deviation from a
+    constant field, sigma_f, is far below the noise), so no map is solved and the result is
+    the IMU-only adjustment, never worse than it. (The check after a GP-SLAM pass, which the full
     outdoor problem takes, is the same function: test_field_evidence_...)"""
     data = _tiny()
     data["simulation"]["scenario"]["loops"] = 2
@@ -380,7 +383,9 @@ def test_homogeneous_field_keeps_the_imu_only_adjustment(tmp_path):
     assert r.map_decision == "homogeneous: IMU only" and r.gp_slam_passes == []
     ev = r.field_evidence
     assert ev["homogeneous"] is True and ev["log_bayes_factor"] < 0
-    assert ev["sigma_f"] / ev["lengthscale"] < 0.1 * 0.004
+    # the field's estimated deviation from a constant: far below the keyframe magnetometer's
+    # noise (0.004 per sample, 5 samples averaged)
+    assert ev["sigma_f"] < 0.1 * 0.004 / np.sqrt(5)
     e = r.errors
     assert e["strapdown"]["rmse"] > 0.5
     assert e["gp_slam"]["rmse"] == e["imu_only"]["rmse"] and e["gp_slam_map"]["rmse"] is None
@@ -407,7 +412,8 @@ def test_coarser_hyperparameters_keep_the_field_variance(kernel):
 def test_both_schedules_run_and_the_kept_one_is_the_result():
     """refit_misfit 0: the coarse-to-fine schedule ([4, 2, 1]) runs beside the anneal one on
     the noise-free rectangle; both reach the truth's optimum, the kept one follows the
-    margin rule, and the result's passes are its passes."""
+    margin rule, and the result's passes are its passes. The grown schedule does not run:
+    it follows only failures (test_imu_grow)."""
     data = _noise_free(_tiny(gp={"sigma_f": 0.3, "lengthscale": 0.2, "num_basis": 400}))
     data["simulation"]["scenario"]["loops"] = 2
     data["model"]["imu"]["bias"] = "constant"
@@ -655,3 +661,44 @@ def test_error_state_residual_equals_the_absolute_one_at_the_nominal_biases():
         effects.append(np.abs(ref_b - ref).max())
     assert gaps[0] < 1e-2 * effects[0]  # the first-order term carries the bias change
     assert gaps[1] < 0.3 * gaps[0]  # the rest is second order (1/4 in exact arithmetic)
+
+
+# --------------------------------------------------------------------------- magnetometer averaging
+def test_averaged_magnetometer_rotates_each_sample_into_the_keyframe_frame():
+    """The cumulative-attitude average equals rotating every sample by the composed gyro
+    increments one by one; on the noise-free magnetometer it stays close to the keyframe's
+    own sample, and on a noisy one it is closer to the truth than the sample alone."""
+    p = load_imu_problem(_tiny(), ["simulation.magnetometer.noise=0.01"])
+    d = simulate_imu(p)
+    idx = np.arange(0, d.Y.shape[0], p.substeps)
+    got = averaged_magnetometer(d.Y, d.dq, idx, 5)
+    want = np.empty_like(got)
+    N = d.Y.shape[0]
+    for r, k in enumerate(idx):
+        lo = min(max(k - 2, 0), N - 5)
+        acc = []
+        for j in range(lo, lo + 5):
+            q = np.array([[1.0, 0, 0, 0]])
+            for i in range(min(j, k), max(j, k)):
+                q = sd.quat_mul(q, d.dq[i : i + 1])
+            acc.append(sd.rotate(q if j > k else sd.quat_conj(q), d.Y[j : j + 1])[0])
+        want[r] = np.mean(acc, axis=0)
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    np.testing.assert_array_equal(averaged_magnetometer(d.Y, d.dq, idx, 1), d.Y[idx])
+    truth = sd.rotate(sd.quat_conj(d.truth.Q), d.M)
+    clean = averaged_magnetometer(truth, d.dq, idx, 5)
+    assert np.sqrt(np.mean((clean - truth[idx]) ** 2)) < 1e-3  # the average's own error
+    err_one = np.sqrt(np.mean((d.Y[idx] - truth[idx]) ** 2))
+    err_avg = np.sqrt(np.mean((got - truth[idx]) ** 2))
+    assert err_avg < 0.6 * err_one  # sqrt(1/5) = 0.45 expected
+
+
+def test_magnetometer_samples_must_be_odd_and_within_an_interval():
+    with pytest.raises(ProblemError, match=r"model\.magnetometer\.samples.*odd"):
+        load_imu_problem(_tiny(magnetometer={"samples": 4}))
+    # 100 Hz, 5 Hz keyframes: 20 intervals per keyframe, 21 samples at most
+    assert (
+        load_imu_problem(_tiny(magnetometer={"samples": 21})).spec.model.magnetometer.samples == 21
+    )
+    with pytest.raises(ProblemError, match=r"model\.magnetometer\.samples: at most"):
+        load_imu_problem(_tiny(magnetometer={"samples": 23}))

@@ -157,7 +157,7 @@ def test_failed_prefix_is_reported_with_its_status(monkeypatch):
     """A prefix that fails (other than at the iteration limit) stops the pipeline: that is
     the result, with IPOPT's status."""
     _failing_first_solve(monkeypatch)
-    r = _noise_free_rectangle([0.5, 1.0], coarse_to_fine=None)
+    r = _noise_free_rectangle([0.5, 1.0], coarse_to_fine=None, fallback_grow=None)
     assert r.status_imu_only == "Solve_Succeeded"
     assert not r.success and r.status == "Restoration_Failed"
     assert r.failed_stage == "gp_slam" and r.errors["gp_slam"]["rmse"] is None
@@ -180,6 +180,29 @@ def test_a_failed_schedule_is_recorded_and_the_coarse_to_fine_one_kept(monkeypat
     assert np.abs(r.arrays["P_estimate"] - r.arrays["P_true"]).max() < 1e-3
 
 
+def test_the_grown_schedule_follows_two_failed_ones(monkeypatch):
+    """The anneal and coarse-to-fine schedules both fail in their first solve: the grown
+    schedule (the anneal factors on each prefix, here 3/4 and all) runs from the IMU-only
+    adjustment, reaches the truth and is the result; every schedule is recorded."""
+    real, calls = imuslam._slam_solve, []
+
+    def fake(*args, **kwargs):
+        st, s2 = real(*args, **kwargs)
+        calls.append(st)
+        if len(calls) <= 2:  # anneal's first pass, then coarse-to-fine's first pass
+            st.solution.status, st.solution.success = "Restoration_Failed", False
+        return st, s2
+
+    monkeypatch.setattr(imuslam, "_slam_solve", fake)
+    r = _noise_free_rectangle(None, fallback_grow=[0.75, 1.0])
+    assert r.success, r.status
+    assert [s["schedule"] for s in r.schedules] == ["anneal", "coarse_to_fine", "grown"]
+    assert [s["kept"] for s in r.schedules] == [False, False, True]
+    assert [s["status"] for s in r.schedules[:2]] == ["Restoration_Failed"] * 2
+    assert len(r.schedules[2]["iterations"]) == 4  # two prefixes, sigma_m x4 then x1
+    assert np.abs(r.arrays["P_estimate"] - r.arrays["P_true"]).max() < 1e-3
+
+
 def test_command_names_the_failed_prefix(tmp_path, monkeypatch):
     import json
 
@@ -190,7 +213,11 @@ def test_command_names_the_failed_prefix(tmp_path, monkeypatch):
 
     _failing_first_solve(monkeypatch)
     path = tmp_path / "p.yaml"
-    path.write_text(yaml.safe_dump(_noise_free_rectangle_data([0.5, 1.0], coarse_to_fine=None)))
+    path.write_text(
+        yaml.safe_dump(
+            _noise_free_rectangle_data([0.5, 1.0], coarse_to_fine=None, fallback_grow=None)
+        )
+    )
     out = tmp_path / "out"
     res = CliRunner().invoke(imu_command, [str(path), "--out", str(out), "-q"])
     assert res.exit_code == 1
