@@ -295,10 +295,11 @@ class ImuGPSpec(_Strict):
     anneal and coarse-to-fine schedules both failed (it is the slowest: 16 solves with the
     default eighths): the anneal factors on each growing prefix (as ``grow`` with
     ``grow_anneal``), from the IMU-only adjustment, kept by the same rule. Measured on
-    handwriting seed 4 (5 magnetometer samples per keyframe, 2-s windows): anneal and coarse-to-fine both stopped at the iteration limit (MAP costs
-    638 and 4562), the grown schedule reached 2.2 mm from 0.153 m (cost 412, at most 30
-    iterations per solve). It replaces the grow settings the handwriting problem used to
-    carry (eighths with grow_anneal as its first schedule).
+    handwriting seed 4 (5 magnetometer samples per keyframe, 2-s windows): anneal and
+    coarse-to-fine both stopped at the iteration limit (MAP costs 638 and 4562), the grown
+    schedule reached 2.2 mm from 0.153 m (cost 412, at most 30 iterations per solve). It
+    replaces the grow settings the handwriting problem used to carry (eighths with
+    grow_anneal as its first schedule).
 
     hyper_window, hyper_windows: keyframes per window of the windowed marginal likelihood
     (``estimate``, and the field check) and the most windows, evenly spread (``all``: every
@@ -308,18 +309,18 @@ class ImuGPSpec(_Strict):
     this many times the assumed keyframe noise (sigma_m / sqrt(samples)), the previous path
     drifts within the windows (the drift is taken for noise) and the hyperparameters are
     estimated again on windows of 2 s of keyframes (``HYPER_SECONDS``; 10 at 5 Hz, at least
-    3), all of them; those are used, for the field check too. Off by default: the lengthscale
-    closer to the true path's is not the one that locates best in these fields (dipoles,
-    sharper near them than one lengthscale says): with 3, spiral seed 1 (ratio 25) went
-    from l 0.117 to 0.223 m and GP-SLAM RMSE to 6.7 mm in 125 s (the anneal schedule fitting
-    badly, so coarse-to-fine ran too), against 2-4 mm in about 22 s before. Measured (5 magnetometer samples per
-    keyframe, noise 0.0018 per keyframe) on the IMU-only paths, ratio with 30-keyframe
-    windows: outdoor seed 1 1.02, square table seeds 6/18 1.29/1.07, rectangle seeds 1/9
-    2.28/1.12, spiral seed 1 25, handwriting seeds 3/4/5 15/18/17 (on every true path
-    0.96-1.05). Lengthscale [m] with 30 / 10-keyframe windows against the true path's
-    (10-keyframe windows): handwriting 0.084/0.055/0.036 / 0.093/0.109/0.120 against
-    0.118/0.117/0.107; spiral 0.117 / 0.223 against 0.235. Not shorter windows always:
-    rectangle seed 1 (ratio 2.3) had l 0.158 / 0.188 and GP-SLAM RMSE 4.0 / 7.7 mm.
+    3), all of them; those are used, for the field check too. Off by default: the
+    lengthscale closer to the true path's is not the one that locates best in these fields
+    (dipoles, sharper near them than one lengthscale says): with 3, spiral seed 1 (ratio 25)
+    went from l 0.117 to 0.223 m and GP-SLAM RMSE to 6.7 mm in 125 s (the anneal schedule
+    fitting badly, so coarse-to-fine ran too), against 2-4 mm in about 22 s before. Measured
+    (5 magnetometer samples per keyframe, noise 0.0018 per keyframe) on the IMU-only paths,
+    ratio with 30-keyframe windows: outdoor seed 1 1.02, square table seeds 6/18 1.29/1.07,
+    rectangle seeds 1/9 2.28/1.12, spiral seed 1 25, handwriting seeds 3/4/5 15/18/17 (on
+    every true path 0.96-1.05). Lengthscale [m] with 30 / 10-keyframe windows against the
+    true path's (10-keyframe windows): handwriting 0.084/0.055/0.036 / 0.093/0.109/0.120
+    against 0.118/0.117/0.107; spiral 0.117 / 0.223 against 0.235. Not shorter windows
+    always: rectangle seed 1 (ratio 2.3) had l 0.158 / 0.188 and GP-SLAM RMSE 4.0 / 7.7 mm.
     """
 
     form: Literal["reduced_rank", "exact", "none"] = "reduced_rank"
