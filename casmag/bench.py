@@ -18,6 +18,8 @@ from typing import Any
 
 import click
 
+from casmag.simulate import simulate_problem
+
 ROOT = Path(__file__).resolve().parents[1]
 WALK = ROOT / "problems" / "bench" / "walk.yaml"
 SCALE_SIZES = (1000, 4000, 16000, 64000)
@@ -48,7 +50,6 @@ def run_one(
     import numpy as np
 
     import casmag
-    from casmag.simulate import simulate_problem
 
     overrides = [f"simulation.trajectory.samples={samples}", f"model.gp.form={form}"]
     if knot_every is not None:

@@ -118,9 +118,9 @@ def slam(
     bias (casmag.multisession); result.json lists each session's errors and sessions.png
     shows them.
     """
-    from casmag.api import slam as run_slam
     from casmag.imucli import is_planar_recording, planar_slam
-    from casmag.multisession import slam_sessions
+    from casmag.recslam import slam as run_slam
+    from casmag.recslam import slam_sessions
 
     recording = recordings[0]
     if len(recordings) == 1 and is_planar_recording(recording):  # the planar heading model

@@ -33,6 +33,8 @@ from typing import Any
 
 import click
 
+from casmag.sweep import default_jobs, local_map
+
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "problems" / "paper" / "base.yaml"
 LENGTHSCALE = 0.4
@@ -214,8 +216,6 @@ def main(
     out: Path, seeds: int, jobs: int | None, form: str, strategies: str, biases: str, noises: str
 ) -> None:
     """Run (or resume) the convergence benchmark and write convergence.json and .png."""
-    from casmag.sweep import default_jobs, local_map
-
     runs_dir = out / "convergence.runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
     names = strategies.split(",")

@@ -143,10 +143,10 @@ def planar_slam(
     A constant magnetometer carries no position information: the result is the dead
     reckoning, status ``Odometry_Only`` (:func:`planar_odometry_only`; with ``field_check``
     off, exit 2)."""
-    from casmag.api import constant_magnetometer, refuse_constant_field
     from casmag.imuconfig import load_planar_options
     from casmag.imuslam import solve_planar_recording
     from casmag.recording import read_recording
+    from casmag.recslam import constant_magnetometer, refuse_constant_field
 
     try:
         refuse_unused_solver_keys(overrides, "casmag slam on a planar recording")
@@ -193,11 +193,10 @@ def planar_odometry_only(rec: Recording) -> Any:
     """The planar dead reckoning as the result of a recording whose magnetometer is constant
     (status ``Odometry_Only``, the reason in ``info.fallback``), started where
     :func:`casmag.imuslam.solve_planar` starts: the first true pose, else the origin."""
-    from casmag import __version__
-    from casmag.api import CONSTANT_FIELD
     from casmag.imuslam import PlanarResult, dead_reckon_planar
     from casmag.metrics import rmse_and_max
-    from casmag.versions import versions
+    from casmag.recslam import CONSTANT_FIELD
+    from casmag.versions import __version__, versions
 
     P_true = None if rec.P_true is None else rec.P_true[:, :2]
     p0 = P_true[0] if P_true is not None else np.zeros(2)

@@ -12,6 +12,7 @@ Model noise settings left ``null`` take the simulation's true values.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -21,8 +22,9 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from casmag.config import SolverSpec, validate_spec
+from casmag.config import SolverSpec, read_yaml, validate_spec
 from casmag.errors import ProblemError
+from casmag.imusim import HANDWRITING_LETTERS
 
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegativeFloat = Annotated[float, Field(ge=0)]
@@ -80,7 +82,6 @@ class HandwritingScenario(_Motion):
 
     @model_validator(mode="after")
     def _letters(self) -> HandwritingScenario:
-        from casmag.imusim import HANDWRITING_LETTERS
 
         bad = sorted(set(self.word) - set(HANDWRITING_LETTERS))
         if not self.word or bad:
@@ -194,7 +195,8 @@ HYPER_SECONDS = 2.0
 
 
 class ImuGPSpec(_Strict):
-    """The field map.
+    """The field map. The measurements behind these defaults are in
+    ``problems/imu/README.md`` (section "Measurements behind the map settings").
 
     form: ``reduced_rank`` (Hilbert-space basis on a 3-D box around the IMU-only
     trajectory), ``exact`` (dense GP over the keyframes; a few hundred at most), or ``none``
@@ -203,45 +205,31 @@ class ImuGPSpec(_Strict):
     trajectory with the magnetometer rotated into the local frame. sigma_lin: prior standard
     deviation of a constant field [a.u.] (Earth's). num_basis, margin [m]: as for
     translational problems (null: frequencies up to 5 / l, at most max_num_basis, margin
-    3 l). The cost of an iteration grows as keyframes x num_basis^2 (the dense weight block
-    and its border in the KKT factorisation): measured 0.9 s at 238 x 773, 13 s at about
-    350 x 2000. max_lengthscale [m]: upper limit on an estimated lengthscale.
+    3 l); an iteration costs about keyframes x num_basis^2. max_lengthscale [m]: upper limit
+    on an estimated lengthscale.
 
     curvature (true, false or auto): the magnetometer's second-order terms in orientation
     and position-weight on top of its Gauss-Newton Hessian
     (``casmag.imuslam.RotatedFieldGaussNewton``): true always (``exact``), false never
     (``gauss-newton``); ``auto``: always when the field varies little (sigma_f / l below 5
-    sigma_m for curl-free, sigma_f below 5 sigma_m for se), where Gauss-Newton converges
-    linearly along the accelerometer-bias/tilt direction (measured, outdoor one loop: 66
-    iterations without, 23 with); otherwise ``hybrid``: Gauss-Newton while the
-    magnetometer cost falls fast and the exact terms once it falls by less than 1 % between
-    iterations. In a strongly varying field the terms slow convergence from afar
-    (rectangle: over 90 iterations with them from the start) while Gauss-Newton alone is
-    linear near the solution (spiral and rectangle seed 3: 150 iterations, the limit);
-    hybrid (with the error-state IMU residual) measured 11 + 16 on spiral seed 3, 15 + 43
-    on rectangle seed 3 (GP-SLAM passes, all Solve_Succeeded); make bench-imu has every
-    scenario over 20 seeds.
+    sigma_m for curl-free, sigma_f below 5 sigma_m for se); otherwise ``hybrid``:
+    Gauss-Newton while the magnetometer cost falls fast and the exact terms once it falls by
+    less than 1 % between iterations.
 
     anneal: factors on sigma_m of successive GP-SLAM passes, each starting from the previous
-    one (a softer magnetometer first widens the basin of the global optimum): measured on
-    the spiral, a single pass stopped in a local minimum (RMSE 0.025 m, cost 485; started
-    from the truth the same problem reaches 0.0019 m, cost 298), passes [4, 1] reach
-    0.0019 m in 34 + 55 iterations.
+    one (a softer magnetometer first widens the basin of the global optimum).
 
     homogeneous: what to do when the field turns out to carry no position information
-    (``casmag.imuslam.field_evidence``: on the GP-SLAM trajectory, the windowed marginal
-    likelihood of a field with spatial structure does not beat a constant field by the BIC
-    penalty of its two extra hyperparameters). ``imu_only`` (default): the result is the
-    IMU-only adjustment (the map cannot locate the sensor, so positions are the IMU's; the
+    (``casmag.imuslam.field_evidence``: the windowed marginal likelihood of a field with
+    spatial structure does not beat a constant field by the BIC penalty of its two extra
+    hyperparameters). ``imu_only`` (default): the result is the IMU-only adjustment (the
     GP-SLAM pass is still reported, as ``gp_slam_map``); ``keep``: the GP-SLAM estimate.
-    The check runs only when sigma_f or the lengthscale is ``estimate`` (given values assert
-    a field model), first on the IMU-only path (no map is solved when the field is
-    homogeneous already there), then on the last GP-SLAM pass's path.
+    The check runs only when sigma_f or the lengthscale is ``estimate``, first on the
+    IMU-only path (no map is solved when the field is homogeneous already there), then on
+    the last GP-SLAM pass's path.
 
     refine: further GP-SLAM passes, each with the hyperparameters re-estimated on the
-    previous pass's trajectory (only when some are ``estimate``); default 0: measured on the
-    spiral (single pass before it), it moved the lengthscale from 0.12 to 0.20 m (the value
-    from the true path) but the position RMSE from 0.025 to 0.038 m.
+    previous pass's trajectory (only when some are ``estimate``).
 
     grow: null (default) or increasing fractions in (0, 1] ending in 1, e.g. [0.25, 0.5,
     0.75, 1]: the first GP-SLAM pass is solved on growing prefixes of the keyframes (the
@@ -249,78 +237,33 @@ class ImuGPSpec(_Strict):
     keyframes, the IMU-only trajectory continued from the previous prefix's last state
     (positions and velocities shifted to join it, orientations turned by its orientation
     correction, biases its last ones); the map basis is that of the full problem, so the map
-    weights carry over. The last stage is the full pass. Each stage's keyframes, iterations,
-    status and seconds are recorded under ``grow`` in the pass's entry of
-    ``gp_slam_passes``; a stage before the last that stops at the iteration limit still
-    starts the next (it only provides a start; measured, handwriting seed 7: its first
-    prefix, 31 keyframes without a revisit, at sigma_m x1, then 5.0 mm), any other failure
-    stops the pipeline with its IPOPT status.
-    grow_anneal: with grow, run the whole anneal schedule on every prefix (sigma_m x4, then
-    x1 for [4, 1]) before growing it, instead of growing only the first pass: then there
-    is one GP-SLAM pass, whose ``grow`` lists every solve.
-
-    Measured with grow [0.25, 0.5, 0.75, 1]. Handwriting (seed 3; the batch pass stops at
-    150 iterations, cost 426.54): first pass only, 30 + 52 + 30 + 52 iterations, then
-    108 at sigma_m x1, a local optimum (cost 965.1 against 390.9 from the truth) with
-    0.29 m of vertical drift, RMSE 0.217 m; with grow_anneal, 8 solves of at most 34
-    iterations (172 in all), the optimum reached from the truth (cost 390.70), RMSE
-    0.0026 m. Seeds 4 and 5 fail either way with the default hyper_window (below). Off by
-    default: a prefix without a revisit is weakly determined (rectangle's first loop: 93
-    iterations, 150 with grow_anneal; spiral: a wrong optimum, 0.24 m instead of 0.0019 m).
+    weights carry over. Each stage's keyframes, iterations, status and seconds are recorded
+    under ``grow`` in the pass's entry of ``gp_slam_passes``; a stage before the last that
+    stops at the iteration limit still starts the next, any other failure stops the
+    pipeline with its IPOPT status. grow_anneal: with grow, run the whole anneal schedule on
+    every prefix before growing it (one GP-SLAM pass, whose ``grow`` lists every solve).
 
     coarse_to_fine: lengthscale factors of a second GP-SLAM schedule (null: none), each a
     pass from the previous one (the first from the IMU-only adjustment) with the lengthscale
     and sigma_m both scaled by the factor (sigma_f so that the field's variance stays the
     estimated one); the last factor must be 1, so that both schedules end with the same
-    hyperparameters and sigma_m. A map with a longer lengthscale and a softer magnetometer
-    does not resolve the detail that makes a drifted path fit a wrong place, so it widens
-    the basin of the right
-    optimum (measured, rectangle seeds 9/14/17: the anneal schedule ends at 0.037/0.151/0.136
-    m from IMU-only 0.12-0.14 m, at MAP costs 778/936/523 against 351/343/318 from the
-    truth; factors [4, 2, 1] reach 5.7/3.9/3.8 mm at costs 353/343/318, in 13-28
-    iterations per solve). It runs when the anneal schedule's final solve failed or its
-    MAP cost per magnetometer component (``misfit``) is above ``refit_misfit``: measured
-    0.43-0.55 at the right optima of the rectangle, outdoor and square table and 0.45-0.60
-    on the spiral (seeds 1-20), 0.73-1.31 at the rectangle's wrong ones; the threshold,
-    0.55, sits below the wrong ones with a margin, and a right optimum above it only costs
-    the second schedule's time. The coarse-to-fine result is kept when its final MAP cost
-    is lower by more than 5 % (``casmag.imuslam.SCHEDULE_MARGIN``: the two final problems
-    differ in their map basis, which moved the cost by up to 0.9 % between optima of the
-    same quality on the spiral); both are recorded under ``schedules`` in the result. It
-    does not rescue every start: handwriting seed 8 ends at misfit 2.9 (anneal, grown) and
-    3.3 (coarse-to-fine); started from the truth, 0.51.
-    refit_misfit: that threshold (0 runs both schedules always).
+    hyperparameters and sigma_m. It runs when the anneal schedule's final solve failed or
+    its MAP cost per magnetometer component (``misfit``) is above ``refit_misfit`` (0: run
+    both always), and is kept when its final MAP cost is lower by more than
+    ``casmag.imuslam.SCHEDULE_MARGIN``; both are recorded under ``schedules``.
 
     fallback_grow: prefix fractions of a third schedule (null: none), run only when the
-    anneal and coarse-to-fine schedules both failed (it is the slowest: 16 solves with the
-    default eighths): the anneal factors on each growing prefix (as ``grow`` with
-    ``grow_anneal``), from the IMU-only adjustment, kept by the same rule. Measured on
-    handwriting seed 4 (5 magnetometer samples per keyframe, 2-s windows): anneal and
-    coarse-to-fine both stopped at the iteration limit (MAP costs 638 and 4562), the grown
-    schedule reached 2.2 mm from 0.153 m (cost 412, at most 30 iterations per solve). It
-    replaces the grow settings the handwriting problem used to carry (eighths with
-    grow_anneal as its first schedule).
+    anneal and coarse-to-fine schedules both failed: the anneal factors on each growing
+    prefix (as ``grow`` with ``grow_anneal``), from the IMU-only adjustment, kept by the
+    same rule.
 
     hyper_window, hyper_windows: keyframes per window of the windowed marginal likelihood
     (``estimate``, and the field check) and the most windows, evenly spread (``all``: every
-    whole window, K // hyper_window). Defaults 30 and 16 (6 s at 5 Hz). Short windows keep
-    the previous path's drift within each small.
-    drift_ratio: null (default) or a ratio: when the estimate's magnetometer noise exceeds
-    this many times the assumed keyframe noise (sigma_m / sqrt(samples)), the previous path
-    drifts within the windows (the drift is taken for noise) and the hyperparameters are
-    estimated again on windows of 2 s of keyframes (``HYPER_SECONDS``; 10 at 5 Hz, at least
-    3), all of them; those are used, for the field check too. Off by default: the
-    lengthscale closer to the true path's is not the one that locates best in these fields
-    (dipoles, sharper near them than one lengthscale says): with 3, spiral seed 1 (ratio 25)
-    went from l 0.117 to 0.223 m and GP-SLAM RMSE to 6.7 mm in 125 s (the anneal schedule
-    fitting badly, so coarse-to-fine ran too), against 2-4 mm in about 22 s before. Measured
-    (5 magnetometer samples per keyframe, noise 0.0018 per keyframe) on the IMU-only paths,
-    ratio with 30-keyframe windows: outdoor seed 1 1.02, square table seeds 6/18 1.29/1.07,
-    rectangle seeds 1/9 2.28/1.12, spiral seed 1 25, handwriting seeds 3/4/5 15/18/17 (on
-    every true path 0.96-1.05). Lengthscale [m] with 30 / 10-keyframe windows against the
-    true path's (10-keyframe windows): handwriting 0.084/0.055/0.036 / 0.093/0.109/0.120
-    against 0.118/0.117/0.107; spiral 0.117 / 0.223 against 0.235. Not shorter windows
-    always: rectangle seed 1 (ratio 2.3) had l 0.158 / 0.188 and GP-SLAM RMSE 4.0 / 7.7 mm.
+    whole window, K // hyper_window). drift_ratio: null (default) or a ratio: when the
+    estimate's magnetometer noise exceeds this many times the assumed keyframe noise
+    (sigma_m / sqrt(samples)), the hyperparameters are estimated again on windows of
+    ``HYPER_SECONDS`` of keyframes (at least 3), all of them, and those are used, for the
+    field check too.
     """
 
     form: Literal["reduced_rank", "exact", "none"] = "reduced_rank"
@@ -579,7 +522,7 @@ def load_imu_problem(
 # --------------------------------------------------------------------------- planar recordings
 class PlanarModelSpec(_Strict):
     """The planar odometry-with-heading model for ``casmag slam`` on a recording with
-    ``dfwd,dleft,dyaw`` columns: the fields of :class:`casmag.imuslam.PlanarOptions` (units
+    ``dfwd,dleft,dyaw`` columns: the fields of :class:`PlanarOptions` (units
     there: metres, radians, seconds; field units of the recording)."""
 
     sigma_disp: PositiveFloat = 0.01
@@ -625,18 +568,54 @@ class PlanarSpec(_Strict):
     solver: SolverSpec = SolverSpec(**PLANAR_SOLVER_DEFAULTS)
 
 
+@dataclass(frozen=True)
+class PlanarOptions:
+    """Settings of the planar odometry-with-heading problem (defaults in brackets).
+
+    sigma_disp: displacement noise per step and axis [m] (0.01); sigma_dyaw: heading
+    increment noise per step [rad] (0.002); bias: heading-rate bias ``constant`` or
+    ``random_walk`` [constant]; bias_walk: its random walk [rad/s/sqrt(s)] (1e-4);
+    bias_prior: zero-mean prior on the (first) bias [rad/s] (0.05); sigma_m: magnetometer
+    noise (0.01); kernel: ``se`` or ``curl_free`` [se]; sigma_f, lengthscale: values or
+    ``estimate`` (windowed marginal likelihood on the dead-reckoned path, short windows)
+    [estimate]; sigma_lin: constant-field prior (2.0); num_basis, margin: reduced-rank basis
+    (None: defaults of ``casmag.rrmap``); sigma_anchor [m] (1e-3) and sigma_psi0 [rad] (1e-3):
+    priors on the known first position and heading; starts: number of starts (odd: the dead
+    reckoning and pairs of +-heading-rate biases, the lowest MAP cost kept) [1];
+    start_heading_deg: the heading the first pair's bias turns over the recording [10];
+    solver: IPOPT settings."""
+
+    sigma_disp: float = 0.01
+    sigma_dyaw: float = 0.002
+    bias: str = "constant"
+    bias_walk: float = 1e-4
+    bias_prior: float = 0.05
+    sigma_m: float = 0.01
+    kernel: str = "se"
+    sigma_f: float | str = "estimate"
+    lengthscale: float | str = "estimate"
+    sigma_lin: float = 2.0
+    num_basis: int | None = None
+    margin: float | None = None
+    sigma_anchor: float = 1e-3
+    sigma_psi0: float = 1e-3
+    curvature: bool = True
+    starts: int = 1
+    start_heading_deg: float = 10.0
+    solver: SolverSpec = dataclasses.field(
+        default_factory=lambda: SolverSpec(**PLANAR_SOLVER_DEFAULTS)
+    )
+
+
 def load_planar_options(
     problem: str | Path | Mapping[str, Any] | None = None,
     overrides: Iterable[str] = (),
     source: str | None = None,
-) -> Any:
-    """:class:`casmag.imuslam.PlanarOptions` from an optional problem file (only its
+) -> PlanarOptions:
+    """:class:`PlanarOptions` from an optional problem file (only its
     ``model`` and ``solver`` sections are read; other sections are ignored) and
     ``key.path=value`` overrides such as ``model.sigma_disp=0.002``. Raises ProblemError
     naming the file (or ``--set``), the key and the reason."""
-    from casmag.config import read_yaml
-    from casmag.imuslam import PlanarOptions
-
     if problem is None:
         data: dict[str, Any] = {}
         source = source or "--set"

@@ -59,18 +59,22 @@ import scipy.sparse
 
 from casmag import strapdown as sd
 from casmag.config import SolverSpec
+from casmag.errors import DataError
 from casmag.exactgp import add_exact_prior
 from casmag.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
 from casmag.hyper import field_evidence as _field_evidence
-from casmag.imuconfig import HYPER_SECONDS, ImuProblem, load_imu_problem
+from casmag.imuconfig import HYPER_SECONDS, ImuProblem, PlanarOptions, load_imu_problem
 from casmag.imusim import ImuData, simulate_imu
 from casmag.kernels import FIELD_DIM, field_covariance, get_kernel
 from casmag.knots import Knots
+from casmag.metrics import rmse_and_max
 from casmag.nlp import NLP, STALLED, NLPBuilder, Solution
 from casmag.outdir import save_atomic
+from casmag.recording import read_recording
 from casmag.reduced_rank import Domain, HilbertBasis
+from casmag.result import _finite
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
-from casmag.versions import versions
+from casmag.versions import __version__, versions
 
 Progress = Callable[[int, float, float, float], None]
 
@@ -1575,7 +1579,6 @@ class ImuResult:
         return self.success and not self.flags
 
     def to_dict(self) -> dict[str, Any]:
-        from casmag.result import _finite
 
         d = {k: v for k, v in self.__dict__.items() if k != "arrays"}
         d["units"] = {
@@ -1629,7 +1632,7 @@ class ImuResult:
                 if self.cost_per_iteration:
                     from casmag.plotting import cost_figure
 
-                    cost_figure(self, tmp / "cost.png")  # type: ignore[arg-type]
+                    cost_figure(self, tmp / "cost.png")
 
         return save_atomic(out_dir, write)
 
@@ -1721,7 +1724,6 @@ def _trajectory_figure(r: ImuResult, path: Any) -> None:
 
 
 def _errors(P: np.ndarray | None, Q: np.ndarray | None, Pt: Any, Qt: Any) -> dict[str, Any]:
-    from casmag.metrics import rmse_and_max
 
     if P is None or Pt is None:
         return {"rmse": None, "max": None, "orientation_rms_deg": None, "orientation_max_deg": None}
@@ -1742,8 +1744,6 @@ def solve_imu(
     (unless given), run the stages, compare with the truth. A failed stage is reported with
     ``success = False`` and IPOPT's status, never as a result: the errors of the failed stage
     and the stages after it are None."""
-    import casmag
-
     problem = load_imu_problem(problem)
     data = simulate_imu(problem) if data is None else data
     res = solve_imu_stages(problem, data, progress)
@@ -1825,7 +1825,7 @@ def solve_imu(
         "num_basis": res.basis_size,
         "map_decision": decision,
         "hessian": "gauss-newton" if spec.solver.hessian == "auto" else spec.solver.hessian,
-        "casmag": casmag.__version__,
+        "casmag": __version__,
         "casadi": ca.__version__,
         "versions": versions(),
     }
@@ -1994,47 +1994,6 @@ PLANAR_HYPER_WINDOW = (30, 16)
 
 # --------------------------------------------------------------------------- planar model
 @dataclass(frozen=True)
-class PlanarOptions:
-    """Settings of the planar odometry-with-heading problem (defaults in brackets).
-
-    sigma_disp: displacement noise per step and axis [m] (0.01); sigma_dyaw: heading
-    increment noise per step [rad] (0.002); bias: heading-rate bias ``constant`` or
-    ``random_walk`` [constant]; bias_walk: its random walk [rad/s/sqrt(s)] (1e-4);
-    bias_prior: zero-mean prior on the (first) bias [rad/s] (0.05); sigma_m: magnetometer
-    noise (0.01); kernel: ``se`` or ``curl_free`` [se]; sigma_f, lengthscale: values or
-    ``estimate`` (windowed marginal likelihood on the dead-reckoned path, short windows)
-    [estimate]; sigma_lin: constant-field prior (2.0); num_basis, margin: reduced-rank basis
-    (None: defaults of ``casmag.rrmap``); sigma_anchor [m] (1e-3) and sigma_psi0 [rad] (1e-3):
-    priors on the known first position and heading; starts: number of starts (odd: the dead
-    reckoning and pairs of +-heading-rate biases, the lowest MAP cost kept) [1];
-    start_heading_deg: the heading the first pair's bias turns over the recording [10];
-    solver: IPOPT settings."""
-
-    sigma_disp: float = 0.01
-    sigma_dyaw: float = 0.002
-    bias: str = "constant"
-    bias_walk: float = 1e-4
-    bias_prior: float = 0.05
-    sigma_m: float = 0.01
-    kernel: str = "se"
-    sigma_f: float | str = "estimate"
-    lengthscale: float | str = "estimate"
-    sigma_lin: float = 2.0
-    num_basis: int | None = None
-    margin: float | None = None
-    sigma_anchor: float = 1e-3
-    sigma_psi0: float = 1e-3
-    curvature: bool = True
-    starts: int = 1
-    start_heading_deg: float = 10.0
-    solver: SolverSpec = field(
-        default_factory=lambda: SolverSpec(
-            max_iter=150, tol=1e-5, ipopt={"acceptable_tol": 1e-4, "acceptable_iter": 5}
-        )
-    )
-
-
-@dataclass(frozen=True)
 class PlanarStructure:
     n: int
     bias: str
@@ -2138,8 +2097,6 @@ class PlanarResult:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""
-        from casmag.result import _finite
-
         d = {k: v for k, v in self.__dict__.items() if k != "arrays"}
         d["units"] = {
             "errors": "position m, heading deg, no alignment",
@@ -2159,9 +2116,9 @@ class PlanarResult:
             if figures:
                 from casmag.plotting import cost_figure, trajectory_figure
 
-                trajectory_figure(self, tmp / "trajectory.png")  # type: ignore[arg-type]
+                trajectory_figure(self, tmp / "trajectory.png")
                 if self.cost_per_iteration:
-                    cost_figure(self, tmp / "cost.png")  # type: ignore[arg-type]
+                    cost_figure(self, tmp / "cost.png")
 
         return save_atomic(out_dir, write)
 
@@ -2311,7 +2268,6 @@ def solve_planar(
     sol = solves[best][1]
     for i, st in enumerate(starts):
         st["kept"] = i == best
-    from casmag.metrics import rmse_and_max
 
     before = after = (None, None)
     hb_deg = ha_deg = None
@@ -2382,9 +2338,6 @@ def solve_planar_recording(
     """Read a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.recording``) and solve
     it; truth columns, when present, are used for evaluation only."""
     from pathlib import Path
-
-    from casmag.errors import DataError
-    from casmag.recording import read_recording
 
     rec = read_recording(path)
     if rec.motion != "planar":

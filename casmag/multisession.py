@@ -22,24 +22,25 @@ on the real field neither start is right every time, and the cost told them apar
 case measured (README, Measured: real field).
 
 ``casmag slam REC1.csv REC2.csv ... --out DIR`` runs it with the single-recording defaults
-(casmag.api.recording_problem on the stacked data) and reports every session's errors in
+(casmag.recslam.recording_problem on the stacked data) and reports every session's errors in
 ``result.json`` under ``info.sessions``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from casmag.api import solve
 from casmag.config import Problem
-from casmag.errors import ProblemError
 from casmag.metrics import rmse_and_max
 from casmag.result import Result
 from casmag.simulate import Dataset
-from casmag.windowing import Stage
+from casmag.slam import solve_translational
+from casmag.uncertainty import PositionUncertainty
+from casmag.windowing import Stage, solve_growing, stage_lengths
 
 
 def stack(sessions: Sequence[Dataset]) -> Dataset:
@@ -102,8 +103,6 @@ def solve_sessions(
     """Solve sessions with one shared map, adding them one at a time in ``order`` (default
     :func:`session_order`). Returns the final result, the stacked data in that order and
     the order; ``result.info["session_stages"]`` records every stage."""
-    from casmag.api import solve
-
     order = (
         list(order) if order is not None else session_order(sessions, problem.assumed_lengthscale)
     )
@@ -165,9 +164,6 @@ def _add_session(
     cost 2,519 and pulled the shared map away, so that every session ended at 0.14-1.0 m.
     With ``final`` the full problem from the better start is left to the caller (its
     result is the answer); the returned stages then hold the starts' partial solves only."""
-    from casmag.slam import solve_translational
-    from casmag.windowing import stage_lengths
-
     both = stack([*previous, new])
     dr_start = np.vstack([P_prev, new.dead_reckoning()])
     tried: list[tuple[float, np.ndarray, dict[str, Any]]] = []
@@ -211,7 +207,7 @@ def _add_session(
 
 
 def solve_two_starts(problem: Problem, data: Dataset) -> tuple[np.ndarray, list[dict[str, Any]]]:
-    """One session (the first of several, or a single recording: casmag.api.slam) from two
+    """One session (the first of several, or a single recording: casmag.recslam.slam) from two
     starts, keeping the lower MAP cost: the batch from the dead reckoning, and growing
     prefixes from FIRST_PREFIX samples (casmag.windowing); the second only for more than
     2 x FIRST_PREFIX samples. Returns the kept positions (the dead reckoning when both
@@ -219,9 +215,6 @@ def solve_two_starts(problem: Problem, data: Dataset) -> tuple[np.ndarray, list[
     Neither is right every time on the real field: on sequence 5 at 0.5 m drift the batch
     reached 0.012 m at cost 661 and growing 0.418 m at cost 1,552; at 1.5 m drift the batch
     stopped at 0.944 m (cost 1,116) and growing reached 0.011 m."""
-    from casmag.slam import solve_translational
-    from casmag.windowing import solve_growing
-
     sol, nlp, _, _, _ = solve_translational(problem, data)
     tried = [(sol, _stage(data, sol, nlp, "dead reckoning"))]
     if data.n_samples > 2 * FIRST_PREFIX:
@@ -274,8 +267,6 @@ def session_rows(data: Dataset, result: Result, names: Sequence[str]) -> list[di
                 row["rmse_after"], row["max_after"] = rmse_and_max(P_est[s], P_true[s])
         cov = result.arrays.get("P_cov")
         if cov is not None:
-            from casmag.uncertainty import PositionUncertainty
-
             row["uncertainty"] = PositionUncertainty(cov[i:j]).summary(P_est[s], P_true[s])
             plain = result.arrays.get("P_cov_uninflated")
             if plain is not None:  # the Laplace covariance before the inflation
@@ -286,60 +277,3 @@ def session_rows(data: Dataset, result: Result, names: Sequence[str]) -> list[di
         row["odometry_bias_true"] = None if bias_true is None else [float(v) for v in bias_true[s]]
         rows.append(row)
     return rows
-
-
-def slam_sessions(
-    recordings: Sequence[str | Path],
-    problem: str | Path | None = None,
-    overrides: str | tuple[str, ...] | list[str] = (),
-    progress: Callable[[int, float, float, float], None] | None = None,
-    field_check: bool = True,
-    name: str | None = None,
-) -> Result:
-    """GP-SLAM on several recordings of the same field with one shared map
-    (:func:`casmag.api.slam`'s defaults, computed on all sessions together). The stacked
-    result's RMSE is over all samples; ``info["sessions"]`` has each session's."""
-    from casmag.api import check_recording_overrides, odometry_only, recording_problem
-    from casmag.config import as_overrides
-    from casmag.recording import read_recording
-
-    overrides = as_overrides(overrides)
-    check_recording_overrides(overrides)
-
-    recs = [read_recording(r) for r in recordings]
-    datasets = [r.to_dataset() for r in recs]
-    data = stack(datasets)
-    label = name or "+".join(Path(r).stem for r in recordings)
-    # One time axis for the defaults (the sample period): the sessions end to end.
-    times, offset = [], 0.0
-    for r in recs:
-        times.append(r.t - r.t[0] + offset)
-        offset = times[-1][-1] + float(np.median(np.diff(r.t)))
-    # The growing warm start cuts prefixes of one trajectory; sessions are one batch.
-    prob, how = recording_problem(
-        data,
-        np.concatenate(times),
-        label,
-        problem,
-        ["solver.warm_start.strategy=none", *overrides] if data.n_sessions > 1 else overrides,
-    )
-    if prob.spec.model.gp.form != "reduced_rank" and data.n_sessions > 1:
-        raise ProblemError(
-            prob.source, "model.gp.form", "several sessions need the reduced-rank map"
-        )
-    if not field_check and how["field_evidence"].get("constant"):
-        from casmag.api import refuse_constant_field
-
-        refuse_constant_field(", ".join(map(str, recordings)))
-    if field_check and how["field_evidence"]["homogeneous"]:
-        from casmag.api import _evidence_text
-
-        result = odometry_only(prob, data, "homogeneous field: " + _evidence_text(how))
-        order = list(range(len(datasets)))
-    else:
-        result, data, order = solve_sessions(prob, datasets, progress)
-    names = [Path(recordings[i]).stem for i in order]
-    result.info["recordings"] = [str(recordings[i]) for i in order]
-    result.info["defaults"] = how
-    result.info["sessions"] = session_rows(data, result, names)
-    return result

@@ -1,15 +1,38 @@
-"""Figures (PNG, matplotlib's Agg canvas; no global pyplot state)."""
+"""Figures (PNG, matplotlib's Agg canvas; no global pyplot state).
+
+The figures read a result and never the other way round: they take any object with the
+attributes of :class:`Drawable` or :class:`DrawableErrors` (casmag.result.Result and the
+IMU and planar results), so this module imports nothing of casmag's.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-if TYPE_CHECKING:
-    from casmag.result import Result
+
+class Drawable(Protocol):
+    """What the figures read of a result: ``info["name"]`` (and ``info["sessions"]``), the
+    arrays (``P_odometry``, ``P_estimate``, ``P_true``, ``P_cov``, ``map_x``, ``map_y``,
+    ``map_field``), the IPOPT status, iterations and cost per iteration."""
+
+    info: dict[str, Any]
+    arrays: dict[str, Any]
+    status: str
+    iterations: int
+    cost_per_iteration: list[float]
+
+
+class DrawableErrors(Drawable, Protocol):
+    """A :class:`Drawable` with its errors before and after [m] (None when unknown)."""
+
+    rmse_before: float | None
+    max_before: float | None
+    rmse_after: float | None
+    max_after: float | None
 
 
 def _save(fig: Figure, path: Path) -> None:
@@ -17,7 +40,7 @@ def _save(fig: Figure, path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
-def trajectory_figure(result: Result, path: Path) -> None:
+def trajectory_figure(result: DrawableErrors, path: Path) -> None:
     """Odometry-only (dashed), estimate (solid) and truth (triangles), as in the paper's
     Figures 1-4, with the errors in the title; with the Laplace covariances, 3-sigma
     ellipses at about 40 points along the estimate."""
@@ -40,7 +63,7 @@ def trajectory_figure(result: Result, path: Path) -> None:
     _save(fig, path)
 
 
-def _pieces(result: Result) -> list[slice]:
+def _pieces(result: Drawable) -> list[slice]:
     """The sample ranges drawn as separate lines: one per session (casmag.multisession)."""
     sessions = result.info.get("sessions")
     if not sessions:
@@ -78,7 +101,7 @@ def _trajectories(ax: object, a: dict, pieces: list[slice], ellipses: bool = Tru
         _ellipses(ax, a["P_estimate"], a["P_cov"])
 
 
-def sessions_figure(result: Result, path: Path) -> None:
+def sessions_figure(result: Drawable, path: Path) -> None:
     """One panel per session of a multi-session solve (casmag.multisession): odometry-only,
     estimate and truth, with the session's errors in its title."""
     import math
@@ -132,7 +155,7 @@ def _ellipses(ax: object, P: object, cov: object, count: int = 40, scale: float 
         )
 
 
-def cost_figure(result: Result, path: Path) -> None:
+def cost_figure(result: Drawable, path: Path) -> None:
     """Objective and constraint violation per IPOPT iteration (the paper's Figure 7)."""
     fig = Figure(figsize=(6.0, 3.6))
     ax = fig.add_subplot()
@@ -150,7 +173,7 @@ def cost_figure(result: Result, path: Path) -> None:
     _save(fig, path)
 
 
-def map_figure(result: Result, path: Path) -> None:
+def map_figure(result: Drawable, path: Path) -> None:
     """Estimated field magnitude over the area (GP posterior mean or reduced-rank map) with
     the estimated path."""
     a = result.arrays

@@ -42,6 +42,11 @@ from pydantic import Field, model_validator
 
 from casmag.config import _Strict, validate_spec
 from casmag.errors import CasmagError, DataError
+from casmag.metrics import rmse_and_max
+from casmag.realdata import Protocol, convert, load_sequence
+from casmag.recording import read_recording, write_recording
+from casmag.recslam import recording_problem, slam, slam_sessions
+from casmag.slam import solve_translational
 
 DATA_HINT = "../shared/data/magnetic-data/invensense (see ../shared/data/README.md)"
 
@@ -109,7 +114,6 @@ def convert_sessions(path: str | Path) -> tuple[RealProblemSpec, list[Any]]:
 
 
 def _convert(spec: RealProblemSpec, path: str | Path, index: int) -> Any:
-    from casmag.realdata import Protocol, convert, load_sequence
 
     prefix = sequence_path(spec, path, index)
     where = "recording" if spec.recording is not None else f"sessions[{index}]"
@@ -137,10 +141,6 @@ def solve_problem(
     """Convert and solve one real-data problem (one recording with ``casmag slam``'s
     defaults, or several sessions with one shared map, casmag.multisession); saves DIR and
     returns its table rows (one per session)."""
-    from casmag.api import slam
-    from casmag.multisession import slam_sessions
-    from casmag.recording import write_recording
-
     spec, convs = convert_sessions(path)
     overrides_file = {"model": spec.model, "solver": spec.solver, "name": spec.name}
     with tempfile.TemporaryDirectory(prefix="casmag-real-") as tmp:
@@ -180,11 +180,6 @@ def truth_start(recording: Path, problem: Path | None, result: Any) -> dict[str,
     neighbourhood of the truth, and no start or solver setting can fix the error; when it
     ends lower, the solve missed a better optimum. Translational recordings only (None
     otherwise)."""
-    from casmag.api import recording_problem
-    from casmag.metrics import rmse_and_max
-    from casmag.recording import read_recording
-    from casmag.slam import solve_translational
-
     rec = read_recording(recording)
     if rec.motion != "translation":
         return None

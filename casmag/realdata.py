@@ -39,6 +39,7 @@ from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import threadpool_limits
 
 from casmag.errors import DataError
+from casmag.hyper import estimate_hyperparameters
 
 SOURCE_RATE_TOLERANCE = 1e-3  # relative spread of the sample interval accepted as uniform
 
@@ -115,8 +116,6 @@ def clock_offset(
     """The magnetometer shift (in source samples; negative: the magnetometer lags the
     positions) that maximises the GP marginal likelihood over |shift| <= max_shift seconds,
     evaluated on every ``stride``-th sample. Returns the shift and a record of the search."""
-    from casmag.hyper import estimate_hyperparameters
-
     n_max = round(max_shift * seq.rate)
     inner = np.arange(n_max, seq.t.shape[0] - n_max, stride)
     if hyper is None:

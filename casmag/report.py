@@ -36,6 +36,7 @@ from typing import Any
 from casmag.errors import DataError
 from casmag.outdir import record_written
 from casmag.paper import TABLES, PaperRow, PaperTable
+from casmag.sweep import read_manifest
 
 # Where the paper's GP-SLAM made the trajectory worse, ours must stay within this factor of
 # the odometry-only RMSE.
@@ -186,7 +187,6 @@ class Table:
 
 
 def _read_manifest(path: Path) -> dict[str, Any]:
-    from casmag.sweep import read_manifest
 
     return read_manifest(path)
 

@@ -29,6 +29,7 @@ import numpy as np
 
 from casmag.config import Problem, SolverSpec
 from casmag.exactgp import add_exact_prior
+from casmag.hyper import estimate_conditional
 from casmag.kernels import FIELD_DIM, get_kernel
 from casmag.knots import Knots
 from casmag.nlp import NLP, NLPBuilder, Solution
@@ -380,7 +381,6 @@ def estimate_start(
     free = [h for h in HYPERPARAMETERS if h in s.estimate and h != "sigma_m"]
     if not free:
         return None
-    from casmag.hyper import estimate_conditional
 
     assumed = {
         "sigma_f": problem.assumed_sigma_f,

@@ -32,21 +32,20 @@ import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import Annotated, Any
 
 import click
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from casmag import interrupt
+from casmag.api import solve
 from casmag.clitools import EXIT_BAD_INPUT, EXIT_SOLVER_FAILED, distinct_set_keys, fail
 from casmag.config import Problem, as_overrides, load_problem, parse_override, read_yaml
-from casmag.errors import CasmagError, ProblemError, one_line
+from casmag.errors import CasmagError, DataError, ProblemError, one_line
 from casmag.interrupt import Interrupted
 from casmag.outdir import check_output_dir, save_atomic
 from casmag.paper import TABLES
-
-if TYPE_CHECKING:
-    from casmag.result import Result
+from casmag.result import Result
 
 MANIFEST = "sweep.json"
 MANIFEST_FORMAT = "casmag-sweep/1"
@@ -379,8 +378,6 @@ def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
 
 def read_manifest(path: Path) -> dict[str, Any]:
     """A sweep.json, checked for the fields the report needs."""
-    from casmag.errors import DataError
-
     try:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
@@ -455,8 +452,6 @@ def run_task(task: RunTask, save: bool = True) -> RunOutcome:
     Any exception is returned as an outcome with ``status = "error"``: one broken run must not
     stop a sweep.
     """
-    from casmag.api import solve
-
     t0 = time.perf_counter()
     try:
         with _SOLVE_LOCK:

@@ -27,17 +27,19 @@ from typing import Any
 
 import numpy as np
 
+from casmag.config import load_problem
+from casmag.errors import CasmagError
+from casmag.metrics import rmse_and_max
+from casmag.simulate import simulate_problem
+from casmag.slam import solve_translational
+from casmag.sweep import default_jobs, load_sweep, local_map
+
 #: Relative cost difference under which two solves count as the same optimum.
 SAME_COST = 1e-6
 
 
 def solve_both(problem: dict[str, Any]) -> dict[str, Any]:
     """The two solves of one run: MAP cost, RMSE, iterations and status from each start."""
-    from casmag.config import load_problem
-    from casmag.metrics import rmse_and_max
-    from casmag.simulate import simulate_problem
-    from casmag.slam import solve_translational
-
     prob = load_problem(problem)
     data = simulate_problem(prob)
     out: dict[str, Any] = {
@@ -112,8 +114,6 @@ def _write_atomic(path: Path, text: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from casmag.errors import CasmagError
-    from casmag.sweep import default_jobs, load_sweep, local_map
 
     ap = argparse.ArgumentParser(prog="python -m casmag.truthstart", description=__doc__)
     ap.add_argument("tables", nargs="+", type=Path, help="table files (problems/paper/*.yaml)")

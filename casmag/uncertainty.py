@@ -56,8 +56,10 @@ from typing import Any
 import numpy as np
 import scipy.linalg as sla
 
+from casmag.kernels import FIELD_DIM
 from casmag.knots import Knots
 from casmag.nlp import NLP, Solution
+from casmag.rrmap import MapModel, field_and_jacobians
 
 
 @dataclass
@@ -291,8 +293,6 @@ def magnetometer_correction(
     interpolation matrix A, the weights through the basis row (SE: component c's column of
     W; curl-free: the shared potential) and the constant field c_c. Exact GP: the residual
     y_kc - M_kc, so only the diagonal of the M block changes."""
-    from casmag.kernels import FIELD_DIM
-
     n_x = nlp.x_layout.size
     E = nlp.x_layout.entries
     V = (np.asarray(weights, dtype=float) - 1.0) / sigma_m**2  # (N, 3)
@@ -304,8 +304,6 @@ def magnetometer_correction(
         out[idx, idx] = V.ravel(order="F")
         return out
     import scipy.sparse as sp
-
-    from casmag.rrmap import MapModel, field_and_jacobians
 
     knots, d, kernel = structure.knots, structure.dim, structure.kernel
     basis = structure.hilbert_basis()

@@ -361,8 +361,8 @@ def test_one_override_string_is_one_override(tmp_path):
 
 
 def test_one_override_string_in_the_other_entry_points(tmp_path):
-    from casmag.api import slam
     from casmag.imuconfig import load_imu_problem
+    from casmag.recslam import slam
     from casmag.sweep import load_sweep
 
     imu = yaml.safe_load((REPO_ROOT / "problems/imu/rectangle.yaml").read_text())

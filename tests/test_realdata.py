@@ -11,7 +11,6 @@ from click.testing import CliRunner
 from small_problems import tiny_walk
 
 import casmag
-from casmag.api import slam
 from casmag.cli import main
 from casmag.errors import DataError
 from casmag.realdata import (
@@ -26,6 +25,7 @@ from casmag.realdata import (
     planar_increments,
 )
 from casmag.recording import dataset_to_recording_arrays, write_recording
+from casmag.recslam import slam
 from casmag.simulate import simulate_problem
 
 ROOT = Path(__file__).resolve().parents[1]
