@@ -17,6 +17,7 @@ from casmag.slam import (
     HYPERPARAMETERS,
     field_estimate,
     field_on_grid,
+    field_std_on_grid,
     parameters_and_guess,
     solve_translational,
 )
@@ -76,11 +77,13 @@ def solve(
     uncertainty, cov, cov_plain = _uncertainty(
         problem, nlp, sol, structure, solved, P_est, data.P_true
     )
-    grid_x = grid_y = field_grid = None
+    grid_x = grid_y = field_grid = std_grid = None
     if sol.success:
         grid_x, grid_y = _grid(P_est, problem.assumed_lengthscale)
         pts = np.column_stack([grid_x.ravel(), grid_y.ravel()])
-        field_grid = field_on_grid(structure, sol, hyper, pts, problem.spec.model.gp.jitter, P_est)
+        jitter = problem.spec.model.gp.jitter
+        field_grid = field_on_grid(structure, sol, hyper, pts, jitter, P_est)
+        std_grid = field_std_on_grid(structure, hyper, pts, P_est, jitter)
 
     info = {
         "name": problem.name,
@@ -133,6 +136,7 @@ def solve(
         cost_per_iteration=sol.cost_per_iteration,
         constraint_violation_per_iteration=sol.inf_pr_per_iteration,
         uncertainty=uncertainty,
+        convergence=[sol.trace("GP-SLAM, final solve" if stages else "GP-SLAM")],
         arrays={
             "P_cov": cov,
             "P_cov_uninflated": cov_plain,
@@ -144,6 +148,8 @@ def solve(
             "map_x": grid_x,
             "map_y": grid_y,
             "map_field": None if field_grid is None else field_grid.reshape(*grid_x.shape, 3),
+            "map_std": None if std_grid is None else std_grid[0].reshape(*grid_x.shape, 3),
+            "map_prior_std": None if std_grid is None else std_grid[1].reshape(*grid_x.shape, 3),
         },
     )
 

@@ -22,6 +22,8 @@ from casmag.clitools import (
     fail_bad_input,
     output_options,
     print_progress,
+    problem_kind,
+    refuse_other_kind,
 )
 from casmag.errors import CasmagError
 from casmag.imucli import imu_command
@@ -40,13 +42,83 @@ def main() -> None:
 @main.command()
 @click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
 @output_options
+@click.pass_context
+def solve(
+    ctx: click.Context,
+    problem: Path,
+    out_dir: Path,
+    overrides: tuple[str, ...],
+    no_figures: bool,
+    quiet: bool,
+) -> None:
+    """Solve PROBLEM, a problem file of any kind, and write its results to --out.
+
+    The kind comes from the file's keys (casmag.config.document_kind): a translational
+    problem (problems/paper, problems/bench) as ``casmag run``, an IMU problem
+    (problems/imu) as ``casmag imu``, a real-data problem (problems/real: ``recording`` or
+    ``sessions``) as ``make bench-real`` solves one file. A table file (``rows``) is refused:
+    it is run over seeds by ``casmag sweep``.
+    """
+    kind = problem_kind(problem)
+    options = {"out_dir": out_dir, "overrides": overrides, "no_figures": no_figures}
+    if kind == "translational":
+        ctx.invoke(run, problem=problem, quiet=quiet, **options)
+    elif kind == "imu":
+        ctx.invoke(imu_command, problem=problem, quiet=quiet, **options)
+    elif kind == "recording":
+        if overrides:
+            fail(
+                f"--set: not taken by a real-data problem file ({problem}); edit its model "
+                "or solver section instead",
+                EXIT_BAD_INPUT,
+            )
+        _solve_real(problem, out_dir, quiet)
+    else:
+        refuse_other_kind(problem, kind, "translational")
+
+
+def _solve_real(problem: Path, out_dir: Path, quiet: bool) -> None:
+    """A real-data problem file (casmag.realbench): converted from ../shared/data, solved
+    with ``casmag slam``'s defaults and the file's settings; exit 1 when IPOPT failed."""
+    from casmag.realbench import solve_problem
+
+    try:
+        rows = solve_problem(problem, out_dir, None if quiet else print_progress)
+    except CasmagError as exc:
+        fail(str(exc), EXIT_BAD_INPUT)
+    except INPUT_ERRORS as exc:
+        fail_bad_input(problem, exc)
+    failed = [r for r in rows if not r["success"]]
+    if failed:
+        fail(
+            f"{problem}: IPOPT failed: status {failed[0]['status']} after "
+            f"{failed[0]['iterations']} iterations (recorded in {out_dir / 'result.json'})",
+            EXIT_SOLVER_FAILED,
+        )
+    if not quiet:
+        for r in rows:
+            before, after = (
+                "-" if r.get(k) is None else f"{r[k]:.4f}" for k in ("rmse_before", "rmse_after")
+            )
+            click.echo(
+                f"{r['name']}: {r['status']}, {r['iterations']} iterations; "
+                f"RMSE {before} -> {after} m"
+            )
+        click.echo(f"wrote {out_dir}/")
+
+
+@main.command()
+@click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
+@output_options
 def run(
     problem: Path, out_dir: Path, overrides: tuple[str, ...], no_figures: bool, quiet: bool
 ) -> None:
-    """Solve PROBLEM (a YAML problem file) and write result.json, trajectory.csv and figures."""
+    """Solve PROBLEM (a translational problem file) and write result.json, trajectory.csv
+    and figures (``casmag solve`` takes every kind of problem file)."""
     from casmag.api import solve
     from casmag.config import load_problem
 
+    refuse_other_kind(problem, problem_kind(problem), "translational")
     try:
         prob = load_problem(problem, overrides)
         result = solve(prob, progress=None if quiet else print_progress)
@@ -56,6 +128,10 @@ def run(
     except INPUT_ERRORS as exc:
         fail_bad_input(problem, exc)
     _finish(result, problem, out_dir, quiet)
+
+
+def _warn(line: str) -> None:
+    click.echo(line, err=True)
 
 
 def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
@@ -141,11 +217,21 @@ def slam(
                 raise CasmagError(f"{r}: planar recordings cannot be solved as several sessions")
         if len(recordings) == 1:
             result = run_slam(
-                recording, problem, overrides, progress=progress, field_check=not no_field_check
+                recording,
+                problem,
+                overrides,
+                progress=progress,
+                field_check=not no_field_check,
+                on_warning=_warn,
             )
         else:
             result = slam_sessions(
-                recordings, problem, overrides, progress=progress, field_check=not no_field_check
+                recordings,
+                problem,
+                overrides,
+                progress=progress,
+                field_check=not no_field_check,
+                on_warning=_warn,
             )
         result.save(out_dir, figures=not no_figures)
     except CasmagError as exc:

@@ -12,6 +12,8 @@ from typing import Any, NoReturn
 import click
 
 from casmag import interrupt
+from casmag.config import document_kind, read_yaml
+from casmag.errors import CasmagError
 from casmag.interrupt import Interrupted
 from casmag.outdir import OutputError, check_output_dir
 
@@ -124,3 +126,36 @@ class CasmagGroup(click.Group):
             return super().invoke(ctx)
         except Interrupted as exc:
             fail(f"interrupted ({exc.name}); no output was replaced", exc.exit_code)
+
+
+#: The command that solves each kind of problem file (casmag.config.document_kind).
+COMMAND_OF_KIND = {
+    "translational": "casmag run",
+    "imu": "casmag imu",
+    "recording": "casmag solve",
+    "table": "casmag sweep",
+}
+_KIND_NAMES = {
+    "translational": "a translational problem file",
+    "imu": "an IMU problem file",
+    "recording": "a real-data problem file",
+    "table": "a table file (rows of overrides of a problem file)",
+}
+
+
+def problem_kind(problem: Path) -> str:
+    """The kind of a problem file (exit 2 with one line when it cannot be read)."""
+    try:
+        return document_kind(read_yaml(problem))
+    except CasmagError as exc:
+        fail(str(exc), EXIT_BAD_INPUT)
+
+
+def refuse_other_kind(problem: Path, kind: str, expected: str) -> None:
+    """Exit 2 naming the command for a problem file of another kind than ``expected``."""
+    if kind == expected:
+        return
+    command = f"'{COMMAND_OF_KIND[kind]} {problem} --out DIR'"
+    if COMMAND_OF_KIND[kind] not in ("casmag solve", "casmag sweep"):
+        command += f" or 'casmag solve {problem} --out DIR'"
+    fail(f"{problem}: {_KIND_NAMES[kind]}, solved by {command}", EXIT_BAD_INPUT)

@@ -39,14 +39,17 @@ PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegativeFloat = Annotated[float, Field(ge=0)]
 
 
-class _Strict(BaseModel):
+class Strict(BaseModel):
+    """Base of every casmag document section: unknown keys, type coercion and inf/nan are
+    refused."""
+
     # No inf or nan anywhere: no model can carry them (they passed validation and failed in
     # CasADi or the kernels).
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 
 # --------------------------------------------------------------------------- simulation
-class TrajectorySpec(_Strict):
+class TrajectorySpec(Strict):
     """The true path, walked at constant speed with one magnetometer sample per pose.
 
     kind ``spiral``: planar Archimedean spiral (paper Section 3.1); start_radius: radius of
@@ -68,7 +71,7 @@ class TrajectorySpec(_Strict):
     wall_margin: NonNegativeFloat = 0.5
 
 
-class FieldSpec(_Strict):
+class FieldSpec(Strict):
     """The true field, drawn from the GP prior with these hyperparameters.
 
     method ``exact``: a joint Gaussian draw at the samples (O(N^3), for N up to a few
@@ -84,20 +87,20 @@ class FieldSpec(_Strict):
     features: Annotated[int, Field(ge=10, le=100_000)] = 2000
 
 
-class OdometrySimSpec(_Strict):
+class OdometrySimSpec(Strict):
     """Odometry increments = true increments + bias + white noise, per step and axis [m]."""
 
     noise: NonNegativeFloat = 1.0e-4
     bias: Annotated[list[float], Field(min_length=2, max_length=2)] = [1.0e-3, 1.0e-3]
 
 
-class MagnetometerSimSpec(_Strict):
+class MagnetometerSimSpec(Strict):
     """Magnetometer = true field + white noise of this standard deviation (field units)."""
 
     noise: NonNegativeFloat = 2.0e-3
 
 
-class SimulationSpec(_Strict):
+class SimulationSpec(Strict):
     trajectory: TrajectorySpec = TrajectorySpec()
     field: FieldSpec = FieldSpec()
     odometry: OdometrySimSpec = OdometrySimSpec()
@@ -105,7 +108,7 @@ class SimulationSpec(_Strict):
 
 
 # --------------------------------------------------------------------------- model
-class GPSpec(_Strict):
+class GPSpec(Strict):
     """GP prior on the field. ``null`` hyperparameters take the simulation's true values.
 
     form: ``exact`` (dense kernel matrix over the samples, paper Eq. 6) or ``reduced_rank``
@@ -130,13 +133,13 @@ class GPSpec(_Strict):
     sigma_lin: PositiveFloat | None = None
 
 
-class MagnetometerModelSpec(_Strict):
+class MagnetometerModelSpec(Strict):
     """Magnetometer noise standard deviation sigma_m assumed by the model (null: truth)."""
 
     sigma_m: PositiveFloat | None = None
 
 
-class OdometryModelSpec(_Strict):
+class OdometryModelSpec(Strict):
     """Odometry noise per step and axis assumed by the model [m] (null: truth).
 
     estimate_bias: estimate a constant per-step odometry bias b (m per step, per axis) as
@@ -149,13 +152,13 @@ class OdometryModelSpec(_Strict):
     bias_prior_sigma: PositiveFloat | None = None
 
 
-class AnchorSpec(_Strict):
+class AnchorSpec(Strict):
     """Soft anchor of the first position at its known value, standard deviation [m]."""
 
     sigma: PositiveFloat = 1.0e-4
 
 
-class TrajectoryModelSpec(_Strict):
+class TrajectoryModelSpec(Strict):
     """How the estimated trajectory is represented (casmag.knots).
 
     knot_every: the positions are the dead reckoning plus a drift correction that is free at
@@ -167,7 +170,7 @@ class TrajectoryModelSpec(_Strict):
     knot_every: Annotated[int, Field(ge=1, le=100_000)] = 1
 
 
-class ModelSpec(_Strict):
+class ModelSpec(Strict):
     """What the MAP problem assumes. ``estimate`` lists hyperparameters to estimate
     (log-parameterised, started from the values given or defaulted above, or from the
     marginal likelihood, as ``estimate_start`` says).
@@ -205,7 +208,7 @@ class ModelSpec(_Strict):
         return value
 
 
-class WarmStartSpec(_Strict):
+class WarmStartSpec(Strict):
     """How the initial trajectory of the full problem is found (casmag.windowing,
     casmag.sliding).
 
@@ -296,7 +299,7 @@ class WarmStartSpec(_Strict):
         return None if window is None else max(1, window // 2)
 
 
-class SolverSpec(_Strict):
+class SolverSpec(Strict):
     """IPOPT settings. ``ipopt`` passes further options through unchanged.
 
     hessian: ``auto`` is ``exact`` for the exact GP and ``gauss-newton`` for the reduced-rank
@@ -370,7 +373,7 @@ class SolverSpec(_Strict):
         return value
 
 
-class ProblemSpec(_Strict):
+class ProblemSpec(Strict):
     seed: Annotated[int, Field(ge=0, le=2**32 - 1)]  # numpy's generators take 0 .. 2^32 - 1
     name: str | None = None
     description: str | None = None
@@ -418,7 +421,8 @@ class ProblemSpec(_Strict):
             raise ValueError(
                 "model.estimate: sigma_f and lengthscale cannot be estimated with the reduced-rank "
                 "map yet (the joint MAP over weights and hyperparameters is unbounded); use "
-                "model.gp.form: exact, or estimate sigma_m only"
+                "model.gp.form: exact, or give their values (casmag slam estimates them "
+                "beforehand by the windowed marginal likelihood)"
             )
         return self
 
@@ -631,30 +635,45 @@ _UNION_TAG = re.compile(
 )
 
 
-def _format_loc(loc: tuple[Any, ...]) -> str:
-    return ".".join(
-        str(part) for i, part in enumerate(loc) if i == 0 or not _UNION_TAG.fullmatch(str(part))
-    )
+def _is_key(i: int, part: Any) -> bool:
+    """Whether a location part names a key or an index, not a union member's type tag."""
+    if i == 0 or isinstance(part, int):
+        return True
+    text = str(part)  # no casmag key holds any of "-[]'(" (constrained-float, literal[...])
+    return not (_UNION_TAG.fullmatch(text) or any(ch in text for ch in "-[]'("))
 
 
-def _validation_error(source: str, err: ValidationError) -> ProblemError:
-    first = err.errors()[0]
-    loc = _format_loc(first["loc"])
+def validation_error(source: str, err: ValidationError) -> ProblemError:
+    """One ProblemError for a pydantic ValidationError of any casmag document: the source,
+    the dotted key (without union members' type tags) and the reason. A value that fits
+    none of a union's forms gets what each form wanted; a whole-file check (no location)
+    names the key its message starts with."""
+    errors = err.errors()
+    first = errors[0]
+    loc = tuple(part for i, part in enumerate(first["loc"]) if _is_key(i, part))
+    where = ".".join(str(part) for part in loc)
     if first["type"] == "extra_forbidden":
-        return ProblemError(source, loc, "unknown key")
+        return ProblemError(source, where, "unknown key")
     if first["type"] == "missing":
-        return ProblemError(source, loc, "required key is missing")
-    msg = first["msg"]
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, ") :]
+        return ProblemError(source, where, "required key is missing")
     if not loc:
         # A whole-file consistency check: its message starts with the key it is about, and
         # the input (the whole file) is not repeated.
+        msg = first["msg"].removeprefix("Value error, ")
         key, sep, reason = msg.partition(": ")
         if sep and key and " " not in key:
             return ProblemError(source, key, reason)
         return ProblemError(source, "", msg)
-    return ProblemError(source, loc, f"{msg} (got {_short_repr(first.get('input'))})")
+    msgs: list[str] = []
+    for e in errors:
+        if tuple(part for i, part in enumerate(e["loc"]) if _is_key(i, part)) == loc:
+            m = e["msg"].removeprefix("Value error, ")
+            if m not in msgs:
+                msgs.append(m)
+    value = first.get("input")
+    if isinstance(value, Mapping):  # a section's own check: its message names the keys
+        return ProblemError(source, where, " or ".join(msgs))
+    return ProblemError(source, where, f"{' or '.join(msgs)} (got {_short_repr(value)})")
 
 
 def _short_repr(value: Any, limit: int = 200) -> str:
@@ -721,6 +740,26 @@ def apply_overrides(
     return data
 
 
+#: The kinds of casmag document (:func:`document_kind`).
+DOCUMENT_KINDS = ("translational", "imu", "recording", "table")
+
+
+def document_kind(data: Mapping[str, Any]) -> str:
+    """Which casmag document a problem file's top-level mapping is, from its keys:
+    ``table`` (``rows``: rows of overrides of a problem file, ``casmag sweep``),
+    ``recording`` (``recording`` or ``sessions``: real data, casmag.realbench), ``imu``
+    (``simulation.scenario`` or ``simulation.imu``: casmag.imuconfig), else
+    ``translational`` (casmag.config). The file's own schema then names any bad key."""
+    if "rows" in data:
+        return "table"
+    if "recording" in data or "sessions" in data:
+        return "recording"
+    simulation = data.get("simulation")
+    if isinstance(simulation, Mapping) and ("scenario" in simulation or "imu" in simulation):
+        return "imu"
+    return "translational"
+
+
 def read_yaml(path: Path) -> dict[str, Any]:
     """Read a YAML mapping, turning I/O and syntax errors into one-line ProblemErrors."""
     try:
@@ -773,7 +812,7 @@ def validate_spec(
     try:
         return spec_class.model_validate(data), src
     except ValidationError as err:
-        raise (to_error or _validation_error)(src, err) from None
+        raise (to_error or validation_error)(src, err) from None
 
 
 def load_problem(

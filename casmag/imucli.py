@@ -25,6 +25,8 @@ from casmag.clitools import (
     fail_bad_input,
     output_options,
     print_progress,
+    problem_kind,
+    refuse_other_kind,
 )
 from casmag.errors import CasmagError
 
@@ -43,6 +45,7 @@ def imu_command(
     from casmag.imuconfig import load_imu_problem
     from casmag.imuslam import solve_imu
 
+    refuse_other_kind(problem, problem_kind(problem), "imu")
     try:
         refuse_unused_solver_keys(overrides, "casmag imu")
         prob = load_imu_problem(problem, overrides)
@@ -136,15 +139,16 @@ def planar_slam(
     field_check: bool = True,
 ) -> None:
     """``casmag slam`` on a planar recording (``dfwd,dleft,dyaw``): the planar model with a
-    heading-rate bias (:func:`casmag.imuslam.solve_planar_recording`). Settings from the
+    heading-rate bias (:func:`casmag.planar.solve_planar_recording`). Settings from the
     problem file's ``model``/``solver`` sections and ``--set model.KEY=...`` overrides
     (:class:`casmag.imuconfig.PlanarModelSpec`). Writes result.json, trajectory.csv,
     trajectory.png and cost.png; exits as every command does (0, 1 with IPOPT's status, 2).
     A constant magnetometer carries no position information: the result is the dead
     reckoning, status ``Odometry_Only`` (:func:`planar_odometry_only`; with ``field_check``
     off, exit 2)."""
+    from casmag.checks import recording_warnings, warning_lines
     from casmag.imuconfig import load_planar_options
-    from casmag.imuslam import solve_planar_recording
+    from casmag.planar import solve_planar_recording
     from casmag.recording import read_recording
     from casmag.recslam import constant_magnetometer, refuse_constant_field
 
@@ -152,6 +156,9 @@ def planar_slam(
         refuse_unused_solver_keys(overrides, "casmag slam on a planar recording")
         options = load_planar_options(problem, overrides)
         rec = read_recording(recording)
+        found = recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)
+        for line in warning_lines(recording, found):
+            click.echo(line, err=True)
         if constant_magnetometer(rec.Y):
             if not field_check:
                 refuse_constant_field(recording)
@@ -160,6 +167,7 @@ def planar_slam(
             result = solve_planar_recording(
                 recording, options, progress=None if quiet else print_progress
             )
+        result.warnings = found
         a = result.arrays
         if a.get("P_true") is not None and a.get("psi_true") is None:
             # True positions without a true heading: the heading column is written empty
@@ -192,9 +200,9 @@ def planar_slam(
 def planar_odometry_only(rec: Recording) -> Any:
     """The planar dead reckoning as the result of a recording whose magnetometer is constant
     (status ``Odometry_Only``, the reason in ``info.fallback``), started where
-    :func:`casmag.imuslam.solve_planar` starts: the first true pose, else the origin."""
-    from casmag.imuslam import PlanarResult, dead_reckon_planar
+    :func:`casmag.planar.solve_planar` starts: the first true pose, else the origin."""
     from casmag.metrics import rmse_and_max
+    from casmag.planar import PlanarResult, dead_reckon_planar
     from casmag.recslam import CONSTANT_FIELD
     from casmag.versions import __version__, versions
 

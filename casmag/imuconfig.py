@@ -20,9 +20,9 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from casmag.config import SolverSpec, read_yaml, validate_spec
+from casmag.config import SolverSpec, Strict, read_yaml, validate_spec, validation_error
 from casmag.errors import ProblemError
 from casmag.imusim import HANDWRITING_LETTERS
 
@@ -31,14 +31,8 @@ NonNegativeFloat = Annotated[float, Field(ge=0)]
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
-class _Strict(BaseModel):
-    # No inf or nan anywhere: no model can carry them (they passed validation and failed in
-    # CasADi or the kernels).
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
-
-
 # --------------------------------------------------------------------------- scenarios
-class _Motion(_Strict):
+class _Motion(Strict):
     """Common to every scenario: speed [m/s] (slower in tight curves), static [s] at rest
     before and after, corner_radius [m] of the hand's rounding, attitude_deg (roll, pitch,
     yaw) of the device [deg], wobble_deg amplitudes of smooth random roll, pitch, yaw [deg]."""
@@ -97,7 +91,7 @@ Scenario = Annotated[
 ]
 
 
-class ImuSimSpec(_Strict):
+class ImuSimSpec(Strict):
     """The IMU: rate [Hz]; white-noise densities gyro [deg/s/sqrt(Hz)] and acc
     [m/s^2/sqrt(Hz)]; constant biases gyro [deg/s] and acc [m/s^2]; bias random walks gyro
     [deg/s/sqrt(s)] and acc [m/s^2/sqrt(s)] (paper Eq. 2); levelling_seconds [s] at rest at
@@ -114,7 +108,7 @@ class ImuSimSpec(_Strict):
     levelling_seconds: PositiveFloat = 0.5
 
 
-class DipoleSpec(_Strict):
+class DipoleSpec(Strict):
     """A magnetic dipole: position [m] in the local frame, moment [a.u. m^3] (the on-axis
     field at distance r is 2 |moment| / r^3 a.u.)."""
 
@@ -123,7 +117,7 @@ class DipoleSpec(_Strict):
     moment: Vector3
 
 
-class FieldSimSpec(_Strict):
+class FieldSimSpec(Strict):
     """The physical field: Earth's field of magnitude earth_intensity [a.u.] with the given
     inclination and declination [deg], plus dipoles."""
 
@@ -133,13 +127,13 @@ class FieldSimSpec(_Strict):
     dipoles: list[DipoleSpec] = []
 
 
-class MagnetometerSimSpec(_Strict):
+class MagnetometerSimSpec(Strict):
     """Magnetometer white noise per component [a.u.], sampled with the IMU."""
 
     noise: NonNegativeFloat = 0.004
 
 
-class ImuSimulationSpec(_Strict):
+class ImuSimulationSpec(Strict):
     scenario: Scenario
     imu: ImuSimSpec = ImuSimSpec()
     magnetometer: MagnetometerSimSpec = MagnetometerSimSpec()
@@ -147,7 +141,7 @@ class ImuSimulationSpec(_Strict):
 
 
 # --------------------------------------------------------------------------- model
-class ImuModelSpec(_Strict):
+class ImuModelSpec(Strict):
     """IMU noise the model assumes (null: the simulation's), in the simulation's units.
 
     bias: ``random_walk`` (a bias per keyframe, Eq. 2) or ``constant`` (one per run).
@@ -165,7 +159,7 @@ class ImuModelSpec(_Strict):
     acc_bias_prior: PositiveFloat = 0.1
 
 
-class InitialStateSpec(_Strict):
+class InitialStateSpec(Strict):
     """Priors on the first keyframe: position [m] and velocity [m/s] standard deviations
     (known start, at rest), tilt and heading [deg] about the levelled initial attitude (the
     heading defines the local frame)."""
@@ -176,7 +170,7 @@ class InitialStateSpec(_Strict):
     yaw_sigma_deg: PositiveFloat = 0.01
 
 
-class ZeroPositionSpec(_Strict):
+class ZeroPositionSpec(Strict):
     """Weak zero-position update (the paper's "within a one metre sphere"): every keyframe
     position gets a prior N(centre, sigma^2 I) [m]; null switches it off. centre: ``start``
     (the known first position) or ``free`` (an unknown centre, estimated)."""
@@ -194,7 +188,7 @@ HYPER_WINDOWS = 16
 HYPER_SECONDS = 2.0
 
 
-class ImuGPSpec(_Strict):
+class ImuGPSpec(Strict):
     """The field map. The measurements behind these defaults are in
     ``problems/imu/README.md`` (section "Measurements behind the map settings").
 
@@ -316,7 +310,7 @@ class ImuGPSpec(_Strict):
         return v
 
 
-class MagnetometerModelSpec(_Strict):
+class MagnetometerModelSpec(Strict):
     """Magnetometer noise sigma_m [a.u.] the model assumes per sample (null: truth), and
     ``samples``: how many consecutive magnetometer samples (odd) make one keyframe's
     measurement, each rotated into the keyframe's body frame by the gyro increments and
@@ -340,7 +334,7 @@ class MagnetometerModelSpec(_Strict):
         return v
 
 
-class ImuProblemModelSpec(_Strict):
+class ImuProblemModelSpec(Strict):
     """keyframe_rate [Hz]: states are kept at this rate, the IMU increments between them
     composed (the IMU rate must be a whole multiple); the magnetometer is used at keyframes,
     averaged over ``magnetometer.samples`` samples around each."""
@@ -353,7 +347,7 @@ class ImuProblemModelSpec(_Strict):
     magnetometer: MagnetometerModelSpec = MagnetometerModelSpec()
 
 
-class ImuProblemSpec(_Strict):
+class ImuProblemSpec(Strict):
     seed: Annotated[int, Field(ge=0, le=2**32 - 1)]  # numpy's generators: 0 .. 2^32 - 1
     name: str | None = None
     description: str | None = None
@@ -469,39 +463,6 @@ class ImuProblem:
             self.sigma_m  # noqa: B018
 
 
-def _is_field(part: Any) -> bool:
-    """Whether a location part names a key or an index, not a union member's type tag
-    (such as ``constrained-float`` or ``literal['estimate']``)."""
-    return isinstance(part, int) or not any(ch in str(part) for ch in "-[]'(")
-
-
-def _validation_error(source: str, err: ValidationError) -> ProblemError:
-    errors = err.errors()
-    first = errors[0]
-    loc = tuple(p for p in first["loc"] if _is_field(p))
-    where = ".".join(str(part) for part in loc)
-    if first["type"] == "extra_forbidden":
-        return ProblemError(source, where, "unknown key")
-    if first["type"] == "missing":
-        return ProblemError(source, where, "required key is missing")
-    if not loc:
-        # A whole-file consistency check: its message starts with the key it is about, and
-        # the input (the whole file) is not repeated.
-        msg = first["msg"].removeprefix("Value error, ")
-        key, sep, reason = msg.partition(": ")
-        if sep and key and " " not in key:
-            return ProblemError(source, key, reason)
-        return ProblemError(source, "", msg)
-    # A value that fits none of a union's forms: say what each form wanted.
-    msgs = []
-    for e in errors:
-        if tuple(p for p in e["loc"] if _is_field(p)) == loc:
-            m = e["msg"].removeprefix("Value error, ")
-            if m not in msgs:
-                msgs.append(m)
-    return ProblemError(source, where, f"{' or '.join(msgs)} (got {first.get('input')!r})")
-
-
 def load_imu_problem(
     problem: str | Path | Mapping[str, Any] | ImuProblem,
     overrides: Iterable[str] = (),
@@ -513,14 +474,14 @@ def load_imu_problem(
         if not overrides:
             return problem
         problem, source = problem.spec.model_dump(mode="python"), problem.source
-    spec, src = validate_spec(ImuProblemSpec, problem, overrides, source, _validation_error)
+    spec, src = validate_spec(ImuProblemSpec, problem, overrides, source, validation_error)
     out = ImuProblem(spec=spec, source=src)
     out.resolve_all()
     return out
 
 
 # --------------------------------------------------------------------------- planar recordings
-class PlanarModelSpec(_Strict):
+class PlanarModelSpec(Strict):
     """The planar odometry-with-heading model for ``casmag slam`` on a recording with
     ``dfwd,dleft,dyaw`` columns: the fields of :class:`PlanarOptions` (units
     there: metres, radians, seconds; field units of the recording)."""
@@ -560,7 +521,7 @@ PLANAR_SOLVER_DEFAULTS: dict[str, Any] = {
 }
 
 
-class PlanarSpec(_Strict):
+class PlanarSpec(Strict):
     """A problem file for a planar recording: ``model`` (:class:`PlanarModelSpec`) and
     ``solver`` (IPOPT; defaults :data:`PLANAR_SOLVER_DEFAULTS`)."""
 
@@ -628,5 +589,5 @@ def load_planar_options(
     data["solver"] = {**PLANAR_SOLVER_DEFAULTS, **(solver if isinstance(solver, dict) else {})}
     if solver is not None and not isinstance(solver, dict):
         data["solver"] = solver  # let validation name the bad value
-    spec, _ = validate_spec(PlanarSpec, data, overrides, source, _validation_error)
+    spec, _ = validate_spec(PlanarSpec, data, overrides, source, validation_error)
     return PlanarOptions(**spec.model.model_dump(), solver=spec.solver)

@@ -59,20 +59,18 @@ import scipy.sparse
 
 from casmag import strapdown as sd
 from casmag.config import SolverSpec
-from casmag.errors import DataError
 from casmag.exactgp import add_exact_prior
 from casmag.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
 from casmag.hyper import field_evidence as _field_evidence
-from casmag.imuconfig import HYPER_SECONDS, ImuProblem, PlanarOptions, load_imu_problem
+from casmag.imuconfig import HYPER_SECONDS, ImuProblem, load_imu_problem
 from casmag.imusim import ImuData, simulate_imu
 from casmag.kernels import FIELD_DIM, field_covariance, get_kernel
 from casmag.knots import Knots
 from casmag.metrics import rmse_and_max
 from casmag.nlp import NLP, STALLED, NLPBuilder, Solution
 from casmag.outdir import save_atomic
-from casmag.recording import read_recording
-from casmag.reduced_rank import Domain, HilbertBasis
-from casmag.result import _finite
+from casmag.reduced_rank import HilbertBasis, cached_basis
+from casmag.result import finite_json
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
 from casmag.versions import __version__, versions
 
@@ -376,7 +374,7 @@ class RotatedFieldGaussNewton(HessianCallback):
 
 
 # --------------------------------------------------------------------------- map blocks
-def _add_reduced_rank_map(
+def add_reduced_rank_map(
     b: NLPBuilder,
     basis: HilbertBasis,
     kernel: str,
@@ -422,7 +420,7 @@ def _add_reduced_rank_map(
     return W, c
 
 
-def _gauss_newton_for(
+def gauss_newton_for(
     b: NLPBuilder,
     basis: HilbertBasis,
     kernel: str,
@@ -520,13 +518,7 @@ class ImuStructure:
     zero_centre: str = "start"  # or "free": the zero-position sphere's centre is estimated
 
     def hilbert_basis(self) -> HilbertBasis:
-        return _hilbert_basis(self.basis)
-
-
-@lru_cache(maxsize=8)
-def _hilbert_basis(key: tuple) -> HilbertBasis:
-    center, half_width, num_basis = key
-    return HilbertBasis(Domain(np.array(center), np.array(half_width)), num_basis)
+        return cached_basis(self.basis)
 
 
 def _rt_minus_identity(v: Any, y: Any) -> Any:
@@ -733,8 +725,8 @@ def build_imu(s: ImuStructure) -> NLP:
             return b.build(solver, name="casmag_imu_exact", gauss_newton=gp)
         return b.build_gauss_newton(solver, name="casmag_imu_exact", callbacks=dict([gp]))
     basis = s.hilbert_basis()
-    _add_reduced_rank_map(b, basis, s.kernel, P, D, RNOM, rotation, K, 3)
-    block, gn = _gauss_newton_for(
+    add_reduced_rank_map(b, basis, s.kernel, P, D, RNOM, rotation, K, 3)
+    block, gn = gauss_newton_for(
         b, basis, s.kernel, rotation, K, 3, "D", "RNOM", pos_name="dP", nominal_name="PNOM"
     )
     return b.build_gauss_newton(solver, name="casmag_imu_rr", callbacks={block: gn})
@@ -909,6 +901,7 @@ def _solve_recentred(
         solve_seconds=sum(s.solve_seconds for s in rounds),
         cost_per_iteration=[v for s in rounds for v in s.cost_per_iteration],
         inf_pr_per_iteration=[v for s in rounds for v in s.inf_pr_per_iteration],
+        inf_du_per_iteration=[v for s in rounds for v in s.inf_du_per_iteration],
         blocks_before=rounds[0].blocks_before,
         rounds=len(rounds),
     )
@@ -1567,6 +1560,7 @@ class ImuResult:
     schedules: list[dict[str, Any]] = field(default_factory=list)
     map_decision: str = "map"
     flags: list[dict[str, Any]] = field(default_factory=list)
+    convergence: list[dict[str, Any]] = field(default_factory=list)
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
 
     @property
@@ -1587,7 +1581,7 @@ class ImuResult:
             "acc_bias": "m/s^2",
             "seconds": "wall-clock s",
         }
-        return _finite(d)
+        return finite_json(d)
 
     def bias_table(self) -> str:
         """Markdown table of true and recovered biases (the paper's Table 6 layout)."""
@@ -1669,6 +1663,7 @@ def _trajectory_figure(r: ImuResult, path: Any) -> None:
     within the frame of the others), IMU-only adjustment and GP-SLAM."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     a = r.arrays
     ref = np.vstack([a[k] for k in ("P_true", "P_imu_only", "P_estimate") if a.get(k) is not None])
@@ -1704,11 +1699,20 @@ def _trajectory_figure(r: ImuResult, path: Any) -> None:
     ax.set_ylabel("y [m]")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right", fontsize=7)
+    start = ref[0]
+    ax.plot(*start[:2], "o", color="black", ms=5, label=None)
+    ax3.plot(*start[:, None], "o", color="black", ms=5)
+    for axis, k in ((ax3.set_xlim, 0), (ax3.set_ylim, 1), (ax3.set_zlim, 2)):
+        axis(lo[k] - pad, hi[k] + pad)  # scaled to the estimate, not to the strapdown
+    for axis in (ax3.xaxis, ax3.yaxis, ax3.zaxis):
+        axis.set_major_locator(MaxNLocator(4))
+    ax3.tick_params(labelsize=7)
     ax3.set_xlabel("x [m]")
     ax3.set_ylabel("y [m]")
     ax3.set_zlabel("z [m]")
     e = r.errors
-    lines = [r.info.get("name", "")]
+    status = r.status if r.success else f"FAILED ({r.status}, {r.failed_stage})"
+    lines = [f"{r.info.get('name', '')}: {status}" + (", flagged" if r.flags else "")]
     parts = []
     for key, label in (
         ("strapdown", "strapdown"),
@@ -1718,7 +1722,7 @@ def _trajectory_figure(r: ImuResult, path: Any) -> None:
         if e[key]["rmse"] is not None:
             parts.append(f"{label} {e[key]['rmse']:.4g} m")
     lines.append("position RMSE: " + ", ".join(parts))
-    fig.suptitle("\n".join(lines), fontsize=9)
+    fig.suptitle("\n".join(lines), fontsize=9, color="black" if r.success else "tab:red")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -1905,6 +1909,14 @@ def solve_imu(
         schedules=res.schedules,
         map_decision=decision,
         flags=flags,
+        convergence=[s1.solution.trace("IMU only")]
+        + [
+            p.solution.trace(
+                f"GP-SLAM {i + 1}/{len(res.slam_passes)}"
+                + ("" if p.sigma_m is None else f", sigma_m {p.sigma_m:.2g}")
+            )
+            for i, p in enumerate(res.slam_passes)
+        ],
         arrays=arrays,
     )
 
@@ -1985,381 +1997,3 @@ def _wrong_basin(
         ),
         "evidence": evidence,
     }
-
-
-#: Keyframes per marginal-likelihood window and the most windows of the planar
-#: recordings' hyperparameters (the values their figures were measured with).
-PLANAR_HYPER_WINDOW = (30, 16)
-
-
-# --------------------------------------------------------------------------- planar model
-@dataclass(frozen=True)
-class PlanarStructure:
-    n: int
-    bias: str
-    kernel: str
-    basis: tuple
-    solver: str
-    curvature: bool = True
-
-    def hilbert_basis(self) -> HilbertBasis:
-        return _hilbert_basis(self.basis)
-
-
-def build_planar(s: PlanarStructure) -> NLP:
-    """The planar GP-SLAM NLP: states (x, y, psi) per sample, heading-rate bias, reduced-rank
-    map, magnetometer y = Rz(psi)^T (m(x) + c)."""
-    b = GaussNewtonBuilder()
-    n = s.n
-    P = b.variable("P", (n, 2))
-    psi = b.variable("psi", (n, 1))
-    nb = n - 1 if s.bias == "random_walk" else 1
-    bias = b.variable("bias", (nb, 1))
-    U = b.parameter("U", (n - 1, 3))  # dfwd, dleft, dyaw
-    dt = b.parameter("dt", (n - 1, 1))
-    sig = {
-        k: b.parameter(k, (1, 1))
-        for k in ("sigma_disp", "sigma_dyaw", "sigma_bias0", "sigma_anchor", "sigma_psi0")
-    }
-    anchor = b.parameter("anchor", (1, 3))
-    p, p1, ps, ps1 = ca.SX.sym("p", 2), ca.SX.sym("p1", 2), ca.SX.sym("psi"), ca.SX.sym("psi1")
-    u, bb, h, sd_, sy = (
-        ca.SX.sym("u", 3),
-        ca.SX.sym("b"),
-        ca.SX.sym("dt"),
-        ca.SX.sym("sd"),
-        ca.SX.sym("sy"),
-    )
-    c, s_ = ca.cos(ps), ca.sin(ps)
-    step = ca.vertcat(c * u[0] - s_ * u[1], s_ * u[0] + c * u[1])
-    r = ca.vertcat((p1 - p - step) / sd_, (ps1 - ps - (u[2] - bb * h)) / sy)
-    f = ca.Function("planar_step", [p, p1, ps, ps1, u, bb, h, sd_, sy], [r]).map(n - 1, "serial")
-    B = bias if s.bias == "random_walk" else ca.repmat(bias, n - 1, 1)
-    E = f(
-        P[:-1, :].T,
-        P[1:, :].T,
-        psi[:-1].T,
-        psi[1:].T,
-        U.T,
-        B.T,
-        dt.T,
-        sig["sigma_disp"],
-        sig["sigma_dyaw"],
-    )
-    b.residual("odometry", E)
-    if s.bias == "random_walk":
-        walk = b.parameter("bias_walk", (1, 1))
-        b.cost("bias_walk", 0.5 * ca.sumsqr((bias[1:] - bias[:-1]) / (walk * ca.sqrt(dt[:-1]))))
-    b.cost("bias_prior", 0.5 * (bias[0] / sig["sigma_bias0"]) ** 2)
-    b.cost(
-        "anchor",
-        0.5 * ca.sumsqr((P[0, :] - anchor[0, :2]) / sig["sigma_anchor"])
-        + 0.5 * ((psi[0] - anchor[0, 2]) / sig["sigma_psi0"]) ** 2,
-    )
-    basis = s.hilbert_basis()
-    rotation = planar_rotation_function()
-    _add_reduced_rank_map(b, basis, s.kernel, P, psi, None, rotation, n, 2)
-    mode = "exact" if s.curvature else "gauss-newton"
-    block, gn = _gauss_newton_for(b, basis, s.kernel, rotation, n, 2, "psi", None, mode)
-    solver = SolverSpec.model_validate_json(s.solver)
-    return b.build_gauss_newton(solver, name="casmag_planar", callbacks={block: gn})
-
-
-@lru_cache(maxsize=4)
-def cached_planar_nlp(s: PlanarStructure) -> NLP:
-    return build_planar(s)
-
-
-@dataclass
-class PlanarResult:
-    """Outcome of a planar solve. Errors [m] and heading errors [deg] against the truth,
-    no alignment (None without truth or when IPOPT failed); bias in rad/s (per step when no
-    times were given)."""
-
-    status: str
-    success: bool
-    iterations: int
-    build_seconds: float
-    solve_seconds: float
-    rmse_before: float | None
-    max_before: float | None
-    rmse_after: float | None
-    max_after: float | None
-    heading_rms_deg_before: float | None
-    heading_rms_deg_after: float | None
-    bias: list[float] | None
-    hyperparameters: dict[str, float]
-    num_basis: int
-    cost_blocks: dict[str, dict[str, float]]
-    cost_per_iteration: list[float]
-    info: dict[str, Any] = field(default_factory=dict)
-    arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""
-        d = {k: v for k, v in self.__dict__.items() if k != "arrays"}
-        d["units"] = {
-            "errors": "position m, heading deg, no alignment",
-            "bias": "rad/s (rad per step without times)",
-            "seconds": "wall-clock s",
-        }
-        return _finite(d)
-
-    def save(self, out_dir: Any, figures: bool = True) -> Any:
-        """Write result.json, trajectory.csv and (if figures) trajectory.png and cost.png
-        into out_dir atomically."""
-        import json
-
-        def write(tmp: Any) -> None:
-            (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
-            _write_planar_csv(self, tmp / "trajectory.csv")
-            if figures:
-                from casmag.plotting import cost_figure, trajectory_figure
-
-                trajectory_figure(self, tmp / "trajectory.png")
-                if self.cost_per_iteration:
-                    cost_figure(self, tmp / "cost.png")
-
-        return save_atomic(out_dir, write)
-
-
-def _write_planar_csv(r: PlanarResult, path: Any) -> None:
-    """One row per sample: index, time, dead-reckoned, estimated and (if known) true x, y
-    [m] and heading psi [rad]."""
-    a = r.arrays
-    n = a["P_odometry"].shape[0]
-    cols, names = [np.arange(n), a.get("t", np.arange(n, dtype=float))], ["k", "t"]
-    for P, psi, tag in (
-        ("P_odometry", "psi_odometry", "odo"),
-        ("P_estimate", "psi_estimate", "est"),
-        ("P_true", "psi_true", "true"),
-    ):
-        if a.get(P) is not None:
-            cols.extend([*a[P].T, a[psi]])
-            names.extend(f"{c}_{tag}" for c in ("x", "y", "psi"))
-    fmt = ["%d"] + ["%.9g"] * (len(names) - 1)
-    np.savetxt(
-        path, np.column_stack(cols), delimiter=",", header=",".join(names), comments="", fmt=fmt
-    )
-
-
-def dead_reckon_planar(U: np.ndarray, p0: np.ndarray, psi0: float, bias_dt: Any = 0.0) -> tuple:
-    """(N, 2) positions and (N,) headings from (N-1, 3) increments (dfwd, dleft, dyaw), with
-    an optional heading increment correction bias_dt ((N-1,) or scalar) removed."""
-    n = U.shape[0] + 1
-    psi = np.empty(n)
-    psi[0] = psi0
-    psi[1:] = psi0 + np.cumsum(U[:, 2] - bias_dt)
-    c, s = np.cos(psi[:-1]), np.sin(psi[:-1])
-    step = np.column_stack([c * U[:, 0] - s * U[:, 1], s * U[:, 0] + c * U[:, 1]])
-    P = np.vstack([p0, p0 + np.cumsum(step, axis=0)])
-    return P, psi
-
-
-def solve_planar(
-    dfwd: np.ndarray,
-    dleft: np.ndarray,
-    dyaw: np.ndarray,
-    mag: np.ndarray,
-    options: PlanarOptions | None = None,
-    truth: dict[str, np.ndarray] | None = None,
-    t: np.ndarray | None = None,
-    p0: np.ndarray | None = None,
-    psi0: float = 0.0,
-    progress: Progress | None = None,
-    name: str = "planar",
-) -> PlanarResult:
-    """Planar odometry with heading plus magnetometer GP-SLAM from arrays.
-
-    dfwd, dleft (N-1,) [m], dyaw (N-1,) [rad]: increments between samples; mag (N, 3):
-    magnetometer in the heading-rotated body frame (tilt removed); t (N,) [s] (default one
-    second per sample: the bias is then per step); p0 (2,), psi0: known start (default the
-    truth's when given, else the origin and 0). truth: optional ``P`` (N, 2) and ``psi``
-    (N,) for evaluation only.
-
-    Solved from ``options.starts`` starts, keeping the lowest MAP cost: the dead reckoning
-    (bias 0) and dead reckonings with a heading-rate bias b removed, b = +-k delta,
-    delta turning the heading by ``options.start_heading_deg`` over the recording. One start
-    (the dead reckoning) is the default: on the 186-sample loop walk, seeds 1-5, three starts
-    lowered the MAP cost on seeds 1, 2 and 4 but the RMSE ratio only on seed 1 (0.34 ->
-    0.18; seed 2 0.17 -> 0.21, seed 4 0.09 -> 0.20; two loops, seed 1: 0.29 -> 0.42): the
-    lower-cost optimum of this model is not reliably nearer the truth."""
-    options = options or PlanarOptions()
-    U = np.column_stack([dfwd, dleft, dyaw]).astype(float)
-    Y = np.asarray(mag, dtype=float)
-    n = Y.shape[0]
-    if U.shape != (n - 1, 3):
-        raise ValueError(f"increments must have N-1 = {n - 1} rows, got {U.shape[0]}")
-    dt = np.ones(n - 1) if t is None else np.diff(np.asarray(t, dtype=float))
-    if p0 is None:
-        p0 = truth["P"][0] if truth is not None else np.zeros(2)
-        psi0 = float(truth["psi"][0]) if truth is not None and "psi" in truth else psi0
-    P_dr, psi_dr = dead_reckon_planar(U, np.asarray(p0, float), psi0)
-    Y_local = sd.rotate(sd.quat_from_euler(0.0 * psi_dr, 0.0 * psi_dr, psi_dr), Y)
-    sigma_f, ell = options.sigma_f, options.lengthscale
-    if "estimate" in (sigma_f, ell):
-        est = estimate_hyperparameters(
-            P_dr,
-            Y_local,
-            kernel=options.kernel,
-            window=PLANAR_HYPER_WINDOW[0],
-            max_windows=PLANAR_HYPER_WINDOW[1],
-        )
-        sigma_f = est.sigma_f if sigma_f == "estimate" else sigma_f
-        ell = est.lengthscale if ell == "estimate" else ell
-    hb = make_basis(options.kernel, P_dr, float(ell), options.num_basis, options.margin)
-    s = PlanarStructure(
-        n=n,
-        bias=options.bias,
-        kernel=options.kernel,
-        basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
-        solver=options.solver.model_dump_json(),
-        curvature=options.curvature,
-    )
-    nlp = cached_planar_nlp(s)
-    params: dict[str, Any] = {
-        "U": U,
-        "dt": dt.reshape(-1, 1),
-        "sigma_disp": options.sigma_disp,
-        "sigma_dyaw": options.sigma_dyaw,
-        "sigma_bias0": options.bias_prior,
-        "sigma_anchor": options.sigma_anchor,
-        "sigma_psi0": options.sigma_psi0,
-        "anchor": np.array([[p0[0], p0[1], psi0]]),
-        "Y": Y,
-        "sigma_m": options.sigma_m,
-        "sigma_f": float(sigma_f),
-        "lengthscale": float(ell),
-        "sigma_lin": options.sigma_lin,
-    }
-    if options.bias == "random_walk":
-        params["bias_walk"] = options.bias_walk
-    c0 = Y_local.mean(axis=0)
-    basis = s.hilbert_basis()
-    n_bias = n - 1 if options.bias == "random_walk" else 1
-
-    def solve_from(bias0: float) -> Any:
-        U0 = U.copy()
-        U0[:, 2] -= bias0 * dt
-        P0, psi_0 = dead_reckon_planar(U0, np.asarray(p0, float), psi0)
-        Y0 = sd.rotate(sd.quat_from_euler(0.0 * psi_0, 0.0 * psi_0, psi_0), Y)
-        w = ridge_weights(
-            basis, options.kernel, P0, Y0, c0, options.sigma_m, float(sigma_f), float(ell)
-        )
-        x0 = {
-            "P": P0,
-            "psi": psi_0.reshape(-1, 1),
-            "bias": np.full((n_bias, 1), bias0),
-            "W": whiten(basis, options.kernel, float(sigma_f), float(ell), w),
-            "c": c0.reshape(3, 1),
-        }
-        return nlp.solve(params, x0, progress=progress)
-
-    delta = np.radians(options.start_heading_deg) / max(float(dt.sum()), 1e-12)
-    k = np.arange(1, (options.starts - 1) // 2 + 1)
-    biases = [0.0, *np.ravel(np.column_stack([k * delta, -k * delta]))]
-    solves = [(b0, solve_from(float(b0))) for b0 in biases]
-    starts = [
-        {"bias": float(b0), "cost": so.objective, "status": so.status, "iterations": so.iterations}
-        for b0, so in solves
-    ]
-    ok = [i for i, (_, so) in enumerate(solves) if so.success]
-    best = min(ok, key=lambda i: solves[i][1].objective) if ok else 0
-    sol = solves[best][1]
-    for i, st in enumerate(starts):
-        st["kept"] = i == best
-
-    before = after = (None, None)
-    hb_deg = ha_deg = None
-    if truth is not None:
-        before = rmse_and_max(P_dr, truth["P"])
-        wrap = lambda a: np.angle(np.exp(1j * a))  # noqa: E731
-        if "psi" in truth:
-            hb_deg = float(np.degrees(np.sqrt(np.mean(wrap(psi_dr - truth["psi"]) ** 2))))
-        if sol.success:
-            after = rmse_and_max(sol.x["P"], truth["P"])
-        if sol.success and "psi" in truth:
-            ha_deg = float(
-                np.degrees(np.sqrt(np.mean(wrap(sol.x["psi"].ravel() - truth["psi"]) ** 2)))
-            )
-    return PlanarResult(
-        status=sol.status,
-        success=sol.success,
-        iterations=sol.iterations,
-        build_seconds=nlp.build_seconds,
-        solve_seconds=sum(so.solve_seconds for _, so in solves),
-        rmse_before=before[0],
-        max_before=before[1],
-        rmse_after=after[0],
-        max_after=after[1],
-        heading_rms_deg_before=hb_deg,
-        heading_rms_deg_after=ha_deg,
-        bias=[float(v) for v in sol.x["bias"].ravel()] if sol.success else None,
-        hyperparameters={
-            "sigma_f": float(sigma_f),
-            "lengthscale": float(ell),
-            "sigma_m": options.sigma_m,
-        },
-        num_basis=basis.num_basis,
-        cost_blocks={
-            k: {"before": sol.blocks_before[k], "after": sol.blocks_after[k]}
-            for k in sol.blocks_before
-        },
-        cost_per_iteration=sol.cost_per_iteration,
-        info={
-            "name": name,
-            "samples": int(n),
-            "bias_model": options.bias,
-            "kernel": options.kernel,
-            "hyperparameters": "given"
-            if "estimate" not in (options.sigma_f, options.lengthscale)
-            else "marginal likelihood on the dead-reckoned path",
-            "casadi": ca.__version__,
-            "versions": versions(),
-            "starts": starts,
-        },
-        arrays={
-            "t": np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
-            "P_odometry": P_dr,
-            "psi_odometry": psi_dr,
-            "P_estimate": sol.x["P"],
-            "psi_estimate": sol.x["psi"].ravel(),
-            "P_true": None if truth is None else truth["P"],
-            "psi_true": None
-            if truth is None or "psi" not in truth
-            else np.asarray(truth["psi"], dtype=float),
-        },
-    )
-
-
-def solve_planar_recording(
-    path: Any, options: PlanarOptions | None = None, progress: Progress | None = None
-) -> PlanarResult:
-    """Read a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.recording``) and solve
-    it; truth columns, when present, are used for evaluation only."""
-    from pathlib import Path
-
-    rec = read_recording(path)
-    if rec.motion != "planar":
-        raise DataError(
-            f"{path}: motion input is {rec.motion!r}, the planar model needs dfwd,dleft,dyaw"
-        )
-    cols = {name: rec.increments[:, i] for i, name in enumerate(rec.increment_names)}
-    truth = None
-    if rec.P_true is not None:
-        truth = {"P": rec.P_true[:, :2]}
-        if rec.yaw_true is not None:
-            truth["psi"] = rec.yaw_true
-    result = solve_planar(
-        cols["dfwd"],
-        cols["dleft"],
-        cols["dyaw"],
-        rec.Y,
-        options,
-        truth=truth,
-        t=rec.t,
-        progress=progress,
-        name=Path(path).stem,
-    )
-    result.info["recording"] = str(path)
-    return result

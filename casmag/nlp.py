@@ -284,6 +284,21 @@ class Solution:
     blocks_after: dict[str, float]
     stats: dict[str, Any] = field(repr=False, default_factory=dict)
     rounds: int = 1  # IPOPT runs summed in this solution (re-centred solves)
+    inf_du_per_iteration: list[float] = field(default_factory=list)
+
+    def trace(self, stage: str) -> dict[str, Any]:
+        """This solve's convergence record for a result's ``convergence`` list: the stage's
+        name, IPOPT's status and iterations, and per iteration (iteration 0 first) the
+        objective, the primal infeasibility (0 for casmag's unconstrained NLPs) and the dual
+        infeasibility (the gradient's scaled max-norm, what the tolerance is checked on)."""
+        return {
+            "stage": stage,
+            "status": self.status,
+            "iterations": self.iterations,
+            "objective": list(self.cost_per_iteration),
+            "inf_pr": list(self.inf_pr_per_iteration),
+            "inf_du": list(self.inf_du_per_iteration),
+        }
 
 
 @dataclass
@@ -379,6 +394,7 @@ class NLP:
             objective=float(out["f"]),
             cost_per_iteration=[float(v) for v in iters.get("obj", [])],
             inf_pr_per_iteration=[float(v) for v in iters.get("inf_pr", [])],
+            inf_du_per_iteration=[float(v) for v in iters.get("inf_du", [])],
             blocks_before=before,
             blocks_after=self.evaluate_blocks(xopt, p),
             stats=stats,

@@ -2,7 +2,8 @@
 
 The figures read a result and never the other way round: they take any object with the
 attributes of :class:`Drawable` or :class:`DrawableErrors` (casmag.result.Result and the
-IMU and planar results), so this module imports nothing of casmag's.
+IMU and planar results), so this module imports nothing of casmag's. Each figure function
+writes its PNG and returns the matplotlib Figure (the tests read its titles and artists).
 """
 
 from __future__ import annotations
@@ -17,13 +18,16 @@ from matplotlib.figure import Figure
 class Drawable(Protocol):
     """What the figures read of a result: ``info["name"]`` (and ``info["sessions"]``), the
     arrays (``P_odometry``, ``P_estimate``, ``P_true``, ``P_cov``, ``map_x``, ``map_y``,
-    ``map_field``), the IPOPT status, iterations and cost per iteration."""
+    ``map_field``, ``map_std``, ``map_prior_std``), the IPOPT status and success, iterations,
+    and the convergence record of every solve (casmag.nlp.Solution.trace)."""
 
     info: dict[str, Any]
     arrays: dict[str, Any]
     status: str
+    success: bool
     iterations: int
     cost_per_iteration: list[float]
+    convergence: list[dict[str, Any]]
 
 
 class DrawableErrors(Drawable, Protocol):
@@ -40,27 +44,75 @@ def _save(fig: Figure, path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
-def trajectory_figure(result: DrawableErrors, path: Path) -> None:
+def trajectory_figure(result: DrawableErrors, path: Path) -> Figure:
     """Odometry-only (dashed), estimate (solid) and truth (triangles), as in the paper's
-    Figures 1-4, with the errors in the title; with the Laplace covariances, 3-sigma
-    ellipses at about 40 points along the estimate."""
+    Figures 1-4, start and end marked, the solver status and the errors in the title. A
+    failed solve's last iterate is drawn dotted and labelled as such, never as an estimate.
+    With position covariances: 3-sigma ellipses at about 40 points along the estimate,
+    labelled by the covariance drawn, and a panel of the position error against the
+    3-sigma radius along the path (the ellipses can be too small to see at the map's
+    scale)."""
     a = result.arrays
-    fig = Figure(figsize=(6.0, 5.6))
-    ax = fig.add_subplot()
-    _trajectories(ax, a, _pieces(result))
+    cov = a.get("P_cov")
+    fig = Figure(figsize=(6.0, 7.4 if cov is not None else 5.6))
+    if cov is not None:
+        ax, ax_err = fig.subplots(2, 1, height_ratios=[3.2, 1.0])
+    else:
+        ax, ax_err = fig.add_subplot(), None
+    label = _covariance_label(result)
+    _trajectories(ax, a, _pieces(result), result.success, label)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    title = result.info.get("name", "")
+    ax.legend(loc="best", fontsize=7)
+    ax.set_title(_title(result), fontsize=9, color="black" if result.success else "tab:red")
+    if ax_err is not None:
+        _error_panel(ax_err, a, label)
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def _title(result: DrawableErrors) -> str:
+    """Name and status, then the errors (or why there are none)."""
+    title = f"{result.info.get('name', '')}: {result.status}"
+    if not result.success:
+        return title + "\nIPOPT failed: no estimate (the last iterate is drawn dotted)"
     if result.rmse_before is not None and result.rmse_after is not None:
         title += (
             f"\nRMSE {result.rmse_before:.4f} m -> {result.rmse_after:.4f} m, "
             f"max {result.max_before:.4f} m -> {result.max_after:.4f} m"
         )
-    ax.set_title(title, fontsize=9)
-    _save(fig, path)
+    return title
+
+
+def _covariance_label(result: Drawable) -> str:
+    """What the drawn covariance is: the Laplace covariance, inflated for correlated
+    magnetometer residuals when that was applied (casmag.uncertainty)."""
+    u = getattr(result, "uncertainty", None) or {}
+    inflation = u.get("inflation") or {}
+    if inflation.get("active"):
+        return "Laplace, inflated for correlated residuals"
+    return "Laplace"
+
+
+def _error_panel(ax: Any, a: dict[str, Any], label: str) -> None:
+    """Position error and 3-sigma radius (3 sqrt of the covariance's trace) per sample."""
+    import numpy as np
+
+    cov = a["P_cov"]
+    k = np.arange(cov.shape[0])
+    radius = 3.0 * np.sqrt(np.trace(cov, axis1=1, axis2=2))
+    ax.plot(k, radius, "-", color="tab:purple", lw=1.0, label=f"3-sigma radius ({label})")
+    if a.get("P_true") is not None:
+        err = np.linalg.norm(a["P_estimate"] - a["P_true"], axis=1)
+        ax.plot(k, err, "-", color="tab:blue", lw=0.8, label="position error")
+    ax.set_xlabel("sample")
+    ax.set_ylabel("[m]")
+    ax.set_ylim(bottom=0.0)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=7)
 
 
 def _pieces(result: Drawable) -> list[slice]:
@@ -71,7 +123,14 @@ def _pieces(result: Drawable) -> list[slice]:
     return [slice(s["first_sample"], s["first_sample"] + s["n_samples"]) for s in sessions]
 
 
-def _trajectories(ax: object, a: dict, pieces: list[slice], ellipses: bool = True) -> None:
+def _trajectories(
+    ax: Any,
+    a: dict,
+    pieces: list[slice],
+    success: bool = True,
+    covariance: str = "Laplace",
+    ellipses: bool = True,
+) -> None:
     for i, sl in enumerate(pieces):
         first = i == 0
         ax.plot(
@@ -90,18 +149,30 @@ def _trajectories(ax: object, a: dict, pieces: list[slice], ellipses: bool = Tru
                 mfc="none",
                 label="truth" if first else None,
             )
-        ax.plot(
-            *a["P_estimate"][sl, :2].T,
-            "-",
-            color="tab:blue",
-            lw=1.4,
-            label="GP-SLAM" if first else None,
-        )
-    if ellipses and a.get("P_cov") is not None and a["P_cov"].shape[1] == 2:
-        _ellipses(ax, a["P_estimate"], a["P_cov"])
+        if success:
+            ax.plot(
+                *a["P_estimate"][sl, :2].T,
+                "-",
+                color="tab:blue",
+                lw=1.4,
+                label="GP-SLAM" if first else None,
+            )
+        else:
+            ax.plot(
+                *a["P_estimate"][sl, :2].T,
+                ":",
+                color="tab:red",
+                lw=1.2,
+                label="last iterate (failed)" if first else None,
+            )
+        start, end = a["P_estimate"][sl][0, :2], a["P_estimate"][sl][-1, :2]
+        ax.plot(*start, "o", color="black", ms=6, label="start" if first else None)
+        ax.plot(*end, "s", color="black", ms=5, mfc="none", label="end" if first else None)
+    if ellipses and success and a.get("P_cov") is not None and a["P_cov"].shape[1] == 2:
+        _ellipses(ax, a["P_estimate"], a["P_cov"], covariance)
 
 
-def sessions_figure(result: Drawable, path: Path) -> None:
+def sessions_figure(result: Drawable, path: Path) -> Figure:
     """One panel per session of a multi-session solve (casmag.multisession): odometry-only,
     estimate and truth, with the session's errors in its title."""
     import math
@@ -117,7 +188,7 @@ def sessions_figure(result: Drawable, path: Path) -> None:
             for k, v in result.arrays.items()
             if k.startswith("P_")
         }
-        _trajectories(ax, a, [slice(None)], ellipses=True)
+        _trajectories(ax, a, [slice(None)], result.success, _covariance_label(result))
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(alpha=0.3)
         title = s["name"]
@@ -129,9 +200,12 @@ def sessions_figure(result: Drawable, path: Path) -> None:
     fig.suptitle(result.info.get("name", ""), fontsize=10)
     fig.tight_layout()
     _save(fig, path)
+    return fig
 
 
-def _ellipses(ax: object, P: object, cov: object, count: int = 40, scale: float = 3.0) -> None:
+def _ellipses(
+    ax: Any, P: Any, cov: Any, covariance: str, count: int = 40, scale: float = 3.0
+) -> None:
     """scale-sigma ellipses of the (N, 2, 2) covariances at ``count`` samples along P."""
     import numpy as np
     from matplotlib.patches import Ellipse
@@ -150,42 +224,108 @@ def _ellipses(ax: object, P: object, cov: object, count: int = 40, scale: float 
                 fill=False,
                 lw=0.8,
                 color="tab:purple",
-                label=f"{scale:g}-sigma (Laplace)" if i == 0 else None,
+                label=f"{scale:g}-sigma ({covariance})" if i == 0 else None,
             )
         )
 
 
-def cost_figure(result: Drawable, path: Path) -> None:
-    """Objective and constraint violation per IPOPT iteration (the paper's Figure 7)."""
-    fig = Figure(figsize=(6.0, 3.6))
-    ax = fig.add_subplot()
-    cost = result.cost_per_iteration
-    offset = min(cost)
-    ax.semilogy(range(len(cost)), [c - offset + 1e-12 for c in cost], "o-", ms=3)
-    ax.set_xlabel("IPOPT iteration")
-    ax.set_ylabel("cost - final cost")
+def cost_figure(result: Drawable, path: Path) -> Figure:
+    """Convergence of every solve of the run (the paper's Figure 7, per stage): the
+    objective (top) and IPOPT's dual and primal infeasibility (bottom, the dual one is what
+    the tolerance is checked on) per iteration, the stages one after another with their
+    names and statuses, integer iteration ticks, and the final status in the title (red
+    when IPOPT failed)."""
+    import numpy as np
+    from matplotlib.ticker import MaxNLocator
+
+    stages = result.convergence or [
+        {
+            "stage": "solve",
+            "status": result.status,
+            "iterations": result.iterations,
+            "objective": list(result.cost_per_iteration),
+            "inf_pr": [],
+            "inf_du": [],
+        }
+    ]
+    fig = Figure(figsize=(6.4, 5.2))
+    ax, ax_kkt = fig.subplots(2, 1, sharex=True)
+    start = 0
+    positive = all(v > 0 for st in stages for v in st["objective"])
+    for i, st in enumerate(stages):
+        obj = np.asarray(st["objective"], dtype=float)
+        x = start + np.arange(obj.size)
+        color = f"C{i % 10}"
+        label = f"{st['stage']}: {st['status']}, {st['iterations']} it"
+        ax.plot(x, obj, "o-", ms=2.5, lw=1.0, color=color, label=label)
+        for key, style in (("inf_du", "-"), ("inf_pr", ":")):
+            v = np.asarray(st.get(key) or [], dtype=float)
+            v = np.where(v > 0, v, np.nan)
+            if v.size and np.isfinite(v).any():
+                ax_kkt.semilogy(start + np.arange(v.size), v, style, lw=1.0, color=color)
+        if i:
+            for a_ in (ax, ax_kkt):
+                a_.axvline(start - 0.5, color="grey", lw=0.6, ls="--")
+        start += max(obj.size, 1)
+    ax.set_yscale("log" if positive else "symlog")
+    ax.set_ylabel("objective")
     ax.grid(alpha=0.3, which="both")
-    ax.set_title(
-        f"{result.info.get('name', '')}: {result.status}, {result.iterations} iterations",
-        fontsize=9,
-    )
+    ax.legend(loc="upper right", fontsize=7)
+    ax_kkt.set_ylabel("infeasibility")
+    ax_kkt.set_xlabel("IPOPT iteration (stages one after another)")
+    ax_kkt.grid(alpha=0.3, which="both")
+    ax_kkt.plot([], [], "-", color="black", lw=1.0, label="dual (gradient)")
+    ax_kkt.plot([], [], ":", color="black", lw=1.0, label="primal")
+    ax_kkt.legend(loc="upper right", fontsize=7)
+    ax_kkt.xaxis.set_major_locator(MaxNLocator(integer=True))
+    title = f"{result.info.get('name', '')}: {result.status}, {result.iterations} iterations"
+    if not result.success:
+        title = f"FAILED: {title}"
+    ax.set_title(title, fontsize=9, color="black" if result.success else "tab:red")
     fig.tight_layout()
     _save(fig, path)
+    return fig
 
 
-def map_figure(result: Drawable, path: Path) -> None:
-    """Estimated field magnitude over the area (GP posterior mean or reduced-rank map) with
-    the estimated path."""
+#: The map is masked where its posterior std is above this fraction of the prior's.
+MAP_MASK = 0.5
+
+
+def map_figure(result: Drawable, path: Path) -> Figure:
+    """Estimated field magnitude (GP posterior mean or reduced-rank map) with the estimated
+    path, masked where the samples do not inform the map (posterior std above MAP_MASK of
+    the prior std, mean over the three components), and beside it the posterior std."""
+    import numpy as np
+
     a = result.arrays
-    fig = Figure(figsize=(6.4, 5.4))
-    ax = fig.add_subplot()
+    std, prior = a.get("map_std"), a.get("map_prior_std")
+    fig = Figure(figsize=(11.0, 4.8) if std is not None else (6.4, 5.4))
+    axes = fig.subplots(1, 2) if std is not None else [fig.add_subplot()]
     magnitude = (a["map_field"] ** 2).sum(axis=-1) ** 0.5
+    title = f"{result.info.get('name', '')}: estimated field magnitude"
+    if std is not None:
+        ratio = std.mean(axis=-1) / np.maximum(prior.mean(axis=-1), 1e-300)
+        magnitude = np.ma.masked_where(ratio > MAP_MASK, magnitude)
+        title += f"\n(blank where the posterior std > {MAP_MASK:g} x the prior's)"
+    ax = axes[0]
+    ax.set_facecolor("0.92")
     mesh = ax.pcolormesh(a["map_x"], a["map_y"], magnitude, shading="auto", cmap="viridis")
     fig.colorbar(mesh, ax=ax, label="|m| (field units)")
-    ax.plot(*a["P_estimate"][:, :2].T, "-", color="white", lw=1.0, label="GP-SLAM path")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_aspect("equal")
-    ax.legend(loc="upper right", fontsize=8)
-    ax.set_title(f"{result.info.get('name', '')}: estimated field magnitude", fontsize=9)
+    ax.set_title(title, fontsize=9)
+    if std is not None:
+        ax = axes[1]
+        mesh = ax.pcolormesh(
+            a["map_x"], a["map_y"], std.mean(axis=-1), shading="auto", cmap="magma_r"
+        )
+        fig.colorbar(mesh, ax=ax, label="posterior std per component (field units)")
+        ax.set_title("posterior std given the estimated path", fontsize=9)
+    for ax in axes:
+        ax.plot(*a["P_estimate"][:, :2].T, "-", color="white", lw=1.0, label="GP-SLAM path")
+        ax.plot(*a["P_estimate"][0, :2], "o", color="black", ms=5, label="start")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_aspect("equal")
+    axes[0].legend(loc="upper right", fontsize=7)
+    fig.tight_layout()
     _save(fig, path)
+    return fig

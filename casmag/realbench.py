@@ -40,7 +40,7 @@ from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
-from casmag.config import _Strict, validate_spec
+from casmag.config import Strict, validate_spec
 from casmag.errors import CasmagError, DataError
 from casmag.metrics import rmse_and_max
 from casmag.realdata import Protocol, convert, load_sequence
@@ -51,7 +51,7 @@ from casmag.slam import solve_translational
 DATA_HINT = "../shared/data/magnetic-data/invensense (see ../shared/data/README.md)"
 
 
-class RecordingSpec(_Strict):
+class RecordingSpec(Strict):
     """How a recorded sequence becomes a recording (casmag.realdata.Protocol)."""
 
     sequence: str
@@ -65,7 +65,7 @@ class RecordingSpec(_Strict):
     align: bool = True
 
 
-class RealProblemSpec(_Strict):
+class RealProblemSpec(Strict):
     """A real-data problem file: name, description, recording, model, solver."""
 
     name: str

@@ -184,6 +184,22 @@ def _parse_header(path: str, line: str) -> list[str]:
     if not line.strip():
         raise _error(path, "row 1", "empty header row (expected column names)")
     names = [name.strip() for name in fields]
+    if all(_is_number(name) for name in names):
+        raise _error(
+            path,
+            "row 1",
+            "holds numbers, not column names: the first row must be the header (e.g. "
+            f"{_names((TIME_COLUMN, *MOTION_COLUMNS['translation2'], *MAGNETOMETER_COLUMNS))})",
+        )
+    if len(names) == 1:
+        for sep, what in ((";", "semicolons"), ("\t", "tabs"), ("|", "bars"), (" ", "spaces")):
+            if sep in names[0].strip():
+                raise _error(
+                    path,
+                    "row 1",
+                    f"the columns are separated by {what}; casmag reads comma-separated "
+                    "values (save the file as CSV with commas)",
+                )
     seen: dict[str, int] = {}
     for i, name in enumerate(names, start=1):
         if not name:
@@ -195,11 +211,33 @@ def _parse_header(path: str, line: str) -> list[str]:
         seen[name] = i
     for name in names:
         if name not in _KNOWN_COLUMNS:
-            by_case = [c for c in _KNOWN_COLUMNS if c.lower() == name.lower()]
-            close = by_case or difflib.get_close_matches(name, _KNOWN_COLUMNS, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
-            raise _error(path, f"column '{name}'", f"unknown column{hint}")
+            raise _error(path, f"column '{name}'", f"unknown column{_column_hint(name)}")
     return names
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _column_hint(name: str) -> str:
+    """A suggestion for an unknown column: a known name that differs only in case or is
+    close (difflib ratio 0.75 or more, names of 3 or more characters), or what a bare
+    coordinate name would mean; else the known names."""
+    by_case = [c for c in _KNOWN_COLUMNS if c.lower() == name.lower()]
+    if by_case:
+        return f" (did you mean '{by_case[0]}'?)"
+    if f"{name.lower()}_true" in _KNOWN_COLUMNS:
+        return (
+            f" (a true position is '{name.lower()}_true'; an odometry increment 'd{name.lower()}')"
+        )
+    close = difflib.get_close_matches(name, _KNOWN_COLUMNS, n=1, cutoff=0.75)
+    if close and len(name) >= 3:
+        return f" (did you mean '{close[0]}'?)"
+    return f" (known columns: {_names(_KNOWN_COLUMNS)})"
 
 
 def _motion_group(path: str, present: set[str]) -> tuple[str, tuple[str, ...]]:

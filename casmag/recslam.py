@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from casmag.api import solve
+from casmag.checks import model_warnings, recording_warnings, warning_lines
 from casmag.config import Problem, as_overrides, load_problem, parse_override, read_yaml
 from casmag.errors import DataError, ProblemError
 from casmag.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
@@ -25,7 +26,7 @@ from casmag.multisession import (
     solve_two_starts,
     stack,
 )
-from casmag.recording import read_recording
+from casmag.recording import Recording, read_recording
 from casmag.result import Result
 from casmag.simulate import Dataset
 from casmag.uncertainty import PositionUncertainty
@@ -324,6 +325,7 @@ def slam(
     overrides: str | tuple[str, ...] | list[str] = (),
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
+    on_warning: Callable[[str], None] | None = None,
 ) -> Result:
     """GP-SLAM on a recording (CSV, see casmag.recording) with the defaults of
     :func:`recording_problem`. Without truth in the recording the RMSE fields are None.
@@ -334,12 +336,20 @@ def slam(
     GP-SLAM has nothing to correct the drift with and can only add error (the paper's Table
     1 at sigma_f = 0.001), so the result is the odometry itself (:func:`odometry_only`),
     with ``info["fallback"]`` saying why. Otherwise the MAP is started twice
-    (:func:`solve_from_two_starts`)."""
+    (:func:`solve_from_two_starts`).
+
+    Plausibility checks (casmag.checks: time unit, speed, field unit, sigma_m against the
+    field's variation, lengthscale against the path) go to ``result.warnings``, and each
+    line to ``on_warning`` before the solve."""
     overrides = as_overrides(overrides)
     check_recording_overrides(overrides)
     rec = read_recording(recording)
     data = rec.to_dataset()
     prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
+    found = _plausibility(rec, data, prob)
+    for line in warning_lines(recording, found):
+        if on_warning is not None:
+            on_warning(line)
     if not field_check and how["field_evidence"].get("constant"):
         refuse_constant_field(recording)
     if field_check and how["field_evidence"]["homogeneous"]:
@@ -348,7 +358,16 @@ def slam(
         result = solve_from_two_starts(prob, data, progress)
     result.info["recording"] = str(recording)
     result.info["defaults"] = how
+    result.warnings = found
     return result
+
+
+def _plausibility(rec: Recording, data: Dataset, prob: Problem) -> list[dict[str, str]]:
+    """casmag.checks on one recording and the lengthscale its problem uses."""
+    found = recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)
+    return found + model_warnings(
+        data.dead_reckoning(), rec.Y, prob.assumed_lengthscale, prob.assumed_sigma_m
+    )
 
 
 def slam_sessions(
@@ -358,10 +377,13 @@ def slam_sessions(
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
     name: str | None = None,
+    on_warning: Callable[[str], None] | None = None,
 ) -> Result:
     """GP-SLAM on several recordings of the same field with one shared map
     (:func:`slam`'s defaults, computed on all sessions together). The stacked
-    result's RMSE is over all samples; ``info["sessions"]`` has each session's."""
+    result's RMSE is over all samples; ``info["sessions"]`` has each session's. The
+    plausibility checks of :func:`slam` run on every recording (``recording`` in each
+    warning)."""
     overrides = as_overrides(overrides)
     check_recording_overrides(overrides)
 
@@ -382,6 +404,13 @@ def slam_sessions(
         problem,
         ["solver.warm_start.strategy=none", *overrides] if data.n_sessions > 1 else overrides,
     )
+    found = []
+    for path, rec, d in zip(recordings, recs, datasets, strict=True):
+        own = _plausibility(rec, d, prob)
+        for line in warning_lines(path, own):
+            if on_warning is not None:
+                on_warning(line)
+        found.extend({**w, "recording": str(path)} for w in own)
     if prob.spec.model.gp.form != "reduced_rank" and data.n_sessions > 1:
         raise ProblemError(
             prob.source, "model.gp.form", "several sessions need the reduced-rank map"
@@ -397,4 +426,5 @@ def slam_sessions(
     result.info["recordings"] = [str(recordings[i]) for i in order]
     result.info["defaults"] = how
     result.info["sessions"] = session_rows(data, result, names)
+    result.warnings = found
     return result

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import casadi as ca
@@ -618,3 +619,11 @@ def evaluate_field(
     if constant is not None:
         out += np.asarray(constant, dtype=float).reshape(1, FIELD_DIM)
     return out
+
+
+@lru_cache(maxsize=8)
+def cached_basis(key: tuple) -> HilbertBasis:
+    """The basis of a problem structure's key ``(center, half_width, num_basis)`` (tuples),
+    built once: the translational, IMU, planar and sliding-window NLPs share this cache."""
+    center, half_width, num_basis = key
+    return HilbertBasis(Domain(np.array(center), np.array(half_width)), num_basis)

@@ -1000,27 +1000,36 @@ def trajectories_figure(table: Table, path: Path) -> bool:
 
 
 def cost_figure(table: Table, path: Path) -> bool:
-    """Cost minus final cost per IPOPT iteration of each row's representative seed (the
-    paper's Figure 7). False if no run recorded its cost."""
+    """Objective per IPOPT iteration of each row's representative seed (the paper's Figure
+    7; every solve of the run one after another when the run recorded them), its final
+    status in the legend. False if no run recorded its cost."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     fig = Figure(figsize=(6.4, 4.0))
     ax = fig.add_subplot()
-    drawn = False
+    drawn, positive = False, True
     for row in table.rows:
         run = representative(row)
-        cost = (run.data or {}).get("cost_per_iteration") if run else None
+        data = (run.data or {}) if run else {}
+        stages = data.get("convergence") or []
+        cost = [v for st in stages for v in st.get("objective", [])] or data.get(
+            "cost_per_iteration"
+        )
         if not cost:
             continue
         cost = [float(c) for c in cost if c is not None]
-        final = min(cost)
-        ax.semilogy([c - final + 1e-12 for c in cost], "o-", ms=2.5, lw=1, label=_tex(row.label))
+        positive = positive and all(c > 0 for c in cost)
+        label = f"{_tex(row.label)} ({data.get('status', '?')})"
+        ax.plot(cost, "o-", ms=2.5, lw=1, label=label)
         drawn = True
     if not drawn:
         return False
-    ax.set_xlabel("IPOPT iteration")
-    ax.set_ylabel("cost - final cost")
+    ax.set_yscale("log" if positive else "symlog")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("IPOPT iteration (every solve of the run)")
+    ax.set_ylabel("objective")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
     ax.set_title(f"{_short(table)}: cost per IPOPT iteration (median seed of each row)", fontsize=9)

@@ -51,6 +51,8 @@ class Result:
     cost_per_iteration: list[float]
     constraint_violation_per_iteration: list[float]
     uncertainty: dict[str, Any] | None = None
+    convergence: list[dict[str, Any]] = field(default_factory=list)
+    warnings: list[dict[str, Any]] = field(default_factory=list)
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -58,7 +60,7 @@ class Result:
         d = asdict(self)
         d.pop("arrays")
         d["units"] = {"errors": "m, no alignment", "seconds": "wall-clock s"}
-        return _finite(d)
+        return finite_json(d)
 
     def save(self, out_dir: str | Path, figures: bool = True) -> Path:
         """Write result.json, trajectory.csv and (if figures) PNGs into out_dir atomically
@@ -83,13 +85,13 @@ class Result:
         return save_atomic(out_dir, write)
 
 
-def _finite(obj: Any) -> Any:
+def finite_json(obj: Any) -> Any:
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
+        return {k: finite_json(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
+        return [finite_json(v) for v in obj]
     return obj
 
 

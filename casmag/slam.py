@@ -26,6 +26,7 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
+import scipy.linalg
 
 from casmag.config import Problem, SolverSpec
 from casmag.exactgp import add_exact_prior
@@ -33,7 +34,7 @@ from casmag.hyper import estimate_conditional
 from casmag.kernels import FIELD_DIM, get_kernel
 from casmag.knots import Knots
 from casmag.nlp import NLP, NLPBuilder, Solution
-from casmag.reduced_rank import Domain, HilbertBasis
+from casmag.reduced_rank import HilbertBasis, cached_basis
 from casmag.rrmap import (
     GaussNewtonHessian,
     MagnetometerCost,
@@ -101,7 +102,7 @@ class Structure:
         )
 
     def hilbert_basis(self) -> HilbertBasis:
-        return _hilbert_basis(self.basis)
+        return cached_basis(self.basis)
 
     @property
     def knots(self) -> Knots:
@@ -110,13 +111,6 @@ class Structure:
     @property
     def sessions(self) -> int:
         return len(self.starts)
-
-
-@lru_cache(maxsize=8)
-def _hilbert_basis(key: tuple) -> HilbertBasis:
-    """The reduced-rank basis of a structure, built once per (center, half_width, M)."""
-    center, half_width, num_basis = key
-    return HilbertBasis(Domain(np.array(center), np.array(half_width)), num_basis)
 
 
 def _hyper(builder: NLPBuilder, name: str, estimated: bool) -> ca.MX:
@@ -307,6 +301,63 @@ def field_on_grid(
         return Ks @ np.linalg.solve(K, M)
     mean = Ks @ np.linalg.solve(K, M.ravel(order="F"))
     return mean.reshape(FIELD_DIM, -1).T
+
+
+#: Most samples for which :func:`field_std_on_grid` computes the exact GP's posterior std
+#: (a dense (3 N)^2 factor: 3,000 samples take 650 MB).
+EXACT_STD_MAX_SAMPLES = 3_000
+
+
+def field_std_on_grid(
+    s: Structure,
+    hyper: dict[str, float],
+    grid: np.ndarray,
+    P: np.ndarray,
+    jitter: float,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The map's posterior standard deviation per field component at grid points (G, d),
+    given the magnetometer at the estimated positions P (the positions taken as known), and
+    its prior standard deviation there, both (G, 3): where the two are close no sample
+    informs the map. Reduced rank: from the weights' posterior precision
+    A^T A / sigma_m^2 + diag(1 / S) (the constant field left out: every sample informs it);
+    exact GP: k(x, x) - k(x, P) (K + sigma_m^2 I)^-1 k(P, x). None for an exact GP above
+    EXACT_STD_MAX_SAMPLES samples."""
+    sf, ell, sm = hyper["sigma_f"], hyper["lengthscale"], hyper["sigma_m"]
+    if s.form == "reduced_rank":
+        basis = s.hilbert_basis()
+        S = basis.prior_variances(s.kernel, sf, ell).ravel()
+        zero = np.zeros(basis.num_basis * (FIELD_DIM if s.kernel == "se" else 1))
+        _, A, _ = field_and_jacobians(basis, s.kernel, P, zero)
+        _, Ag, _ = field_and_jacobians(basis, s.kernel, grid, zero)
+        # SE: each component's weights, one basis; curl-free: one potential, three rows.
+        L = np.linalg.cholesky(sum(a.T @ a for a in A) / sm**2 + np.diag(1.0 / S))
+        post, prior = [], []
+        for ag in Ag:
+            V = scipy.linalg.solve_triangular(L, ag.T, lower=True)
+            post.append((V**2).sum(axis=0))
+            prior.append((ag**2 * S).sum(axis=1))
+        if s.kernel == "se":  # one basis for every component
+            post, prior = post * FIELD_DIM, prior * FIELD_DIM
+        return np.sqrt(np.maximum(np.column_stack(post), 0.0)), np.sqrt(np.column_stack(prior))
+    if P.shape[0] > EXACT_STD_MAX_SAMPLES:
+        return None
+    kernel = get_kernel(s.kernel)
+    K = kernel.matrix(P, P, sf, ell)
+    K = K + (jitter * kernel.variance(sf, ell) + sm**2) * np.eye(K.shape[0])
+    L = np.linalg.cholesky(K)
+    var0 = kernel.variance(sf, ell)
+    post = []
+    for rows in np.array_split(np.arange(grid.shape[0]), max(1, grid.shape[0] // 500)):
+        Ks = kernel.matrix(grid[rows], P, sf, ell)  # (g, N) or (3 g, 3 N)
+        V = scipy.linalg.solve_triangular(L, Ks.T, lower=True)
+        var = var0 - (V**2).sum(axis=0)
+        post.append(
+            np.repeat(var[:, None], FIELD_DIM, 1)
+            if kernel.output_dim == 1
+            else var.reshape(FIELD_DIM, -1).T
+        )
+    std = np.sqrt(np.maximum(np.vstack(post), 0.0))
+    return std, np.full_like(std, np.sqrt(var0))
 
 
 @lru_cache(maxsize=8)

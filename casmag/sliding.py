@@ -73,7 +73,7 @@ from casmag.errors import ProblemError
 from casmag.kernels import FIELD_DIM
 from casmag.knots import Knots
 from casmag.nlp import NLP, NLPBuilder, Solution
-from casmag.reduced_rank import HilbertBasis
+from casmag.reduced_rank import HilbertBasis, cached_basis
 from casmag.rrmap import (
     GaussNewtonHessian,
     field_and_jacobians,
@@ -83,7 +83,6 @@ from casmag.simulate import Dataset
 from casmag.slam import (
     HYPERPARAMETERS,
     Structure,
-    _hilbert_basis,
     add_map_magnetometer,
     cached_nlp,
     field_estimate,
@@ -153,7 +152,7 @@ class WindowStructure:
         return self.kernel == "se" and not self.constant_field
 
     def hilbert_basis(self) -> HilbertBasis:
-        return _hilbert_basis(self.basis)
+        return cached_basis(self.basis)
 
     @property
     def prior_shape(self) -> tuple[int, int]:

@@ -35,12 +35,20 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import click
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
 from casmag import interrupt
 from casmag.api import solve
 from casmag.clitools import EXIT_BAD_INPUT, EXIT_SOLVER_FAILED, distinct_set_keys, fail
-from casmag.config import Problem, as_overrides, load_problem, parse_override, read_yaml
+from casmag.config import (
+    Problem,
+    Strict,
+    as_overrides,
+    load_problem,
+    parse_override,
+    read_yaml,
+    validation_error,
+)
 from casmag.errors import CasmagError, DataError, ProblemError, one_line
 from casmag.interrupt import Interrupted
 from casmag.outdir import check_output_dir, save_atomic
@@ -55,11 +63,7 @@ _KEY = r"^[A-Za-z0-9][A-Za-z0-9_.=+-]*$"
 
 
 # --------------------------------------------------------------------------- table files
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True)
-
-
-class RowSpec(_Strict):
+class RowSpec(Strict):
     """One row of a table file: ``key`` (also its folder name, and for a paper table the
     paper's row it reproduces, unless ``paper_row`` names another), an optional ``label``
     (default: the paper's label, else the key) and ``set``, a mapping of ``key.path: value``
@@ -72,7 +76,7 @@ class RowSpec(_Strict):
     set: dict[str, Any] = {}
 
 
-class TableSpec(_Strict):
+class TableSpec(Strict):
     """A table file: ``problem`` (path relative to the table file), ``set`` (overrides for
     every row), ``rows``; ``paper`` names the paper's table the rows reproduce (their keys
     must be that table's row keys, casmag.paper); ``name`` (default: the file stem) names
@@ -84,20 +88,6 @@ class TableSpec(_Strict):
     problem: str
     set: dict[str, Any] = {}
     rows: Annotated[list[RowSpec], Field(min_length=1)]
-
-
-def _loc(loc: tuple[Any, ...]) -> str:
-    return ".".join(str(p) for p in loc)
-
-
-def _spec_error(source: str, err: ValidationError) -> ProblemError:
-    first = err.errors()[0]
-    loc = _loc(first["loc"])
-    if first["type"] == "extra_forbidden":
-        return ProblemError(source, loc, "unknown key")
-    if first["type"] == "missing":
-        return ProblemError(source, loc, "required key is missing")
-    return ProblemError(source, loc, f"{first['msg']} (got {first.get('input')!r})")
 
 
 def _as_overrides(mapping: dict[str, Any]) -> list[str]:
@@ -275,7 +265,7 @@ def load_sweep(
         try:
             table = TableSpec.model_validate(data)
         except ValidationError as err:
-            raise _spec_error(src, err) from None
+            raise validation_error(src, err) from None
         keys = [r.key for r in table.rows]
         dup = sorted({k for k in keys if keys.count(k) > 1})
         if dup:

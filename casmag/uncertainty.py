@@ -257,6 +257,7 @@ class Inflation:
             "residual_rms": self.rms.tolist(),
             "factor": self.lam.tolist(),
             "factor_mean": float(np.mean(self.lam)),
+            "active": self.active,
         }
 
 

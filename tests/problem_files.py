@@ -2,19 +2,16 @@
 
 from pathlib import Path
 
-import yaml
+from casmag.config import document_kind, read_yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEMS = ROOT / "problems"
 
 
 def _kind(path: Path) -> str:
-    parts = path.relative_to(PROBLEMS).parts
-    if "imu" in parts:
-        return "imu"
-    if "real" in parts:
-        return "real"
-    return "table" if "rows" in yaml.safe_load(path.read_text()) else "translational"
+    """The file's kind as ``casmag solve`` reads it (tests/test_cli_solve.py checks it
+    against the folders)."""
+    return document_kind(read_yaml(path))
 
 
 ALL = sorted(PROBLEMS.rglob("*.yaml"))

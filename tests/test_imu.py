@@ -19,9 +19,9 @@ from casmag.imusim import exact_increments, simulate_imu
 from casmag.imuslam import (
     SCHEDULE_MARGIN,
     GaussNewtonBuilder,
-    _add_reduced_rank_map,
-    _gauss_newton_for,
+    add_reduced_rank_map,
     averaged_magnetometer,
+    gauss_newton_for,
     imu_rotation_function,
     solve_imu,
 )
@@ -196,8 +196,8 @@ def _rotated_map_problem(kernel, rng, residual, mode="exact"):
     D = b.variable("D", (n, 3))
     RNOM = b.parameter("RNOM", (n, 9))
     rot = imu_rotation_function()
-    _add_reduced_rank_map(b, basis, kernel, P, D, RNOM, rot, n, 3)
-    _, gn = _gauss_newton_for(b, basis, kernel, rot, n, 3, "D", "RNOM", mode=mode)
+    add_reduced_rank_map(b, basis, kernel, P, D, RNOM, rot, n, 3)
+    _, gn = gauss_newton_for(b, basis, kernel, rot, n, 3, "D", "RNOM", mode=mode)
     x = ca.vertcat(*[ca.vec(s) for s in b._x.symbols])
     p = ca.vertcat(*[ca.vec(s) for s in b._p.symbols])
     vals = {
@@ -508,7 +508,7 @@ def test_planar_recording_with_heading_rate_bias(tmp_path):
     """Planar odometry with a 0.5 deg/s heading-rate bias, written as a recording and read
     back: GP-SLAM recovers the bias and cuts the position and heading errors."""
     from casmag.imusim import simulate_planar
-    from casmag.imuslam import PlanarOptions, solve_planar_recording
+    from casmag.planar import PlanarOptions, solve_planar_recording
     from casmag.recording import write_recording
 
     field = planar_room_field()
@@ -530,7 +530,7 @@ def test_planar_starts_keep_the_lowest_cost():
     254.1 and 0.18 from either biased start."""
     from casmag.imuconfig import load_planar_options
     from casmag.imusim import simulate_planar
-    from casmag.imuslam import solve_planar
+    from casmag.planar import solve_planar
 
     field = planar_room_field()
     d = simulate_planar(1, field, size=(2.0, 1.5), loops=3, heading_bias_deg=0.5, disp_noise=0.002)

@@ -369,6 +369,32 @@ def test_names_are_case_sensitive(tmp_path):
     assert "unknown column" in msg and "'DX'" in msg and "did you mean 'dx'" in msg
 
 
+def test_a_bare_coordinate_column_is_not_matched_to_the_magnetometer(tmp_path):
+    msg = _error(_write(tmp_path, _csv("t,x,y,mx,my,mz", GOOD_ROWS)))
+    assert "'x'" in msg and "mx" not in msg.split("unknown column")[1]
+    assert "'x_true'" in msg and "'dx'" in msg
+
+
+def test_close_names_only_are_suggested(tmp_path):
+    msg = _error(_write(tmp_path, _csv("t,dx,dy,mxx,my,mz", GOOD_ROWS)))
+    assert "did you mean 'mx'" in msg
+    msg = _error(_write(tmp_path, _csv("t,dx,dy,mx,my,mz,foo", [r + ",1" for r in GOOD_ROWS])))
+    assert "did you mean" not in msg and "known columns: t, dx" in msg
+
+
+@pytest.mark.parametrize(("sep", "what"), [(";", "semicolons"), ("\t", "tabs")])
+def test_another_delimiter_is_named(tmp_path, sep, what):
+    text = _csv(GOOD_HEADER, GOOD_ROWS).replace(",", sep)
+    msg = _error(_write(tmp_path, text))
+    assert f"separated by {what}" in msg and "row 1" in msg and msg.count("\n") == 0
+
+
+def test_a_file_without_header_is_named_as_such(tmp_path):
+    msg = _error(_write(tmp_path, _csv(GOOD_ROWS[1], GOOD_ROWS[2:])))
+    assert "row 1" in msg and "holds numbers, not column names" in msg
+    assert "duplicate" not in msg
+
+
 def test_duplicate_column(tmp_path):
     header = GOOD_HEADER + ",mx"
     msg = _error(_write(tmp_path, _csv(header, [r + ",1" for r in GOOD_ROWS])))

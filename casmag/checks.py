@@ -1,0 +1,151 @@
+"""Plausibility checks on a recording before it is solved: units and columns that read
+without error but mean something else (time in milliseconds, increments in centimetres or
+cumulative positions in the increment columns, the field in tesla or gauss), and
+hyperparameters that cannot map the path walked. Each finding is a warning (a dict with
+``check``, ``column`` and ``reason``): printed on stderr by the command line and kept under
+``warnings`` in result.json. None refuses the data: a vehicle may be fast, a field may be
+weak.
+
+Thresholds (and why):
+
+- ``MAX_SAMPLE_INTERVAL``: 2 s. A magnetometer logged for mapping samples at 1 Hz or
+  faster (the shared recordings: 10-100 Hz); a median interval above 2 s is milliseconds
+  (or nanoseconds) read as seconds far more often than a 0.5 Hz log.
+- ``MAX_SPEED``: 5 m/s for translational and planar odometry, the top of indoor walking and
+  robot speeds (the shared recordings: 0.1-1.5 m/s); increments in centimetres give 100
+  times the speed, cumulative positions in the increment columns the path's extent per
+  sample.
+- Field magnitude (median |m|): below 0.01 looks like tesla (Earth's field is 25-65 uT,
+  2.5-6.5e-5 T), above 10,000 like nanotesla. Between them the unit cannot be told from
+  the magnitude (gauss, microtesla and the simulations' Earth = 1 all occur), and casmag
+  reads any unit consistently: what matters is that sigma_m is in the same unit, which
+  the next check tests.
+- sigma_m larger than the field's own variation over the recording (the median over the
+  components of its standard deviation): the noise would explain the whole signal, which
+  happens when sigma_m is given in another unit than mx, my, mz (microtesla against
+  gauss: 100 times).
+- Lengthscale: longer than the dead-reckoned path's extent, the map is one smooth field
+  and cannot tell places apart; shorter than the median step, no two samples are
+  correlated and the map cannot connect them.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+MAX_SAMPLE_INTERVAL = 2.0  # s
+MAX_SPEED = 5.0  # m/s
+TESLA_BELOW = 0.01
+NANOTESLA_ABOVE = 1.0e4
+
+
+def _warning(check: str, column: str, reason: str) -> dict[str, str]:
+    return {"check": check, "column": column, "reason": reason}
+
+
+def recording_warnings(
+    t: np.ndarray, increments: np.ndarray, Y: np.ndarray, motion: str
+) -> list[dict[str, str]]:
+    """Findings on the time axis, the motion increments (translational ``dx, dy[, dz]`` or
+    planar ``dfwd, dleft, dyaw``; IMU increments are not checked here) and the
+    magnetometer of one recording."""
+    out: list[dict[str, str]] = []
+    t = np.asarray(t, dtype=float)
+    dt = float(np.median(np.diff(t))) if t.size > 1 else float("nan")
+    if dt > MAX_SAMPLE_INTERVAL:
+        out.append(
+            _warning(
+                "time_unit",
+                "t",
+                f"median sample interval {dt:.4g} s (over {MAX_SAMPLE_INTERVAL:g} s): is t in "
+                "milliseconds or nanoseconds? casmag's time unit is the second",
+            )
+        )
+    if motion in ("translation", "planar") and increments.size and t.size > 1:
+        steps = np.linalg.norm(increments[:, : 2 if motion == "planar" else None], axis=1)
+        duration = float(t[-1] - t[0])
+        speed = float(steps.sum()) / duration if duration > 0 else float("inf")
+        names = "dx, dy" if motion == "translation" else "dfwd, dleft"
+        if speed > MAX_SPEED and dt <= MAX_SAMPLE_INTERVAL:
+            out.append(
+                _warning(
+                    "speed",
+                    names,
+                    f"mean speed {speed:.3g} m/s (over {MAX_SPEED:g} m/s for walking or an "
+                    "indoor robot): are the increments in centimetres or millimetres, or "
+                    "cumulative positions rather than steps since the previous row? casmag "
+                    "reads metres per step",
+                )
+            )
+    magnitude = float(np.median(np.linalg.norm(np.asarray(Y, dtype=float), axis=1)))
+    unit = None
+    if magnitude < TESLA_BELOW:
+        unit = "tesla (x 1e6 for microtesla)"
+    elif magnitude > NANOTESLA_ABOVE:
+        unit = "nanotesla (/ 1000 for microtesla)"
+    if unit is not None and magnitude > 0:
+        out.append(
+            _warning(
+                "field_unit",
+                "mx, my, mz",
+                f"median field magnitude {magnitude:.3g} looks like {unit}; Earth's field is "
+                "25-65 microtesla",
+            )
+        )
+    return out
+
+
+def model_warnings(
+    P: np.ndarray, Y: np.ndarray, lengthscale: float, sigma_m: float
+) -> list[dict[str, str]]:
+    """Findings on the lengthscale [m] against the dead-reckoned path P (N, d), and on the
+    magnetometer noise sigma_m against the field's variation in Y (N, 3)."""
+    P = np.asarray(P, dtype=float)
+    if P.shape[0] < 2:
+        return []
+    Y = np.asarray(Y, dtype=float)
+    spread = float(np.median(np.std(Y, axis=0)))
+    out = []
+    # A constant magnetometer (spread at rounding level) is reported by the field check.
+    if spread > 1e-9 * float(np.abs(Y).max()) and sigma_m > spread:
+        out.append(
+            _warning(
+                "sigma_m",
+                "model.magnetometer.sigma_m",
+                f"{sigma_m:.3g} is larger than the field's own variation over the recording "
+                f"({spread:.3g}, median standard deviation of mx, my, mz): is it in another "
+                "unit than the recording's field (microtesla against gauss: 100 times)?",
+            )
+        )
+    return out + _lengthscale(P, lengthscale)
+
+
+def _lengthscale(P: np.ndarray, lengthscale: float) -> list[dict[str, str]]:
+    extent = float(np.ptp(P, axis=0).max())
+    step = float(np.median(np.linalg.norm(np.diff(P, axis=0), axis=1)))
+    if lengthscale > extent:
+        return [
+            _warning(
+                "lengthscale",
+                "model.gp.lengthscale",
+                f"{lengthscale:.3g} m is longer than the path's extent ({extent:.3g} m): the "
+                "map is one smooth field and cannot tell places apart",
+            )
+        ]
+    if lengthscale < step:
+        return [
+            _warning(
+                "lengthscale",
+                "model.gp.lengthscale",
+                f"{lengthscale:.3g} m is shorter than the median step ({step:.3g} m): no two "
+                "samples are correlated, so the map cannot connect them",
+            )
+        ]
+    return []
+
+
+def warning_lines(source: Any, warnings: list[dict[str, str]]) -> list[str]:
+    """One line per warning, naming the source, the column or key and the reason."""
+    return [f"casmag: warning: {source}: {w['column']}: {w['reason']}" for w in warnings]

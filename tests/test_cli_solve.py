@@ -1,0 +1,119 @@
+"""``casmag solve FILE``: one command for every kind of problem file, dispatched on the
+file's keys (casmag.config.document_kind)."""
+
+import json
+
+import pytest
+import yaml
+from click.testing import CliRunner
+from problem_files import ALL, PROBLEMS
+
+from casmag.cli import main
+from casmag.config import DOCUMENT_KINDS, document_kind, load_problem, read_yaml
+from casmag.imuconfig import load_imu_problem
+from casmag.realbench import load_real_problem
+from casmag.sweep import TableSpec
+
+# What each folder of problems/ holds (the tests' own list, independent of document_kind).
+FOLDER_KIND = {"paper": None, "bench": "translational", "imu": "imu", "real": "recording"}
+LOADERS = {
+    "translational": load_problem,
+    "imu": load_imu_problem,
+    "recording": load_real_problem,
+    "table": lambda path: TableSpec.model_validate(read_yaml(path)),
+}
+
+
+def _invoke(args):
+    return CliRunner().invoke(main, args)
+
+
+@pytest.mark.parametrize("path", ALL, ids=lambda p: str(p.relative_to(PROBLEMS)))
+def test_every_shipped_file_has_its_kind_and_loads_as_it(path):
+    kind = document_kind(read_yaml(path))
+    assert kind in DOCUMENT_KINDS
+    folder = path.relative_to(PROBLEMS).parts[0]
+    # problems/paper holds the base problem and the paper's table files.
+    expected = FOLDER_KIND[folder] or ("translational" if path.stem == "base" else "table")
+    assert kind == expected
+    LOADERS[kind](path)
+
+
+def test_document_kind_reads_the_keys():
+    assert document_kind({"rows": []}) == "table"
+    assert document_kind({"recording": {}}) == "recording"
+    assert document_kind({"sessions": []}) == "recording"
+    assert document_kind({"simulation": {"scenario": {}}}) == "imu"
+    assert document_kind({"simulation": {"imu": {}}}) == "imu"
+    assert document_kind({"simulation": {"trajectory": {}}}) == "translational"
+    assert document_kind({"seed": 1}) == "translational"
+
+
+def test_solve_a_translational_file_as_run(tmp_path):
+    args = ["problems/paper/base.yaml", "--set", "seed=3", "-q", "--no-figures"]
+    a, b = tmp_path / "solve", tmp_path / "run"
+    assert _invoke(["solve", *args, "--out", str(a)]).exit_code == 0
+    assert _invoke(["run", *args, "--out", str(b)]).exit_code == 0
+    ra, rb = (json.loads((d / "result.json").read_text()) for d in (a, b))
+    assert ra["status"] == rb["status"] == "Solve_Succeeded"
+    assert ra["iterations"] == rb["iterations"]
+    assert ra["rmse_after"] == rb["rmse_after"] < ra["rmse_before"]
+
+
+def test_solve_an_imu_file_as_imu(tmp_path):
+    problem = {
+        "seed": 2,
+        "simulation": {
+            "scenario": {"kind": "rectangle", "size": [0.12, 0.08], "loops": 1, "static": 0.5}
+        },
+        "model": {"keyframe_rate": 5.0, "gp": {"form": "none"}},
+        "solver": {"max_iter": 100, "tol": 1e-5},
+    }
+    path = tmp_path / "imu.yaml"
+    path.write_text(yaml.safe_dump(problem))
+    out = tmp_path / "out"
+    res = _invoke(["solve", str(path), "--out", str(out), "-q", "--no-figures"])
+    assert res.exit_code == 0, res.output
+    r = json.loads((out / "result.json").read_text())
+    assert r["success"] is True and r["status_imu_only"] == "Solve_Succeeded"
+    assert (out / "biases.md").is_file()
+
+
+def test_solve_refuses_a_table_file_naming_sweep(tmp_path):
+    out = tmp_path / "out"
+    res = _invoke(["solve", "problems/paper/table1.yaml", "--out", str(out)])
+    assert res.exit_code == 2
+    assert "casmag sweep problems/paper/table1.yaml" in res.output
+    assert res.output.count("\n") == 1 and not out.exists()
+
+
+def test_solve_refuses_set_on_a_real_data_file(tmp_path):
+    out = tmp_path / "out"
+    res = _invoke(
+        ["solve", "problems/real/seq1-drift0.5.yaml", "--out", str(out), "--set", "seed=2"]
+    )
+    assert res.exit_code == 2
+    assert "--set" in res.output and res.output.count("\n") == 1 and not out.exists()
+
+
+def test_solve_a_file_that_is_not_yaml_exit_2(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("seed: [1,\n")
+    res = _invoke(["solve", str(path), "--out", str(tmp_path / "out")])
+    assert res.exit_code == 2 and str(path) in res.output and res.output.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    ("command", "path", "names"),
+    [
+        ("run", "problems/paper/table1.yaml", "casmag sweep problems/paper/table1.yaml"),
+        ("run", "problems/imu/spiral.yaml", "casmag imu problems/imu/spiral.yaml"),
+        ("run", "problems/real/seq1-drift0.5.yaml", "casmag solve problems/real/"),
+        ("imu", "problems/paper/base.yaml", "casmag run problems/paper/base.yaml"),
+    ],
+)
+def test_run_and_imu_name_the_command_for_another_kind(tmp_path, command, path, names):
+    out = tmp_path / "out"
+    res = _invoke([command, path, "--out", str(out)])
+    assert res.exit_code == 2
+    assert names in res.output and res.output.count("\n") == 1 and not out.exists()
