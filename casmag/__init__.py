@@ -5,11 +5,16 @@ by IPOPT.
     problem = casmag.load_problem("problems/paper/base.yaml")
     result = casmag.solve(problem)
     print(result.status, result.rmse_before, result.rmse_after)
+    result.save("out")                      # result.json, arrays.npz, trajectory.csv, PNGs
+    again = casmag.Result.load("out")
+
+    result = casmag.slam("walk.csv")        # a recording, casmag slam's defaults
 """
 
 from casmag.api import solve
 from casmag.config import Problem, load_problem
 from casmag.errors import CasmagError, DataError, ProblemError, SolverError
+from casmag.recslam import slam, slam_sessions
 from casmag.result import Result
 from casmag.versions import __version__
 
@@ -22,5 +27,7 @@ __all__ = [
     "SolverError",
     "__version__",
     "load_problem",
+    "slam",
+    "slam_sessions",
     "solve",
 ]

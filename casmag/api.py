@@ -13,7 +13,8 @@ from casmag.config import Problem, load_problem
 from casmag.metrics import rmse_and_max
 from casmag.result import Result
 from casmag.simulate import Dataset, simulate_problem
-from casmag.slam import (
+from casmag.sliding import solve_coarse_to_fine, solve_sliding
+from casmag.translational import (
     HYPERPARAMETERS,
     field_estimate,
     field_on_grid,
@@ -21,7 +22,6 @@ from casmag.slam import (
     parameters_and_guess,
     solve_translational,
 )
-from casmag.sliding import solve_coarse_to_fine, solve_sliding
 from casmag.uncertainty import (
     NotPositiveDefinite,
     magnetometer_correction,

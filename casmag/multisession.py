@@ -38,7 +38,7 @@ from casmag.config import Problem
 from casmag.metrics import rmse_and_max
 from casmag.result import Result
 from casmag.simulate import Dataset
-from casmag.slam import solve_translational
+from casmag.translational import solve_translational
 from casmag.uncertainty import PositionUncertainty
 from casmag.windowing import Stage, solve_growing, stage_lengths
 

@@ -46,7 +46,7 @@ from casmag.metrics import rmse_and_max
 from casmag.realdata import Protocol, convert, load_sequence
 from casmag.recording import read_recording, write_recording
 from casmag.recslam import recording_problem, slam, slam_sessions
-from casmag.slam import solve_translational
+from casmag.translational import solve_translational
 
 DATA_HINT = "../shared/data/magnetic-data/invensense (see ../shared/data/README.md)"
 

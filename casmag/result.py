@@ -1,21 +1,23 @@
 """The result of a GP-SLAM solve and how it is saved.
 
 A result holds ``info`` (what was solved), scalar statistics and arrays. It is saved as
-``result.json`` (everything but the arrays), ``trajectory.csv`` (the arrays) and figures,
-written into a temporary folder that replaces the output folder only once complete, so an
-interrupted or failed write never leaves a half-written output.
+``result.json`` (everything but the arrays), ``arrays.npz`` (the arrays, exactly),
+``trajectory.csv`` (the trajectories as text) and figures, written into a temporary folder
+that replaces the output folder only once complete, so an interrupted or failed write never
+leaves a half-written output. :meth:`Result.load` reads a saved result back.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from casmag.errors import DataError
 from casmag.outdir import save_atomic
 
 
@@ -30,7 +32,7 @@ class Result:
     estimated sigma_f and lengthscale, which start where ``info["estimate_start"]`` says
     (``method``: both, marginal_likelihood or assumed; ``values``, ``assumed``, the marginal
     likelihood's details and, for both, each start's solve and the one ``chosen``; see
-    casmag.slam.estimate_start). With both starts ``solve_seconds`` is their sum.
+    casmag.translational.estimate_start). With both starts ``solve_seconds`` is their sum.
     """
 
     info: dict[str, Any]
@@ -71,6 +73,8 @@ class Result:
             (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
             if self.arrays:
                 write_trajectory_csv(self, tmp / "trajectory.csv")
+                present = {k: v for k, v in self.arrays.items() if v is not None}
+                np.savez_compressed(tmp / ARRAYS_FILE, **present)
             if figures and self.arrays:
                 from casmag import plotting
 
@@ -83,6 +87,36 @@ class Result:
                     plotting.map_figure(self, tmp / "map.png")
 
         return save_atomic(out_dir, write)
+
+    @classmethod
+    def load(cls, folder: str | Path) -> Result:
+        """A result saved by :meth:`save`: result.json and, when saved, arrays.npz (arrays
+        saved as None come back absent). Raises DataError naming the file when it is
+        missing or not a casmag result."""
+        folder = Path(folder)
+        path = folder / "result.json"
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise DataError(f"{path}: cannot read a casmag result ({exc})") from None
+        names = {f.name for f in fields(cls)} - {"arrays"}
+        required = [
+            f.name
+            for f in fields(cls)
+            if f.name in names and f.default is MISSING and f.default_factory is MISSING
+        ]
+        absent = [n for n in required if not isinstance(data, dict) or n not in data]
+        if absent:
+            raise DataError(f"{path}: not a casmag result (no {', '.join(absent[:3])})")
+        arrays: dict[str, np.ndarray] = {}
+        if (folder / ARRAYS_FILE).is_file():
+            with np.load(folder / ARRAYS_FILE, allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+        return cls(**{k: v for k, v in data.items() if k in names}, arrays=arrays)
+
+
+#: The arrays of a saved result (numpy's npz; names as in Result.arrays).
+ARRAYS_FILE = "arrays.npz"
 
 
 def finite_json(obj: Any) -> Any:

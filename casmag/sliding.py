@@ -80,7 +80,7 @@ from casmag.rrmap import (
     make_basis,
 )
 from casmag.simulate import Dataset
-from casmag.slam import (
+from casmag.translational import (
     HYPERPARAMETERS,
     Structure,
     add_map_magnetometer,

@@ -11,7 +11,7 @@ OpenMP thread counts are set to 1 before a worker imports numpy) or on a Dask di
 cluster. A run whose ``result.json`` exists is skipped, so an interrupted sweep resumes; a run
 that raised an error (not a solver failure, which is a result) leaves ``error.json`` and is
 retried next time. Each worker process builds the NLP once per problem structure and reuses
-it for every later run with the same structure (``casmag.slam.cached_nlp``).
+it for every later run with the same structure (``casmag.translational.cached_nlp``).
 """
 
 from __future__ import annotations

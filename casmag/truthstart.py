@@ -31,8 +31,8 @@ from casmag.config import load_problem
 from casmag.errors import CasmagError
 from casmag.metrics import rmse_and_max
 from casmag.simulate import simulate_problem
-from casmag.slam import solve_translational
 from casmag.sweep import default_jobs, load_sweep, local_map
+from casmag.translational import solve_translational
 
 #: Relative cost difference under which two solves count as the same optimum.
 SAME_COST = 1e-6

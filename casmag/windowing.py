@@ -28,7 +28,7 @@ import numpy as np
 from casmag.config import Problem
 from casmag.nlp import NLP, Solution
 from casmag.simulate import Dataset
-from casmag.slam import Structure, solve_translational
+from casmag.translational import Structure, solve_translational
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,7 @@ def solve_growing(
     problem: Problem, data: Dataset, progress: Any = None
 ) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure, Dataset, list[Stage]]:
     """Solve with growing prefixes. Returns the final stage's solution, NLP,
-    hyperparameters, field and structure as :func:`casmag.slam.solve_translational` does
+    hyperparameters, field and structure as :func:`casmag.translational.solve_translational` does
     (``sol.x["bias"]`` is the total per-step bias), the data set the final stage solved
     (increments with the earlier stages' bias removed) and the stages."""
     ws = problem.spec.solver.warm_start

@@ -11,8 +11,8 @@ from casmag.config import load_problem
 from casmag.errors import ProblemError
 from casmag.hyper import estimate_conditional, negative_log_marginal, select_windows
 from casmag.simulate import draw_field, simulate_problem
-from casmag.slam import Structure, estimate_start, parameters_and_guess
 from casmag.sweep import _fingerprint
+from casmag.translational import Structure, estimate_start, parameters_and_guess
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "problems" / "paper" / "base.yaml"

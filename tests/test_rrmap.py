@@ -10,7 +10,7 @@ import pytest
 import casmag
 from casmag.kernels import FIELD_DIM
 from casmag.simulate import simulate_problem
-from casmag.slam import Structure, cached_nlp, parameters_and_guess
+from casmag.translational import Structure, cached_nlp, parameters_and_guess
 
 ROOT = Path(__file__).resolve().parents[1]
 

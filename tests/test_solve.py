@@ -8,7 +8,7 @@ from problem_files import TRANSLATIONAL
 
 import casmag
 from casmag.simulate import simulate_problem, spiral
-from casmag.slam import cached_nlp
+from casmag.translational import cached_nlp
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEM_FILES = TRANSLATIONAL

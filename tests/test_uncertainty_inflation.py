@@ -13,7 +13,7 @@ from small_problems import tiny_walk
 
 import casmag
 from casmag.simulate import simulate_problem
-from casmag.slam import parameters_and_guess, solve_translational
+from casmag.translational import parameters_and_guess, solve_translational
 from casmag.uncertainty import (
     autocorrelation_time,
     magnetometer_correction,
