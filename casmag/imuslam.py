@@ -84,6 +84,13 @@ IMU_HESSIAN_SLAM = "gauss-newton"
 #: magnetometer carried position information and the optimiser did not use it.
 WRONG_BASIN_RATIO = 0.5
 
+#: A GP-SLAM estimate more than this factor worse (position RMSE) than the IMU-only
+#: adjustment, where the solve from the truth does not find a lower MAP cost, is flagged
+#: ``worse_than_imu_only``: the MAP optimum itself is worse than no map, so the model
+#: (hyperparameters, noise) does not fit the field. 1.05: the homogeneous scenarios'
+#: criterion of equal quality.
+WORSE_RATIO = 1.05
+
 #: The coarse-to-fine schedule replaces the anneal one only when its final MAP cost is lower
 #: by more than this fraction. The two final problems differ in their map basis (built
 #: around each schedule's previous pass), which moves the cost a little between optima of
@@ -1959,12 +1966,15 @@ def _wrong_basin(
     slam: ImuSolveStage,
     res: ImuSolution,
 ) -> dict[str, Any] | None:
-    """The ``wrong_basin`` flag of a GP-SLAM estimate (None when it does not apply).
+    """The ``wrong_basin`` or ``worse_than_imu_only`` flag of a GP-SLAM estimate (None when
+    neither applies).
 
     A GP-SLAM RMSE above WRONG_BASIN_RATIO of the IMU-only adjustment's is either a wrong
     local optimum or a field/path that carries little position information (no revisit);
-    the solve started from the truth tells them apart: flagged when it reaches a MAP cost
-    lower by more than one (a likelihood ratio of e) than the estimate's."""
+    the solve started from the truth tells them apart: ``wrong_basin`` when it reaches a MAP
+    cost lower by more than one (a likelihood ratio of e) than the estimate's. When it does
+    not, and the estimate is more than WORSE_RATIO worse than the IMU-only adjustment, the
+    optimum itself is worse than no map: ``worse_than_imu_only``."""
     before, after = errors["imu_only"]["rmse"], errors["gp_slam"]["rmse"]
     if before is None or after is None or after <= WRONG_BASIN_RATIO * before:
         return None
@@ -1987,7 +1997,18 @@ def _wrong_basin(
         "log_bayes_factor": None if res.evidence is None else res.evidence.log_bayes_factor,
     }
     if not truth_cost < cost - 1.0:
-        return None
+        if after <= WORSE_RATIO * before:
+            return None
+        return {
+            "name": "worse_than_imu_only",
+            "reason": (
+                f"GP-SLAM position RMSE {after:.4g} m is {after / before:.2f} times the IMU-only "
+                f"adjustment's {before:.4g} m, and the same problem started from the truth "
+                f"reaches no lower MAP cost ({truth_cost:.6g} against {cost:.6g}): the map "
+                f"model (hyperparameters {res.hyperparameters_source}) does not fit this field"
+            ),
+            "evidence": evidence,
+        }
     return {
         "name": "wrong_basin",
         "reason": (

@@ -197,6 +197,8 @@ def _sweep_table(manifest_path: Path, skip: Callable[[DataError], None] | None =
     paper = TABLES.get(m.get("paper") or "")
     if m.get("paper") and paper is None:
         raise DataError(f"{manifest_path}: paper: {m['paper']!r} is not a paper table")
+    kind = "imu" if m.get("kind") == "imu" else "slam"  # sweeps before "kind": translational
+    load = (lambda p: read_result(p)[1]) if kind == "imu" else load_result
     rows = []
     for r in m["rows"]:
         runs = []
@@ -208,7 +210,7 @@ def _sweep_table(manifest_path: Path, skip: Callable[[DataError], None] | None =
                 continue
             if (run_dir / "result.json").is_file():
                 try:
-                    data = load_result(run_dir / "result.json")
+                    data = load(run_dir / "result.json")
                 except DataError as exc:
                     if skip is None:
                         raise
@@ -240,6 +242,7 @@ def _sweep_table(manifest_path: Path, skip: Callable[[DataError], None] | None =
         paper=paper,
         source=m.get("source"),
         seeds=[int(s) for s in m["seeds"]],
+        kind=kind,
     )
 
 

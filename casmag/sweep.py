@@ -2,9 +2,11 @@
 
 A sweep is planned from a problem file or a table file (``problems/paper/table*.yaml``: a
 problem file plus rows of overrides, matched to the paper's published rows by key), the seeds
-and an optional grid of ``key.path=v1,v2`` values. Every run is one :func:`casmag.solve` and
-is saved with :meth:`Result.save` under ``OUT/<row>/seed-<seed>/``; ``OUT/sweep.json``
-records what the sweep is (rows, labels, overrides, seeds), which is all the report needs.
+and an optional grid of ``key.path=v1,v2`` values. The problem file is translational or IMU
+(``casmag.config.document_kind``): every run is one :func:`casmag.solve` or
+:func:`casmag.imuslam.solve_imu` and is saved with its result's ``save`` under
+``OUT/<row>/seed-<seed>/``; ``OUT/sweep.json`` records what the sweep is (kind, rows, labels,
+overrides, seeds), which is all the report needs.
 
 Runs execute in a local pool of processes (one per core, each single-threaded: the BLAS and
 OpenMP thread counts are set to 1 before a worker imports numpy) or on a Dask distributed
@@ -44,12 +46,15 @@ from casmag.config import (
     Problem,
     Strict,
     as_overrides,
+    document_kind,
     load_problem,
     parse_override,
     read_yaml,
     validation_error,
 )
 from casmag.errors import CasmagError, DataError, ProblemError, one_line
+from casmag.imuconfig import ImuProblem, load_imu_problem
+from casmag.imuslam import solve_imu
 from casmag.interrupt import Interrupted
 from casmag.outdir import check_output_dir, save_atomic
 from casmag.paper import TABLES
@@ -120,6 +125,7 @@ class RunTask:
     source: str
     out_dir: str
     figures: bool
+    kind: str = "translational"  # or "imu": casmag.config.document_kind
 
 
 @dataclass
@@ -134,6 +140,7 @@ class SweepPlan:
     rows: list[RowPlan]
     seeds: list[int]
     out_dir: Path
+    kind: str = "translational"  # or "imu"
 
     def run_dir(self, row: str, seed: int) -> Path:
         return self.out_dir / row / f"seed-{seed:04d}"
@@ -151,6 +158,7 @@ class SweepPlan:
                     source=f"{self.source}#{row.key}",
                     out_dir=str(self.run_dir(row.key, seed)),
                     figures=figures == "all" or (figures == "first" and i == 0),
+                    kind=self.kind,
                 )
 
     def manifest(self) -> dict[str, Any]:
@@ -161,6 +169,7 @@ class SweepPlan:
             "paper": self.paper,
             "source": self.source,
             "problem": self.problem_file,
+            "kind": self.kind,
             "seeds": self.seeds,
             "rows": [
                 {
@@ -175,7 +184,7 @@ class SweepPlan:
         }
 
 
-def _fingerprint(problem: Problem) -> str:
+def _fingerprint(problem: Problem | ImuProblem) -> str:
     """A hash of the problem's settings other than seed and names. Values left at their
     defaults are left out, so a new option with a default (a schema addition) does not
     make saved runs look as if they had been solved with different settings."""
@@ -218,14 +227,21 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.=+-]", "_", text)
 
 
+#: How a sweep loads each kind of problem file it takes (casmag.config.document_kind).
+LOADERS: dict[str, Callable[..., Any]] = {
+    "translational": load_problem,
+    "imu": load_imu_problem,
+}
+
+
 def _resolve(
-    base: dict[str, Any], base_source: str, origins: list[tuple[str, str, str]]
-) -> Problem:
+    base: dict[str, Any], base_source: str, origins: list[tuple[str, str, str]], kind: str
+) -> Problem | ImuProblem:
     """Validate the problem file with overrides given as (source, where, "key=value");
     an error in an overridden key names the override's source (table file row, --set, --grid)
     instead of the problem file."""
     try:
-        return load_problem(base, [text for _, _, text in origins], source=base_source)
+        return LOADERS[kind](base, [text for _, _, text in origins], source=base_source)
     except ProblemError as exc:
         for source, where, text in reversed(origins):
             key = text.split("=", 1)[0].strip()
@@ -314,12 +330,20 @@ def load_sweep(
         rows = [(None, None, None, [])]
         name, title, base_source, problem_file = path.stem, None, src, src
 
+    kind = document_kind(base)
+    if kind not in LOADERS:
+        raise ProblemError(
+            problem_file,
+            "",
+            f"a {kind} problem file cannot be swept over seeds (a sweep takes "
+            f"{' or '.join(LOADERS)} problem files)",
+        )
     cli = [("--set", "", t) for t in overrides]
     plans: list[RowPlan] = []
     combos = list(itertools.product(*[[(k, v) for v in vals] for k, vals in grids]))
     for (key, label, paper_key, row_origins), combo in itertools.product(rows, combos):
         grid_origins = [("--grid", "", f"{k}={v}") for k, v in combo]
-        problem = _resolve(base, base_source, [*row_origins, *cli, *grid_origins])
+        problem = _resolve(base, base_source, [*row_origins, *cli, *grid_origins], kind)
         grid_key = "+".join(_slug(f"{k}={v}") for k, v in combo)
         full_key = "__".join(p for p in (key, grid_key) if p) or _slug(problem.name)
         grid_label = ", ".join(f"{k} = {v}" for k, v in combo)
@@ -349,6 +373,7 @@ def load_sweep(
         rows=plans,
         seeds=list(range(first, first + seeds)),
         out_dir=Path(out_dir),
+        kind=kind,
     )
 
 
@@ -445,8 +470,8 @@ def run_task(task: RunTask, save: bool = True) -> RunOutcome:
     t0 = time.perf_counter()
     try:
         with _SOLVE_LOCK:
-            problem = load_problem(task.problem, source=task.source)
-            result = solve(problem)
+            problem = LOADERS[task.kind](task.problem, source=task.source)
+            result = (solve_imu if task.kind == "imu" else solve)(problem)
         interrupt.check()  # a pool worker being stopped: not saved (casmag.interrupt)
         if save:
             result.save(task.out_dir, figures=task.figures)

@@ -324,3 +324,33 @@ def test_every_paper_table_file_runs_at_tiny_size(tmp_path):
     assert f"{n_rows} runs: 0 already saved, {n_rows} solved, 0 failed, 0 errors" in res.output
     for path in TABLE_FILES:
         assert (out / path.stem / "sweep.json").is_file()
+
+
+IMU_PROBLEM = """\
+seed: 2
+name: tiny imu
+simulation:
+  scenario: {kind: rectangle, size: [0.12, 0.08], loops: 1, static: 0.5}
+model:
+  keyframe_rate: 5.0
+  gp: {form: none}
+solver: {max_iter: 100, tol: 1.0e-5}
+"""
+
+
+def test_an_imu_problem_is_swept_and_reported_in_the_imu_table(tmp_path):
+    problem = tmp_path / "imu.yaml"
+    problem.write_text(IMU_PROBLEM)
+    out = tmp_path / "runs"
+    res = _invoke(["sweep", problem, "--seeds", 2, "--out", out, "--jobs", 1, "-q"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((out / "sweep.json").read_text())["kind"] == "imu"
+    runs = sorted(out.glob("*/seed-*/result.json"))
+    assert len(runs) == 2
+    for path in runs:
+        r = json.loads(path.read_text())
+        assert r["success"] and r["errors"]["imu_only"]["rmse"] > 0  # casmag imu's layout
+    res = _invoke(["report", out, "--out", tmp_path / "report.md", "--no-figures"])
+    assert res.exit_code == 0, res.output
+    text = (tmp_path / "report.md").read_text()
+    assert "IMU-only RMSE [m] mean" in text and "2/2 solved" in text
