@@ -111,8 +111,8 @@ truth-start: $(STAMP) ## Tables 2 and 4 from the dead reckoning and from the tru
 	$(PY) -m casmag.truthstart problems/paper/table2.yaml problems/paper/table4.yaml --seeds $(SEEDS) --out $(PAPER)
 
 lint: $(STAMP) ## ruff check and format check
-	$(VENV)/bin/ruff check casmag tests
-	$(VENV)/bin/ruff format --check casmag tests
+	$(VENV)/bin/ruff check casmag tests examples
+	$(VENV)/bin/ruff format --check casmag tests examples
 
 clean: ## Remove the environment and caches
 	rm -rf $(VENV) $(LATEST) $(LOWEST) $(LOCKVENV) .pytest_cache .ruff_cache build *.egg-info
