@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint clean bench-imu bench-imu-latest bench-scale bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-scale bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -113,6 +113,9 @@ truth-start: $(STAMP) ## Tables 2 and 4 from the dead reckoning and from the tru
 lint: $(STAMP) ## ruff check and format check
 	$(VENV)/bin/ruff check casmag tests examples
 	$(VENV)/bin/ruff format --check casmag tests examples
+
+docs: $(STAMP) ## API reference from the docstrings (pdoc, every casmag module; warnings are errors) -> docs/api/
+	$(PY) -m casmag.apidocs docs/api
 
 clean: ## Remove the environment and caches
 	rm -rf $(VENV) $(LATEST) $(LOWEST) $(LOCKVENV) .pytest_cache .ruff_cache build *.egg-info
