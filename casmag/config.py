@@ -12,6 +12,7 @@ where the model deliberately differs from the world (the paper's "wrong sigma_f"
 from __future__ import annotations
 
 import copy
+import json
 import os
 import re
 import sys
@@ -505,7 +506,7 @@ class Problem:
             )
         return truth
 
-    def with_overrides(self, overrides: str | Iterable[str]) -> Problem:
+    def with_overrides(self, overrides: str | Iterable[str] | Mapping[str, Any]) -> Problem:
         """A new problem with ``key.path=value`` overrides applied and re-validated."""
         data = self.spec.model_dump(mode="python", exclude_unset=False)
         return load_problem(data, overrides, source=self.source)
@@ -699,17 +700,26 @@ def parse_override(text: str, source: str = "--set") -> tuple[list[str], Any]:
     return key.split("."), value
 
 
-def as_overrides(overrides: str | Iterable[str] | None) -> list[str]:
+def as_overrides(
+    overrides: str | Iterable[str] | Mapping[str, Any] | None,
+) -> list[str]:
     """Overrides as a list of ``key.path=value`` strings: one string is one override (not
-    its characters); None is none. Raises TypeError for anything else."""
+    its characters); a mapping ``{"model.gp.sigma_f": 1.0, ...}`` gives one per key, its
+    value as JSON (which YAML reads back as the same value); None is none. Raises TypeError
+    for anything else."""
     if overrides is None:
         return []
     if isinstance(overrides, str):
         return [overrides]
-    if isinstance(overrides, (bytes, bytearray, Mapping)) or not isinstance(overrides, Iterable):
+    if isinstance(overrides, Mapping):
+        for key in overrides:
+            if not isinstance(key, str):
+                raise TypeError(f"override keys must be 'key.path' strings, got {key!r}")
+        return [f"{k}={json.dumps(v)}" for k, v in overrides.items()]
+    if isinstance(overrides, (bytes, bytearray)) or not isinstance(overrides, Iterable):
         raise TypeError(
-            "overrides must be a 'key.path=value' string or a list of them, "
-            f"not {type(overrides).__name__}"
+            "overrides must be a 'key.path=value' string, a list of them or a mapping "
+            f"{{'key.path': value}}, not {type(overrides).__name__}"
         )
     items = list(overrides)
     for item in items:
@@ -721,7 +731,7 @@ def as_overrides(overrides: str | Iterable[str] | None) -> list[str]:
 
 
 def apply_overrides(
-    data: dict[str, Any], overrides: str | Iterable[str], source: str
+    data: dict[str, Any], overrides: str | Iterable[str] | Mapping[str, Any], source: str
 ) -> dict[str, Any]:
     """Apply ``key.path=value`` overrides to a nested dictionary (copied)."""
     data = copy.deepcopy(data)
@@ -793,7 +803,7 @@ SpecT = TypeVar("SpecT", bound=BaseModel)
 def validate_spec(
     spec_class: type[SpecT],
     problem: str | Path | Mapping[str, Any],
-    overrides: str | Iterable[str] = (),
+    overrides: str | Iterable[str] | Mapping[str, Any] = (),
     source: str | None = None,
     to_error: Callable[[str, ValidationError], ProblemError] | None = None,
 ) -> tuple[SpecT, str]:
@@ -817,14 +827,15 @@ def validate_spec(
 
 def load_problem(
     problem: str | Path | Mapping[str, Any] | Problem,
-    overrides: str | Iterable[str] = (),
+    overrides: str | Iterable[str] | Mapping[str, Any] = (),
     source: str | None = None,
 ) -> Problem:
     """Load and validate a problem from a YAML path, a dictionary or a Problem.
 
-    overrides: ``key.path=value`` strings (values parsed as YAML), applied before validation;
-    one string is one override. Raises ProblemError naming the file, the key and the reason
-    (TypeError for overrides that are not strings).
+    overrides: ``key.path=value`` strings (values parsed as YAML), or a mapping
+    ``{"key.path": value}``, applied before validation; one string is one override. Raises
+    ProblemError naming the file, the key and the reason (TypeError for overrides of
+    another type).
     """
     overrides = as_overrides(overrides)
     if isinstance(problem, Problem):

@@ -7,7 +7,7 @@ added one at a time, two starts kept by cost)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +65,7 @@ def recording_problem(
     times: np.ndarray,
     name: str,
     problem: str | Path | None = None,
-    overrides: str | tuple[str, ...] | list[str] = (),
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
 ) -> tuple[Problem, dict[str, Any]]:
     """The problem ``casmag slam`` solves on a recording, and how its values were chosen.
 
@@ -322,7 +322,7 @@ def solve_from_two_starts(
 def slam(
     recording: str | Path,
     problem: str | Path | None = None,
-    overrides: str | tuple[str, ...] | list[str] = (),
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
     on_warning: Callable[[str], None] | None = None,
@@ -373,7 +373,7 @@ def _plausibility(rec: Recording, data: Dataset, prob: Problem) -> list[dict[str
 def slam_sessions(
     recordings: Sequence[str | Path],
     problem: str | Path | None = None,
-    overrides: str | tuple[str, ...] | list[str] = (),
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
     name: str | None = None,

@@ -33,6 +33,26 @@ class Result:
     (``method``: both, marginal_likelihood or assumed; ``values``, ``assumed``, the marginal
     likelihood's details and, for both, each start's solve and the one ``chosen``; see
     casmag.translational.estimate_start). With both starts ``solve_seconds`` is their sum.
+
+    Fields: ``info`` (name, source, seed, sample count, model settings, versions, warm-start
+    stages, for recordings ``defaults`` and ``recording``); ``status`` (IPOPT's return
+    status, or ``Odometry_Only``) and ``success``; ``iterations`` (of the final solve plus
+    any start solves); ``build_seconds``, ``solve_seconds`` [s]; ``rmse_before``,
+    ``max_before``, ``rmse_after``, ``max_after`` [m]; ``hyperparameters``: sigma_f and
+    sigma_m [field units], lengthscale [m]; ``odometry_bias`` and ``odometry_bias_true``
+    [m per step, per axis and session]; ``cost_per_iteration``,
+    ``constraint_violation_per_iteration`` (the final solve's; ``convergence`` has every
+    solve's objective, primal and dual infeasibility: casmag.nlp.Solution.trace);
+    ``uncertainty`` (sigma_mean, sigma_max [m], NEES against the truth, or ``error``);
+    ``warnings`` (casmag.checks: ``check``, ``column``, ``reason``).
+
+    Arrays (N samples, d = 2 or 3 dimensions, a G x G map grid; absent or None when not
+    computed): ``P_odometry``, ``P_estimate``, ``P_true`` (N, d) [m]; ``P_cov``,
+    ``P_cov_uninflated`` (N, d, d) [m^2], the position covariance drawn and reported and the
+    plain Laplace one; ``M_estimate`` (N, 3) the field at the estimate, ``Y`` (N, 3) the
+    magnetometer [field units]; ``map_x``, ``map_y`` (G, G) [m]; ``map_field``, ``map_std``,
+    ``map_prior_std`` (G, G, 3) [field units], the map, its posterior std given the
+    estimated path and its prior std.
     """
 
     info: dict[str, Any]

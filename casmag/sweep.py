@@ -95,11 +95,6 @@ class TableSpec(Strict):
     rows: Annotated[list[RowSpec], Field(min_length=1)]
 
 
-def _as_overrides(mapping: dict[str, Any]) -> list[str]:
-    """``{key.path: value}`` as ``key.path=value`` strings (JSON is valid YAML flow)."""
-    return [f"{k}={json.dumps(v)}" for k, v in mapping.items()]
-
-
 # --------------------------------------------------------------------------- plans
 @dataclass(frozen=True)
 class RowPlan:
@@ -312,13 +307,13 @@ def load_sweep(
         if not problem_path.is_file():
             raise ProblemError(src, "problem", f"no such file {table.problem!r}")
         base = read_yaml(problem_path)
-        common = [(src, "set", t) for t in _as_overrides(table.set)]
+        common = [(src, "set", t) for t in as_overrides(table.set)]
         rows = [
             (
                 r.key,
                 r.label or (paper.row(r.paper_row or r.key).label if paper else r.key),
                 (r.paper_row or r.key) if paper else None,
-                [*common, *[(src, f"rows.{i}.set", t) for t in _as_overrides(r.set)]],
+                [*common, *[(src, f"rows.{i}.set", t) for t in as_overrides(r.set)]],
             )
             for i, r in enumerate(table.rows)
         ]
