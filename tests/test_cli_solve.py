@@ -117,3 +117,25 @@ def test_run_and_imu_name_the_command_for_another_kind(tmp_path, command, path, 
     res = _invoke([command, path, "--out", str(out)])
     assert res.exit_code == 2
     assert names in res.output and res.output.count("\n") == 1 and not out.exists()
+
+
+# Each IMU scenario at tiny size (one loop, one turn, one letter; the IMU-only adjustment):
+# casmag solve runs every shipped IMU file end to end.
+IMU_TINY = {
+    "rectangle": ["simulation.scenario.loops=1"],
+    "spiral": ["simulation.scenario.turns=1"],
+    "handwriting": ["simulation.scenario.passes=1", "simulation.scenario.word=a"],
+}
+
+
+@pytest.mark.parametrize("path", sorted((PROBLEMS / "imu").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_imu_file_is_solved_at_tiny_size(tmp_path, path):
+    kind = read_yaml(path)["simulation"]["scenario"]["kind"]
+    sets = [*IMU_TINY[kind], "model.gp.form=none"]
+    out = tmp_path / "out"
+    args = ["solve", str(path), "--out", str(out), "-q", "--no-figures"]
+    res = _invoke([*args, *(x for s in sets for x in ("--set", s))])
+    assert res.exit_code == 0, res.output
+    r = json.loads((out / "result.json").read_text())
+    assert r["status_imu_only"] == "Solve_Succeeded"
+    assert r["errors"]["imu_only"]["rmse"] < r["errors"]["strapdown"]["rmse"]
