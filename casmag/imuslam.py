@@ -1793,7 +1793,7 @@ def solve_imu(
 
     flags = []
     if slam_map is not None and not res.fallback:
-        flag = _wrong_basin(problem, data, errors, slam_map, res)
+        flag = _estimate_flag(problem, data, errors, slam_map, res)
         if flag is not None:
             flags.append(flag)
 
@@ -1959,7 +1959,7 @@ def _truth_start_cost(
     return float(st.solution.objective), st.solution.status
 
 
-def _wrong_basin(
+def _estimate_flag(
     problem: ImuProblem,
     data: ImuData,
     errors: dict[str, dict[str, Any]],

@@ -303,6 +303,23 @@ def field_on_grid(
     return mean.reshape(FIELD_DIM, -1).T
 
 
+#: Points per block in :func:`field_std_on_grid`'s reduced-rank rows.
+STD_CHUNK = 2_000
+
+
+def _chunks(n: int) -> list[slice]:
+    return [slice(i, min(i + STD_CHUNK, n)) for i in range(0, n, STD_CHUNK)]
+
+
+def _weight_rows(basis: HilbertBasis, kernel: str, X: np.ndarray) -> list[np.ndarray]:
+    """The map's rows d m_c / d w at points X: SE [phi] (one (n, M) block for every
+    component), curl-free [d phi / dx_c for c = x, y, z]."""
+    if kernel == "se":
+        return [basis.phi(X)]
+    grads = basis.grad_phi(X)
+    return [grads[:, c, :] for c in range(FIELD_DIM)]
+
+
 #: Most samples for which :func:`field_std_on_grid` computes the exact GP's posterior std
 #: (a dense (3 N)^2 factor: 3,000 samples take 650 MB).
 EXACT_STD_MAX_SAMPLES = 3_000
@@ -326,19 +343,25 @@ def field_std_on_grid(
     if s.form == "reduced_rank":
         basis = s.hilbert_basis()
         S = basis.prior_variances(s.kernel, sf, ell).ravel()
-        zero = np.zeros(basis.num_basis * (FIELD_DIM if s.kernel == "se" else 1))
-        _, A, _ = field_and_jacobians(basis, s.kernel, P, zero)
-        _, Ag, _ = field_and_jacobians(basis, s.kernel, grid, zero)
         # SE: each component's weights, one basis; curl-free: one potential, three rows.
-        L = np.linalg.cholesky(sum(a.T @ a for a in A) / sm**2 + np.diag(1.0 / S))
-        post, prior = [], []
-        for ag in Ag:
-            V = scipy.linalg.solve_triangular(L, ag.T, lower=True)
-            post.append((V**2).sum(axis=0))
-            prior.append((ag**2 * S).sum(axis=1))
+        # Rows of STD_CHUNK points at a time: a dense (N, M) block per component for a
+        # building-scale recording would take gigabytes.
+        G = np.diag(1.0 / S)
+        for rows in _chunks(P.shape[0]):
+            G += sum(a.T @ a for a in _weight_rows(basis, s.kernel, P[rows])) / sm**2
+        L = np.linalg.cholesky(G)
+        parts = []
+        for rows in _chunks(grid.shape[0]):
+            post, prior = [], []
+            for ag in _weight_rows(basis, s.kernel, grid[rows]):
+                V = scipy.linalg.solve_triangular(L, ag.T, lower=True)
+                post.append((V**2).sum(axis=0))
+                prior.append((ag**2 * S).sum(axis=1))
+            parts.append((np.column_stack(post), np.column_stack(prior)))
+        post, prior = (np.vstack([part[i] for part in parts]) for i in (0, 1))
         if s.kernel == "se":  # one basis for every component
-            post, prior = post * FIELD_DIM, prior * FIELD_DIM
-        return np.sqrt(np.maximum(np.column_stack(post), 0.0)), np.sqrt(np.column_stack(prior))
+            post, prior = np.tile(post, FIELD_DIM), np.tile(prior, FIELD_DIM)
+        return np.sqrt(np.maximum(post, 0.0)), np.sqrt(prior)
     if P.shape[0] > EXACT_STD_MAX_SAMPLES:
         return None
     kernel = get_kernel(s.kernel)
