@@ -7,6 +7,7 @@ by IPOPT.
     print(result.status, result.rmse_before, result.rmse_after)
     result.save("out")                      # result.json, arrays.npz, trajectory.csv, PNGs
     again = casmag.Result.load("out")
+    casmag.evaluate(result, "se")           # errors after a rigid alignment to the truth
 
     result = casmag.slam("walk.csv")        # a recording, casmag slam's defaults
 """
@@ -14,6 +15,7 @@ by IPOPT.
 from casmag.api import solve
 from casmag.config import Problem, load_problem
 from casmag.errors import CasmagError, DataError, ProblemError, SolverError
+from casmag.evaluation import evaluate_result as evaluate
 from casmag.recslam import slam, slam_sessions
 from casmag.result import Result
 from casmag.versions import __version__
@@ -26,6 +28,7 @@ __all__ = [
     "Result",
     "SolverError",
     "__version__",
+    "evaluate",
     "load_problem",
     "slam",
     "slam_sessions",

@@ -10,6 +10,7 @@ import casadi as ca
 import numpy as np
 
 from casmag.config import Problem, load_problem
+from casmag.evaluation import anchor_info
 from casmag.metrics import rmse_and_max
 from casmag.result import Result
 from casmag.simulate import Dataset, simulate_problem
@@ -99,6 +100,7 @@ def solve(
         "knot_every": problem.spec.model.trajectory.knot_every,
         "warm_start": [st.to_dict() for st in stages],
         "linear_solver": problem.spec.solver.linear_solver,
+        "anchor": anchor_info(data, problem.spec.model.anchor.sigma),
         "casmag": __version__,
         "casadi": ca.__version__,
         "versions": versions(),

@@ -24,8 +24,10 @@ from casmag.clitools import (
     print_progress,
     problem_kind,
     refuse_other_kind,
+    with_evaluation,
 )
 from casmag.errors import CasmagError
+from casmag.evaluation import ALIGNMENTS
 from casmag.imucli import imu_command
 from casmag.sweep import sweep_command
 
@@ -50,6 +52,7 @@ def solve(
     overrides: tuple[str, ...],
     no_figures: bool,
     quiet: bool,
+    align: str,
 ) -> None:
     """Solve PROBLEM, a problem file of any kind, and write its results to --out.
 
@@ -60,7 +63,12 @@ def solve(
     it is run over seeds by ``casmag sweep``.
     """
     kind = problem_kind(problem)
-    options = {"out_dir": out_dir, "overrides": overrides, "no_figures": no_figures}
+    options = {
+        "out_dir": out_dir,
+        "overrides": overrides,
+        "no_figures": no_figures,
+        "align": align,
+    }
     if kind == "translational":
         ctx.invoke(run, problem=problem, quiet=quiet, **options)
     elif kind == "imu":
@@ -72,18 +80,18 @@ def solve(
                 "or solver section instead",
                 EXIT_BAD_INPUT,
             )
-        _solve_real(problem, out_dir, quiet)
+        _solve_real(problem, out_dir, quiet, align)
     else:
         refuse_other_kind(problem, kind, "translational")
 
 
-def _solve_real(problem: Path, out_dir: Path, quiet: bool) -> None:
+def _solve_real(problem: Path, out_dir: Path, quiet: bool, align: str) -> None:
     """A real-data problem file (casmag.realbench): converted from ../shared/data, solved
     with ``casmag slam``'s defaults and the file's settings; exit 1 when IPOPT failed."""
     from casmag.realbench import solve_problem
 
     try:
-        rows = solve_problem(problem, out_dir, None if quiet else print_progress)
+        rows = solve_problem(problem, out_dir, None if quiet else print_progress, align=align)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
     except INPUT_ERRORS as exc:
@@ -111,7 +119,12 @@ def _solve_real(problem: Path, out_dir: Path, quiet: bool) -> None:
 @click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
 @output_options
 def run(
-    problem: Path, out_dir: Path, overrides: tuple[str, ...], no_figures: bool, quiet: bool
+    problem: Path,
+    out_dir: Path,
+    overrides: tuple[str, ...],
+    no_figures: bool,
+    quiet: bool,
+    align: str,
 ) -> None:
     """Solve PROBLEM (a translational problem file) and write result.json, trajectory.csv
     and figures (``casmag solve`` takes every kind of problem file)."""
@@ -122,7 +135,7 @@ def run(
     try:
         prob = load_problem(problem, overrides)
         result = solve(prob, progress=None if quiet else print_progress)
-        result.save(out_dir, figures=not no_figures)
+        with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
     except INPUT_ERRORS as exc:
@@ -179,6 +192,7 @@ def slam(
     overrides: tuple[str, ...],
     no_figures: bool,
     quiet: bool,
+    align: str,
     no_field_check: bool,
 ) -> None:
     """GP-SLAM on RECORDINGS (CSV: t, motion increments, mx,my,mz, optional truth).
@@ -208,6 +222,7 @@ def slam(
             no_figures,
             quiet,
             field_check=not no_field_check,
+            align=align,
         )
         return
     progress = None if quiet else print_progress
@@ -233,7 +248,7 @@ def slam(
                 field_check=not no_field_check,
                 on_warning=_warn,
             )
-        result.save(out_dir, figures=not no_figures)
+        with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
     except INPUT_ERRORS as exc:
@@ -259,7 +274,15 @@ def slam(
     ),
 )
 @click.option("--no-figures", is_flag=True, help="Tables only.")
-def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool) -> None:
+@click.option(
+    "--align",
+    type=click.Choice(ALIGNMENTS),
+    default="none",
+    show_default=True,
+    help="Errors measured again after this alignment to the truth, from each result's "
+    "arrays.npz (casmag.evaluation).",
+)
+def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool, align: str) -> None:
     """Tabulate saved results (result.json files, or folders searched for them and for
     sweep.json) in the paper's layout; never re-solves."""
     from casmag.report import collect, markdown, write_report
@@ -268,7 +291,7 @@ def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool) -> 
         click.echo(f"casmag: warning: {message}", err=True)
 
     try:
-        tables = collect(list(paths), warn=warn)
+        tables = collect(list(paths), warn=warn, align=align)
         if out_file is None:
             click.echo(markdown(tables), nl=False)
             return

@@ -14,6 +14,7 @@ import click
 from casmag import interrupt
 from casmag.config import document_kind, read_yaml
 from casmag.errors import CasmagError
+from casmag.evaluation import ALIGNMENTS, evaluate_result
 from casmag.interrupt import Interrupted
 from casmag.outdir import OutputError, check_output_dir
 
@@ -63,7 +64,8 @@ def distinct_set_keys(ctx: click.Context, param: click.Parameter, value: Any) ->
 
 
 def output_options(command: Callable[..., Any]) -> Callable[..., Any]:
-    """--out DIR (required), --set KEY.PATH=VALUE (repeatable), --no-figures, --quiet."""
+    """--out DIR (required), --set KEY.PATH=VALUE (repeatable), --no-figures, --quiet,
+    --align {none,start,se}."""
     options = [
         click.option(
             "--out",
@@ -82,6 +84,14 @@ def output_options(command: Callable[..., Any]) -> Callable[..., Any]:
         ),
         click.option("--no-figures", is_flag=True, help="Skip the PNG figures."),
         click.option("--quiet", "-q", is_flag=True, help="No progress lines, nothing on success."),
+        click.option(
+            "--align",
+            type=click.Choice(ALIGNMENTS),
+            default="none",
+            show_default=True,
+            help="Errors against the truth also after this alignment (result.json "
+            "'evaluation'): start = first positions matched, se = rigid least squares.",
+        ),
     ]
 
     @functools.wraps(command)
@@ -159,3 +169,9 @@ def refuse_other_kind(problem: Path, kind: str, expected: str) -> None:
     if COMMAND_OF_KIND[kind] not in ("casmag solve", "casmag sweep"):
         command += f" or 'casmag solve {problem} --out DIR'"
     fail(f"{problem}: {_KIND_NAMES[kind]}, solved by {command}", EXIT_BAD_INPUT)
+
+
+def with_evaluation(result: Any, align: str) -> Any:
+    """The result with its ``evaluation`` after ``--align`` (casmag.evaluation)."""
+    result.evaluation = evaluate_result(result, align)
+    return result

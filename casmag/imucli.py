@@ -27,6 +27,7 @@ from casmag.clitools import (
     print_progress,
     problem_kind,
     refuse_other_kind,
+    with_evaluation,
 )
 from casmag.errors import CasmagError
 
@@ -38,7 +39,12 @@ if TYPE_CHECKING:
 @click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
 @output_options
 def imu_command(
-    problem: Path, out_dir: Path, overrides: tuple[str, ...], no_figures: bool, quiet: bool
+    problem: Path,
+    out_dir: Path,
+    overrides: tuple[str, ...],
+    no_figures: bool,
+    quiet: bool,
+    align: str,
 ) -> None:
     """Solve an IMU PROBLEM (problems/imu/*.yaml): strapdown, IMU-only adjustment, GP-SLAM.
     Writes result.json, biases.md, trajectory.csv, trajectory.png and cost.png."""
@@ -50,7 +56,7 @@ def imu_command(
         refuse_unused_solver_keys(overrides, "casmag imu")
         prob = load_imu_problem(problem, overrides)
         result = solve_imu(prob, progress=None if quiet else print_progress)
-        result.save(out_dir, figures=not no_figures)
+        with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
     except INPUT_ERRORS as exc:
@@ -137,6 +143,7 @@ def planar_slam(
     no_figures: bool,
     quiet: bool,
     field_check: bool = True,
+    align: str = "none",
 ) -> None:
     """``casmag slam`` on a planar recording (``dfwd,dleft,dyaw``): the planar model with a
     heading-rate bias (:func:`casmag.planar.solve_planar_recording`). Settings from the
@@ -173,7 +180,7 @@ def planar_slam(
             # True positions without a true heading: the heading column is written empty
             # (NaN), as trajectory.csv has a heading beside every position.
             a["psi_true"] = np.full(a["P_true"].shape[0], np.nan)
-        result.save(out_dir, figures=not no_figures)
+        with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
     except INPUT_ERRORS as exc:

@@ -70,7 +70,7 @@ from casmag.metrics import rmse_and_max
 from casmag.nlp import NLP, STALLED, NLPBuilder, Solution
 from casmag.outdir import save_atomic
 from casmag.reduced_rank import HilbertBasis, cached_basis
-from casmag.result import finite_json
+from casmag.result import evaluation_of, finite_json, write_arrays
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
 from casmag.versions import __version__, versions
 
@@ -1568,6 +1568,7 @@ class ImuResult:
     map_decision: str = "map"
     flags: list[dict[str, Any]] = field(default_factory=list)
     convergence: list[dict[str, Any]] = field(default_factory=list)
+    evaluation: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
 
     @property
@@ -1582,6 +1583,7 @@ class ImuResult:
     def to_dict(self) -> dict[str, Any]:
 
         d = {k: v for k, v in self.__dict__.items() if k != "arrays"}
+        d["evaluation"] = evaluation_of(self)
         d["units"] = {
             "errors": "position m, orientation deg, at keyframes, no alignment",
             "gyro_bias": "deg/s",
@@ -1628,6 +1630,7 @@ class ImuResult:
             (tmp / "biases.md").write_text(self.bias_table())
             if self.arrays:
                 _write_csv(self, tmp / "trajectory.csv")
+                write_arrays(tmp, self.arrays)
             if figures and self.arrays:
                 _trajectory_figure(self, tmp / "trajectory.png")
                 if self.cost_per_iteration:
@@ -1831,6 +1834,11 @@ def solve_imu(
         "duration_s": float((idx[-1]) * data.T),
         "bias_model": spec.model.imu.bias,
         "zero_position_sigma": spec.model.zero_position.sigma,
+        "anchor": {
+            "kind": "initial state (position, velocity, tilt, heading priors)",
+            "position": [float(v) for v in data.p0],
+            "sigma": spec.model.initial.position_sigma,
+        },
         "gp_form": spec.model.gp.form,
         "kernel": spec.model.gp.kernel,
         "num_basis": res.basis_size,

@@ -34,7 +34,7 @@ from casmag.nlp import NLP
 from casmag.outdir import save_atomic
 from casmag.recording import read_recording
 from casmag.reduced_rank import HilbertBasis, cached_basis
-from casmag.result import finite_json
+from casmag.result import evaluation_of, finite_json, write_arrays
 from casmag.rrmap import make_basis
 from casmag.versions import versions
 
@@ -146,11 +146,13 @@ class PlanarResult:
     info: dict[str, Any] = field(default_factory=dict)
     convergence: list[dict[str, Any]] = field(default_factory=list)
     warnings: list[dict[str, Any]] = field(default_factory=list)
+    evaluation: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""
         d = {k: v for k, v in self.__dict__.items() if k != "arrays"}
+        d["evaluation"] = evaluation_of(self)
         d["units"] = {
             "errors": "position m, heading deg, no alignment",
             "bias": "rad/s (rad per step without times)",
@@ -166,6 +168,7 @@ class PlanarResult:
         def write(tmp: Any) -> None:
             (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
             _write_planar_csv(self, tmp / "trajectory.csv")
+            write_arrays(tmp, self.arrays)
             if figures:
                 from casmag.plotting import cost_figure, trajectory_figure
 
@@ -244,9 +247,11 @@ def solve_planar(
     if U.shape != (n - 1, 3):
         raise ValueError(f"increments must have N-1 = {n - 1} rows, got {U.shape[0]}")
     dt = np.ones(n - 1) if t is None else np.diff(np.asarray(t, dtype=float))
+    anchor_kind = "given"
     if p0 is None:
         p0 = truth["P"][0] if truth is not None else np.zeros(2)
         psi0 = float(truth["psi"][0]) if truth is not None and "psi" in truth else psi0
+        anchor_kind = "first true position" if truth is not None else "origin (no truth)"
     P_dr, psi_dr = dead_reckon_planar(U, np.asarray(p0, float), psi0)
     Y_local = sd.rotate(sd.quat_from_euler(0.0 * psi_dr, 0.0 * psi_dr, psi_dr), Y)
     sigma_f, ell = options.sigma_f, options.lengthscale
@@ -362,6 +367,12 @@ def solve_planar(
         info={
             "name": name,
             "samples": int(n),
+            "anchor": {
+                "kind": anchor_kind,
+                "position": [float(v) for v in p0],
+                "heading_rad": float(psi0),
+                "sigma": options.sigma_anchor,
+            },
             "bias_model": options.bias,
             "kernel": options.kernel,
             "hyperparameters": "given"

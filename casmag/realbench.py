@@ -42,6 +42,7 @@ from pydantic import Field, model_validator
 
 from casmag.config import Strict, validate_spec
 from casmag.errors import CasmagError, DataError
+from casmag.evaluation import evaluate_result
 from casmag.metrics import rmse_and_max
 from casmag.realdata import Protocol, convert, load_sequence
 from casmag.recording import read_recording, write_recording
@@ -136,11 +137,12 @@ def _convert(spec: RealProblemSpec, path: str | Path, index: int) -> Any:
 
 
 def solve_problem(
-    path: str | Path, out_dir: str | Path, progress: Any = None
+    path: str | Path, out_dir: str | Path, progress: Any = None, align: str = "none"
 ) -> list[dict[str, Any]]:
     """Convert and solve one real-data problem (one recording with ``casmag slam``'s
     defaults, or several sessions with one shared map, casmag.multisession); saves DIR and
-    returns its table rows (one per session)."""
+    returns its table rows (one per session). ``align``: the result's ``evaluation``
+    (casmag.evaluation)."""
     spec, convs = convert_sessions(path)
     overrides_file = {"model": spec.model, "solver": spec.solver, "name": spec.name}
     with tempfile.TemporaryDirectory(prefix="casmag-real-") as tmp:
@@ -167,6 +169,7 @@ def solve_problem(
     result.info["recording"] = str(path)
     result.info["protocol"] = records[0] if spec.recording is not None else records
     result.info["wall_seconds"] = wall
+    result.evaluation = evaluate_result(result, align)
     result.save(out_dir)
     if spec.recording is not None:
         return [row(spec, records[0], result, wall)]

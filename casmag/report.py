@@ -33,9 +33,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from casmag.errors import DataError
+from casmag.evaluation import evaluate
 from casmag.outdir import record_written
 from casmag.paper import TABLES, PaperRow, PaperTable
+from casmag.result import ARRAYS_FILE
 from casmag.sweep import read_manifest
 
 # Where the paper's GP-SLAM made the trajectory worse, ours must stay within this factor of
@@ -184,6 +188,12 @@ class Table:
     source: str | None = None
     seeds: list[int] = field(default_factory=list)
     kind: str = "slam"
+    align: str = "none"
+
+    @property
+    def frame(self) -> str:
+        """How the errors were measured: "no alignment" or after which alignment."""
+        return "no alignment" if self.align == "none" else f"after alignment {self.align!r}"
 
 
 def _read_manifest(path: Path) -> dict[str, Any]:
@@ -191,7 +201,40 @@ def _read_manifest(path: Path) -> dict[str, Any]:
     return read_manifest(path)
 
 
-def _sweep_table(manifest_path: Path, skip: Callable[[DataError], None] | None = None) -> Table:
+def realigned(path: Path, kind: str, data: dict[str, Any], align: str) -> dict[str, Any]:
+    """The result data of ``path`` (a result.json) with its error fields measured again
+    after ``align`` (casmag.evaluation) from the arrays.npz beside it; unchanged for
+    ``none``. DataError naming the file when it has no saved arrays."""
+    if align == "none":
+        return data
+    npz = path.parent / ARRAYS_FILE
+    if not npz.is_file():
+        raise DataError(f"{path}: no {ARRAYS_FILE} beside it to align (saved without arrays)")
+    with np.load(npz, allow_pickle=False) as f:
+        arrays = {k: f[k] for k in f.files}
+    if not data["success"]:
+        arrays.pop("P_estimate", None)
+    e = evaluate(arrays, align, data["info"].get("anchor"))
+    out = {**data, "evaluation": e}
+    if kind == "imu":
+        out["errors"] = {
+            **data["errors"],
+            "imu_only": {**data["errors"]["imu_only"], **_pair(e["before"])},
+            "gp_slam": {**data["errors"]["gp_slam"], **_pair(e["after"])},
+        }
+        return out
+    b, a = _pair(e["before"]), _pair(e["after"])
+    out.update(rmse_before=b["rmse"], max_before=b["max"], rmse_after=a["rmse"], max_after=a["max"])
+    return out
+
+
+def _pair(errors: dict[str, Any]) -> dict[str, Any]:
+    return {"rmse": errors["rmse"], "max": errors["max"]}
+
+
+def _sweep_table(
+    manifest_path: Path, skip: Callable[[DataError], None] | None = None, align: str = "none"
+) -> Table:
     m = _read_manifest(manifest_path)
     folder = manifest_path.parent
     paper = TABLES.get(m.get("paper") or "")
@@ -210,7 +253,9 @@ def _sweep_table(manifest_path: Path, skip: Callable[[DataError], None] | None =
                 continue
             if (run_dir / "result.json").is_file():
                 try:
-                    data = load(run_dir / "result.json")
+                    data = realigned(
+                        run_dir / "result.json", kind, load(run_dir / "result.json"), align
+                    )
                 except DataError as exc:
                     if skip is None:
                         raise
@@ -243,13 +288,17 @@ def _sweep_table(manifest_path: Path, skip: Callable[[DataError], None] | None =
         source=m.get("source"),
         seeds=[int(s) for s in m["seeds"]],
         kind=kind,
+        align=align,
     )
 
 
-def collect(paths: list[Path], warn: Callable[[str], None] | None = None) -> list[Table]:
+def collect(
+    paths: list[Path], warn: Callable[[str], None] | None = None, align: str = "none"
+) -> list[Table]:
     """Tables from paths: one per sweep folder (``sweep.json``) found, one table of the
     remaining results and one of ``casmag imu`` results, one row per problem name (its
-    seeds aggregated).
+    seeds aggregated). ``align``: errors measured again after this alignment
+    (:func:`realigned`).
 
     A result.json or sweep.json that cannot be read is skipped: with ``warn``, each is
     passed to it (one line naming the file) once the others have been read; without, the
@@ -271,7 +320,7 @@ def collect(paths: list[Path], warn: Callable[[str], None] | None = None) -> lis
             manifests = []
             for m in _visible(p, "sweep.json"):
                 try:
-                    tables.append(_sweep_table(m, skip))
+                    tables.append(_sweep_table(m, skip, align))
                     manifests.append(m)
                 except DataError as exc:  # its runs are reported as loose results
                     skip(exc)
@@ -285,6 +334,7 @@ def collect(paths: list[Path], warn: Callable[[str], None] | None = None) -> lis
     for f in loose:
         try:
             kind, data = read_result(f)
+            data = realigned(f, kind, data, align)
         except DataError as exc:
             skip(exc)
             continue
@@ -294,7 +344,7 @@ def collect(paths: list[Path], warn: Callable[[str], None] | None = None) -> lis
     for kind, table_name, title in (("slam", "results", None), ("imu", "imu", "IMU results")):
         if by_kind[kind]:
             rows = [Row(n, n, runs, len(runs)) for n, runs in by_kind[kind].items()]
-            tables.append(Table(table_name, title, rows, kind=kind))
+            tables.append(Table(table_name, title, rows, kind=kind, align=align))
     where = ", ".join(map(str, paths))
     if skipped and not any(r.data is not None for t in tables for row in t.rows for r in row.runs):
         if len(skipped) == 1:
@@ -567,7 +617,8 @@ def imu_markdown_table(table: Table) -> str:
         out.append("| " + " | ".join(cells) + " |")
     out += [
         "",
-        "Position errors in metres against the truth, no alignment, of the IMU-only adjustment "
+        f"Position errors in metres against the truth, {table.frame}, of the IMU-only "
+        "adjustment "
         "and of GP-SLAM (`casmag imu`); GP-SLAM statistics over the solved runs only; "
         "'iterations' are the mean IPOPT iteration counts of the two stages.",
         "",
@@ -596,7 +647,7 @@ def imu_latex_table(table: Table) -> str:
             _latex_label(s.status_text()),
         ]
         out.append(" & ".join(cells) + r" \\")
-    caption = _latex_label(_heading(table)) + ": position errors against truth, no alignment."
+    caption = _latex_label(_heading(table)) + f": position errors against truth, {table.frame}."
     out += [r"\hline", r"\end{tabular}", rf"\caption{{{caption}}}", rf"\label{{tab:{table.name}}}"]
     out += [r"\end{table}", ""]
     return "\n".join(out)
@@ -728,7 +779,7 @@ def markdown_table(table: Table, figures: dict[str, str] | None = None) -> str:
     out.append("")
     seeds = _seed_text(table)
     note = (
-        "Position errors in metres against the truth, no alignment; mean, sample standard "
+        f"Position errors in metres against the truth, {table.frame}; mean, sample standard "
         f"deviation and worst case over the solved seeds{seeds}. Runs whose IPOPT solve failed "
         "are counted under 'solved' with their status and left out of the statistics; "
         "'iterations' is the mean IPOPT iteration count."
@@ -901,7 +952,7 @@ def latex_table(table: Table) -> str:
     caption = _latex_label(_heading(table)) + (
         ". Mean $\\pm$ sample standard deviation and worst case over the solved seeds"
         + _latex_label(_seed_text(table))
-        + "; position errors against truth, no alignment."
+        + f"; position errors against truth, {table.frame}."
     )
     out += [r"\hline", r"\end{tabular}", rf"\caption{{{caption}}}", rf"\label{{tab:{table.name}}}"]
     out += [r"\end{table}", ""]

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from casmag.errors import DataError
+from casmag.evaluation import evaluate_result
 from casmag.outdir import save_atomic
 
 
@@ -44,7 +45,9 @@ class Result:
     ``constraint_violation_per_iteration`` (the final solve's; ``convergence`` has every
     solve's objective, primal and dual infeasibility: casmag.nlp.Solution.trace);
     ``uncertainty`` (sigma_mean, sigma_max [m], NEES against the truth, or ``error``);
-    ``warnings`` (casmag.checks: ``check``, ``column``, ``reason``).
+    ``warnings`` (casmag.checks: ``check``, ``column``, ``reason``); ``evaluation``: the
+    errors again after an optional alignment to the truth, with the anchor that fixed the
+    frame (casmag.evaluation; computed without alignment when not set).
 
     Arrays (N samples, d = 2 or 3 dimensions, a G x G map grid; absent or None when not
     computed): ``P_odometry``, ``P_estimate``, ``P_true`` (N, d) [m]; ``P_cov``,
@@ -75,12 +78,14 @@ class Result:
     uncertainty: dict[str, Any] | None = None
     convergence: list[dict[str, Any]] = field(default_factory=list)
     warnings: list[dict[str, Any]] = field(default_factory=list)
+    evaluation: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""
         d = asdict(self)
         d.pop("arrays")
+        d["evaluation"] = evaluation_of(self)
         d["units"] = {"errors": "m, no alignment", "seconds": "wall-clock s"}
         return finite_json(d)
 
@@ -93,8 +98,7 @@ class Result:
             (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
             if self.arrays:
                 write_trajectory_csv(self, tmp / "trajectory.csv")
-                present = {k: v for k, v in self.arrays.items() if v is not None}
-                np.savez_compressed(tmp / ARRAYS_FILE, **present)
+                write_arrays(tmp, self.arrays)
             if figures and self.arrays:
                 from casmag import plotting
 
@@ -137,6 +141,19 @@ class Result:
 
 #: The arrays of a saved result (numpy's npz; names as in Result.arrays).
 ARRAYS_FILE = "arrays.npz"
+
+
+def evaluation_of(result: Any) -> dict[str, Any]:
+    """A result's ``evaluation``: the one set (``casmag solve --align``, or
+    ``result.evaluation = casmag.evaluate(result, "se")``), else without alignment."""
+    return result.evaluation if result.evaluation is not None else evaluate_result(result)
+
+
+def write_arrays(folder: Path, arrays: dict[str, Any]) -> None:
+    """The arrays a result holds (those not None) into folder/arrays.npz, exactly."""
+    present = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
+    if present:
+        np.savez_compressed(folder / ARRAYS_FILE, **present)
 
 
 def finite_json(obj: Any) -> Any:
