@@ -9,6 +9,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from casmag.checks import refuse_simulation_truths
 from casmag.config import Problem, load_problem
 from casmag.evaluation import anchor_info
 from casmag.metrics import rmse_and_max
@@ -43,6 +44,9 @@ def solve(
 
     problem: a Problem, a YAML path or a dictionary (validated with :func:`load_problem`).
     data: the data set to use; simulated from the problem (with its seed) when omitted.
+    Data not simulated (no ``M_true``, e.g. a recording) need the model's noise and GP
+    settings given (or estimated): a null there means "the simulation's value" and is
+    refused (ProblemError naming the key; casmag.checks.refuse_simulation_truths).
     progress: called after every IPOPT iteration with (iteration, cost, max-norm of the
     step, seconds since the solve started).
     initial_positions: (N, d) start of a plain batch solve (default: the dead reckoning).
@@ -50,7 +54,10 @@ def solve(
     fields are None, so a failure is never mistaken for a result.
     """
     problem = load_problem(problem)
-    data = simulate_problem(problem) if data is None else data
+    if data is None:
+        data = simulate_problem(problem)
+    else:
+        refuse_simulation_truths(problem, data)
     ws = problem.spec.solver.warm_start
     stages: list[Stage] = []
     if ws.strategy == "growing" and data.n_samples > ws.first_samples:

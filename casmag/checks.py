@@ -27,6 +27,12 @@ Thresholds (and why):
 - Lengthscale: longer than the dead-reckoned path's extent, the map is one smooth field
   and cannot tell places apart; shorter than the median step, no two samples are
   correlated and the map cannot connect them.
+
+One check refuses (:func:`refuse_simulation_truths`): a problem solved on data that were not
+simulated from it (``casmag.solve(problem, data=...)`` with a recording) whose noise or GP
+hyperparameters are null. Null means "the simulation's true value", and a recording has no
+simulation: those values (sigma_f 0.1, lengthscale 0.1 m, sigma_m 0.002 by default) are
+another field's, in another unit.
 """
 
 from __future__ import annotations
@@ -34,6 +40,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+
+from casmag.errors import ProblemError
 
 MAX_SAMPLE_INTERVAL = 2.0  # s
 MAX_SPEED = 5.0  # m/s
@@ -149,3 +157,42 @@ def _lengthscale(P: np.ndarray, lengthscale: float) -> list[dict[str, str]]:
 def warning_lines(source: Any, warnings: list[dict[str, str]]) -> list[str]:
     """One line per warning, naming the source, the column or key and the reason."""
     return [f"casmag: warning: {source}: {w['column']}: {w['reason']}" for w in warnings]
+
+
+#: Model settings whose null takes the simulation's true value: (setting, hyperparameter
+#: name in ``model.estimate``, the simulation key it takes).
+SIMULATION_TRUTHS = (
+    ("model.gp.sigma_f", "sigma_f", "simulation.field.sigma_f"),
+    ("model.gp.lengthscale", "lengthscale", "simulation.field.lengthscale"),
+    ("model.magnetometer.sigma_m", "sigma_m", "simulation.magnetometer.noise"),
+    ("model.odometry.sigma", None, "simulation.odometry.noise"),
+)
+
+
+def refuse_simulation_truths(problem: Any, data: Any) -> None:
+    """ProblemError naming the first setting left null (and not estimated) when ``data``
+    were not simulated (no simulated field, ``M_true``): its null would take the value of
+    a simulation that did not produce the data."""
+    if getattr(data, "M_true", None) is not None:
+        return
+    model = problem.spec.model
+    values = {
+        "model.gp.sigma_f": model.gp.sigma_f,
+        "model.gp.lengthscale": model.gp.lengthscale,
+        "model.magnetometer.sigma_m": model.magnetometer.sigma_m,
+        "model.odometry.sigma": model.odometry.sigma,
+    }
+    for key, name, truth in SIMULATION_TRUTHS:
+        if values[key] is None and name not in model.estimate:
+            raise ProblemError(
+                problem.source,
+                key,
+                f"null takes the simulation's value ({truth}), but the data given were not "
+                "simulated from this problem: set it in the data's unit"
+                + (
+                    ", or list it under model.estimate"
+                    if name in ("sigma_f", "lengthscale")
+                    else ""
+                )
+                + " (casmag.slam chooses every value from a recording)",
+            )

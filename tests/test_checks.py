@@ -103,3 +103,63 @@ def test_the_real_recordings_raise_no_warning(tmp_path, seq):
     assert recording_warnings(r.t, r.increments, r.Y, r.motion) == []
     P = np.vstack([np.zeros(2), np.cumsum(r.increments, axis=0)])
     assert model_warnings(P, r.Y, lengthscale=0.3, sigma_m=2.0) == []
+
+
+def _recorded(n=60, seed=0):
+    """A data set as a recording gives it: increments and a field in microtesla, no
+    simulated field (M_true None)."""
+    from casmag.simulate import Dataset
+
+    rng = np.random.default_rng(seed)
+    return Dataset(
+        U=rng.normal(0.1, 0.01, (n - 1, 2)), Y=45.0 + rng.normal(0, 1, (n, 3)), anchor=np.zeros(2)
+    )
+
+
+GIVEN = {
+    "model.gp.sigma_f": 5.0,
+    "model.gp.lengthscale": 0.5,
+    "model.magnetometer.sigma_m": 1.0,
+    "model.odometry.sigma": 0.01,
+}
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "model.gp.sigma_f",
+        "model.gp.lengthscale",
+        "model.magnetometer.sigma_m",
+        "model.odometry.sigma",
+    ],
+)
+def test_null_settings_on_data_not_simulated_are_refused(key):
+    import casmag
+
+    problem = casmag.load_problem(
+        "problems/paper/base.yaml", {k: v for k, v in GIVEN.items() if k != key}
+    )
+    with pytest.raises(casmag.ProblemError) as err:
+        casmag.solve(problem, data=_recorded())
+    assert err.value.field == key
+    assert "null takes the simulation's value" in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_settings_given_or_estimated_or_simulated_data_pass_the_check():
+    import casmag
+    from casmag.checks import refuse_simulation_truths
+    from casmag.simulate import simulate_problem
+
+    base = casmag.load_problem("problems/paper/base.yaml")
+    refuse_simulation_truths(base, simulate_problem(base))  # its own simulation: the truth
+    refuse_simulation_truths(casmag.load_problem("problems/paper/base.yaml", GIVEN), _recorded())
+    estimated = casmag.load_problem(
+        "problems/paper/base.yaml",
+        {
+            "model.estimate": ["sigma_f", "lengthscale"],
+            "model.magnetometer.sigma_m": 1.0,
+            "model.odometry.sigma": 0.01,
+        },
+    )
+    refuse_simulation_truths(estimated, _recorded())
