@@ -12,6 +12,7 @@ import numpy as np
 from casmag.checks import refuse_simulation_truths
 from casmag.config import Problem, load_problem
 from casmag.evaluation import anchor_info
+from casmag.fieldmap import grid_over
 from casmag.metrics import rmse_and_max
 from casmag.result import Result
 from casmag.simulate import Dataset, simulate_problem
@@ -87,7 +88,7 @@ def solve(
     )
     grid_x = grid_y = field_grid = std_grid = None
     if sol.success:
-        grid_x, grid_y = _grid(P_est, problem.assumed_lengthscale)
+        grid_x, grid_y = grid_over(P_est, problem.assumed_lengthscale)
         pts = np.column_stack([grid_x.ravel(), grid_y.ravel()])
         jitter = problem.spec.model.gp.jitter
         field_grid = field_on_grid(structure, sol, hyper, pts, jitter, P_est)
@@ -214,9 +215,3 @@ def _uncertainty(
     summary["inflation"] = inflation.to_dict()
     summary["uninflated"] = u0.summary(P_est, P_true)
     return summary, u.cov, u0.cov
-
-
-def _grid(P: np.ndarray, lengthscale: float, points: int = 90) -> tuple[np.ndarray, np.ndarray]:
-    """A square grid over the positions' bounding box plus one lengthscale."""
-    lo, hi = P[:, :2].min(axis=0) - lengthscale, P[:, :2].max(axis=0) + lengthscale
-    return np.meshgrid(np.linspace(lo[0], hi[0], points), np.linspace(lo[1], hi[1], points))

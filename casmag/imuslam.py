@@ -60,6 +60,7 @@ import scipy.sparse
 from casmag import strapdown as sd
 from casmag.config import SolverSpec
 from casmag.exactgp import add_exact_prior
+from casmag.fieldmap import map_arrays, unwhitened
 from casmag.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
 from casmag.hyper import field_evidence as _field_evidence
 from casmag.imuconfig import HYPER_SECONDS, ImuProblem, load_imu_problem
@@ -829,6 +830,8 @@ class ImuSolveStage:
     b_a: np.ndarray
     grow: list[dict[str, Any]] = field(default_factory=list)  # prefix stages (model.gp.grow)
     sigma_m: float | None = None  # the magnetometer noise this solve used (GP-SLAM)
+    # A reduced-rank map's basis key, kernel and hyperparameters (GP-SLAM; casmag.fieldmap).
+    field_model: dict[str, Any] | None = None
 
 
 def _stage_estimates(sol: Solution, nominal: dict[str, Any], K: int) -> dict[str, np.ndarray]:
@@ -1352,8 +1355,23 @@ def _slam_solve(
     carry = ("W", "c") if m.gp.form == "reduced_rank" else ("M", "c")
     terms = _terms_of(kf, base["n"], base["T"])
     sol2, nominal = _solve_recentred(nlp2, params, x0, carry, terms, progress)
+    field_model = None
+    if m.gp.form == "reduced_rank":
+        field_model = {
+            "basis": basis_key,
+            "kernel": m.gp.kernel,
+            "hyper": {
+                "sigma_f": hyper["sigma_f"],
+                "lengthscale": hyper["lengthscale"],
+                "sigma_m": sigma_m,
+            },
+        }
     st2 = ImuSolveStage(
-        solution=sol2, nlp=nlp2, sigma_m=sigma_m, **_stage_estimates(sol2, nominal, K)
+        solution=sol2,
+        nlp=nlp2,
+        sigma_m=sigma_m,
+        field_model=field_model,
+        **_stage_estimates(sol2, nominal, K),
     )
     return st2, s2
 
@@ -1633,12 +1651,24 @@ class ImuResult:
                 write_arrays(tmp, self.arrays)
             if figures and self.arrays:
                 _trajectory_figure(self, tmp / "trajectory.png")
-                if self.cost_per_iteration:
-                    from casmag.plotting import cost_figure
+                from casmag.plotting import cost_figure, map_figure
 
+                if self.cost_per_iteration:
                     cost_figure(self, tmp / "cost.png")
+                if self.arrays.get("map_field") is not None:
+                    map_figure(self, tmp / "map.png")
 
         return save_atomic(out_dir, write)
+
+
+def _map_arrays(st: ImuSolveStage) -> dict[str, np.ndarray]:
+    """A GP-SLAM stage's reduced-rank map on a horizontal grid at the path's median
+    height, with its posterior std given the keyframe positions (casmag.fieldmap)."""
+    fm = st.field_model
+    assert fm is not None
+    basis = cached_basis(fm["basis"])
+    W = unwhitened(basis, fm["kernel"], fm["hyper"], st.solution.x["W"])
+    return map_arrays(basis, fm["kernel"], W, st.solution.x["c"], fm["hyper"], st.P)
 
 
 def _fmt(v: list[float] | None, i: int) -> str:
@@ -1874,6 +1904,8 @@ def solve_imu(
             arrays["att_err_est_deg"] = np.degrees(sd.quat_angle(est.Q, Qt))
     if res.fallback and slam_map is not None:
         arrays["P_gp_slam_map"] = slam_map.P
+    if decision == "map" and slam_map is not None and slam_map.field_model is not None:
+        arrays.update(_map_arrays(slam_map))
     if arrays["P_estimate"] is None:
         arrays["P_estimate"] = arrays["P_imu_only"] if spec.model.gp.form == "none" else None
     return ImuResult(

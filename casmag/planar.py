@@ -18,6 +18,7 @@ import numpy as np
 from casmag import strapdown as sd
 from casmag.config import SolverSpec
 from casmag.errors import DataError
+from casmag.fieldmap import map_arrays, unwhitened
 from casmag.hyper import estimate_hyperparameters
 from casmag.imuconfig import PlanarOptions
 from casmag.imuslam import (
@@ -170,11 +171,13 @@ class PlanarResult:
             _write_planar_csv(self, tmp / "trajectory.csv")
             write_arrays(tmp, self.arrays)
             if figures:
-                from casmag.plotting import cost_figure, trajectory_figure
+                from casmag.plotting import cost_figure, map_figure, trajectory_figure
 
                 trajectory_figure(self, tmp / "trajectory.png")
                 if self.cost_per_iteration:
                     cost_figure(self, tmp / "cost.png")
+                if self.arrays.get("map_field") is not None:
+                    map_figure(self, tmp / "map.png")
 
         return save_atomic(out_dir, write)
 
@@ -327,6 +330,7 @@ def solve_planar(
     for i, st in enumerate(starts):
         st["kept"] = i == best
 
+    hyper = {"sigma_f": float(sigma_f), "lengthscale": float(ell), "sigma_m": options.sigma_m}
     before = after = (None, None)
     hb_deg = ha_deg = None
     if truth is not None:
@@ -353,11 +357,7 @@ def solve_planar(
         heading_rms_deg_before=hb_deg,
         heading_rms_deg_after=ha_deg,
         bias=[float(v) for v in sol.x["bias"].ravel()] if sol.success else None,
-        hyperparameters={
-            "sigma_f": float(sigma_f),
-            "lengthscale": float(ell),
-            "sigma_m": options.sigma_m,
-        },
+        hyperparameters=hyper,
         num_basis=basis.num_basis,
         cost_blocks={
             k: {"before": sol.blocks_before[k], "after": sol.blocks_after[k]}
@@ -384,6 +384,7 @@ def solve_planar(
         },
         convergence=[sol.trace("GP-SLAM")],
         arrays={
+            **(_map_arrays(basis, options, hyper, sol) if sol.success else {}),
             "t": np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
             "P_odometry": P_dr,
             "psi_odometry": psi_dr,
@@ -395,6 +396,14 @@ def solve_planar(
             else np.asarray(truth["psi"], dtype=float),
         },
     )
+
+
+def _map_arrays(
+    basis: HilbertBasis, options: PlanarOptions, hyper: dict[str, float], sol: Any
+) -> dict[str, np.ndarray]:
+    """The solved map on a grid with its posterior std (casmag.fieldmap), for map.png."""
+    W = unwhitened(basis, options.kernel, hyper, sol.x["W"])
+    return map_arrays(basis, options.kernel, W, sol.x["c"], hyper, sol.x["P"])
 
 
 def solve_planar_recording(

@@ -302,7 +302,9 @@ def map_figure(result: Drawable, path: Path) -> Figure:
     fig = Figure(figsize=(11.0, 4.8) if std is not None else (6.4, 5.4))
     axes = fig.subplots(1, 2) if std is not None else [fig.add_subplot()]
     magnitude = (a["map_field"] ** 2).sum(axis=-1) ** 0.5
-    title = f"{result.info.get('name', '')}: estimated field magnitude"
+    title = f"{result.info.get('name', '')}: {result.status}\nestimated field magnitude"
+    if a.get("map_z") is not None:
+        title += f" at z = {float(a['map_z']):.3g} m"
     if std is not None:
         ratio = std.mean(axis=-1) / np.maximum(prior.mean(axis=-1), 1e-300)
         magnitude = np.ma.masked_where(ratio > MAP_MASK, magnitude)

@@ -30,6 +30,7 @@ import scipy.linalg
 
 from casmag.config import Problem, SolverSpec
 from casmag.exactgp import add_exact_prior
+from casmag.fieldmap import field_at, reduced_rank_std
 from casmag.hyper import estimate_conditional
 from casmag.kernels import FIELD_DIM, get_kernel
 from casmag.knots import Knots
@@ -287,10 +288,8 @@ def field_on_grid(
     exact GP the posterior mean given the estimated field at the estimated positions P,
     K(grid, P) K(P, P)^-1 m."""
     if s.form == "reduced_rank":
-        basis = s.hilbert_basis()
-        zero_c = np.zeros(FIELD_DIM)
-        m, _, _ = field_and_jacobians(basis, s.kernel, grid, sol.x["W"].ravel(order="F"))
-        return m + (sol.x["c"].ravel() if s.constant_field else zero_c)
+        m = field_at(s.hilbert_basis(), s.kernel, grid, sol.x["W"])
+        return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
     kernel = get_kernel(s.kernel)
     M = sol.x["M"]
     sf, ell = hyper["sigma_f"], hyper["lengthscale"]
@@ -301,23 +300,6 @@ def field_on_grid(
         return Ks @ np.linalg.solve(K, M)
     mean = Ks @ np.linalg.solve(K, M.ravel(order="F"))
     return mean.reshape(FIELD_DIM, -1).T
-
-
-#: Points per block in :func:`field_std_on_grid`'s reduced-rank rows.
-STD_CHUNK = 2_000
-
-
-def _chunks(n: int) -> list[slice]:
-    return [slice(i, min(i + STD_CHUNK, n)) for i in range(0, n, STD_CHUNK)]
-
-
-def _weight_rows(basis: HilbertBasis, kernel: str, X: np.ndarray) -> list[np.ndarray]:
-    """The map's rows d m_c / d w at points X: SE [phi] (one (n, M) block for every
-    component), curl-free [d phi / dx_c for c = x, y, z]."""
-    if kernel == "se":
-        return [basis.phi(X)]
-    grads = basis.grad_phi(X)
-    return [grads[:, c, :] for c in range(FIELD_DIM)]
 
 
 #: Most samples for which :func:`field_std_on_grid` computes the exact GP's posterior std
@@ -339,29 +321,9 @@ def field_std_on_grid(
     A^T A / sigma_m^2 + diag(1 / S) (the constant field left out: every sample informs it);
     exact GP: k(x, x) - k(x, P) (K + sigma_m^2 I)^-1 k(P, x). None for an exact GP above
     EXACT_STD_MAX_SAMPLES samples."""
-    sf, ell, sm = hyper["sigma_f"], hyper["lengthscale"], hyper["sigma_m"]
     if s.form == "reduced_rank":
-        basis = s.hilbert_basis()
-        S = basis.prior_variances(s.kernel, sf, ell).ravel()
-        # SE: each component's weights, one basis; curl-free: one potential, three rows.
-        # Rows of STD_CHUNK points at a time: a dense (N, M) block per component for a
-        # building-scale recording would take gigabytes.
-        G = np.diag(1.0 / S)
-        for rows in _chunks(P.shape[0]):
-            G += sum(a.T @ a for a in _weight_rows(basis, s.kernel, P[rows])) / sm**2
-        L = np.linalg.cholesky(G)
-        parts = []
-        for rows in _chunks(grid.shape[0]):
-            post, prior = [], []
-            for ag in _weight_rows(basis, s.kernel, grid[rows]):
-                V = scipy.linalg.solve_triangular(L, ag.T, lower=True)
-                post.append((V**2).sum(axis=0))
-                prior.append((ag**2 * S).sum(axis=1))
-            parts.append((np.column_stack(post), np.column_stack(prior)))
-        post, prior = (np.vstack([part[i] for part in parts]) for i in (0, 1))
-        if s.kernel == "se":  # one basis for every component
-            post, prior = np.tile(post, FIELD_DIM), np.tile(prior, FIELD_DIM)
-        return np.sqrt(np.maximum(post, 0.0)), np.sqrt(prior)
+        return reduced_rank_std(s.hilbert_basis(), s.kernel, hyper, P, grid)
+    sf, ell, sm = hyper["sigma_f"], hyper["lengthscale"], hyper["sigma_m"]
     if P.shape[0] > EXACT_STD_MAX_SAMPLES:
         return None
     kernel = get_kernel(s.kernel)

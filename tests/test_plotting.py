@@ -112,3 +112,42 @@ def test_map_is_masked_where_no_sample_informs_it_and_shows_its_std(solved, tmp_
     k = np.unravel_index(np.argmin(ratio), ratio.shape)
     assert ratio[k] < 0.2
     assert "posterior std" in ax_std.get_title()
+
+
+def _map_checks(result, tmp_path):
+    a = result.arrays
+    std, prior = a["map_std"], a["map_prior_std"]
+    assert std.shape == a["map_field"].shape == (*a["map_x"].shape, 3)
+    assert np.all(std <= prior + 1e-12)
+    ratio = std.mean(axis=-1) / prior.mean(axis=-1)
+    assert ratio.min() < 0.2 and ratio.max() > plotting.MAP_MASK  # path and far away
+    fig = plotting.map_figure(result, tmp_path / "m.png")
+    assert result.status in fig.axes[0].get_title()
+    return fig
+
+
+def test_planar_results_draw_their_map_with_its_std(tmp_path):
+    from small_problems import planar_room_field
+
+    from casmag.imusim import simulate_planar
+    from casmag.planar import solve_planar
+
+    d = simulate_planar(4, planar_room_field(), size=(2.0, 1.5), loops=1, disp_noise=0.002)
+    r = solve_planar(d.U[:, 0], d.U[:, 1], d.U[:, 2], d.Y, t=d.t, truth={"P": d.P, "psi": d.psi})
+    assert r.success
+    _map_checks(r, tmp_path)
+    r.save(tmp_path / "out")
+    assert (tmp_path / "out" / "map.png").is_file()
+
+
+def test_imu_results_draw_their_map_at_the_path_height(tmp_path):
+    from casmag.imuconfig import load_imu_problem
+    from casmag.imuslam import solve_imu
+
+    problem = load_imu_problem("problems/imu/spiral.yaml", ["simulation.scenario.turns=1"])
+    r = solve_imu(problem)
+    assert r.success and r.map_decision == "map"
+    fig = _map_checks(r, tmp_path)
+    z = float(r.arrays["map_z"])
+    assert z == pytest.approx(float(np.median(r.arrays["P_estimate"][:, 2])))
+    assert f"z = {z:.3g} m" in fig.axes[0].get_title()
