@@ -15,6 +15,10 @@ Thresholds (and why):
   robot speeds (the shared recordings: 0.1-1.5 m/s); increments in centimetres give 100
   times the speed, cumulative positions in the increment columns the path's extent per
   sample.
+- ``MAX_TURN_RATE``: 10 rad/s (570 deg/s) for the 95th percentile of the planar heading
+  rate |dyaw| / dt. The shared recordings' 95th percentiles: 0.44-1.69 rad/s for the robot
+  (invensense 1-5), 1.36 and 1.95 rad/s for the handheld iPad (ARKit library, square);
+  a heading increment in degrees read as radians multiplies it by 57.
 - Field magnitude (median |m|): below 0.01 looks like tesla (Earth's field is 25-65 uT,
   2.5-6.5e-5 T), above 10,000 like nanotesla. Between them the unit cannot be told from
   the magnitude (gauss, microtesla and the simulations' Earth = 1 all occur), and casmag
@@ -45,6 +49,7 @@ from casmag.errors import ProblemError
 
 MAX_SAMPLE_INTERVAL = 2.0  # s
 MAX_SPEED = 5.0  # m/s
+MAX_TURN_RATE = 10.0  # rad/s, 95th percentile of |dyaw| / dt
 TESLA_BELOW = 0.01
 NANOTESLA_ABOVE = 1.0e4
 
@@ -85,6 +90,19 @@ def recording_warnings(
                     "indoor robot): are the increments in centimetres or millimetres, or "
                     "cumulative positions rather than steps since the previous row? casmag "
                     "reads metres per step",
+                )
+            )
+    if motion == "planar" and increments.size and t.size > 1 and dt <= MAX_SAMPLE_INTERVAL:
+        steps_dt = np.diff(t)
+        rate = float(np.percentile(np.abs(increments[:, 2]) / steps_dt, 95))
+        if rate > MAX_TURN_RATE:
+            out.append(
+                _warning(
+                    "turn_rate",
+                    "dyaw",
+                    f"95th percentile of the heading rate {rate:.3g} rad/s (over "
+                    f"{MAX_TURN_RATE:g} rad/s, {np.degrees(MAX_TURN_RATE):.0f} deg/s): is dyaw "
+                    "in degrees? casmag reads radians per step",
                 )
             )
     magnitude = float(np.median(np.linalg.norm(np.asarray(Y, dtype=float), axis=1)))

@@ -54,10 +54,21 @@ def test_increments_in_centimetres_or_cumulative_are_named(case):
 
 def test_planar_speed_uses_the_displacement_columns_only():
     t, U, Y, _ = _walk()
-    planar = np.column_stack([np.linalg.norm(U, axis=1), np.zeros(len(U)), np.full(len(U), 3.0)])
+    planar = np.column_stack([np.linalg.norm(U, axis=1), np.zeros(len(U)), np.full(len(U), 0.5)])
     assert _checks(t, planar, Y, "planar") == set()  # a large heading column is not a speed
     planar[:, 0] *= 100.0
     assert _checks(t, planar, Y, "planar") == {"speed"}
+
+
+def test_a_heading_increment_in_degrees_is_named():
+    t, U, Y, _ = _walk()
+    rng = np.random.default_rng(3)
+    dyaw = rng.normal(0.0, 0.05, len(U))  # 0.5 rad/s turns at 10 Hz
+    planar = np.column_stack([np.linalg.norm(U, axis=1), np.zeros(len(U)), dyaw])
+    assert _checks(t, planar, Y, "planar") == set()
+    planar[:, 2] = np.degrees(dyaw)
+    found = recording_warnings(t, planar, Y, "planar")
+    assert [w["check"] for w in found] == ["turn_rate"] and "degrees" in found[0]["reason"]
 
 
 @pytest.mark.parametrize(("scale", "unit"), [(1e-6, "tesla"), (1e3, "nanotesla")])
@@ -93,16 +104,19 @@ def test_slam_prints_the_warning_and_records_it(tmp_path):
 
 
 @pytest.mark.skipif(not SHARED.is_dir(), reason="../shared/data (real recordings) not found")
+@pytest.mark.parametrize("motion", ["translational", "planar"])
 @pytest.mark.parametrize("seq", [1, 2, 3, 4, 5])
-def test_the_real_recordings_raise_no_warning(tmp_path, seq):
+def test_the_real_recordings_raise_no_warning(tmp_path, seq, motion):
     rec = tmp_path / f"seq{seq}.csv"
     convert = ["convert", str(SHARED / str(seq)), "--out", str(rec), "--no-align"]
+    convert += ["--motion", motion]
     res = CliRunner().invoke(main, convert)  # the clock alignment changes no unit
     assert res.exit_code == 0, res.output
     r = read_recording(rec)
     assert recording_warnings(r.t, r.increments, r.Y, r.motion) == []
-    P = np.vstack([np.zeros(2), np.cumsum(r.increments, axis=0)])
-    assert model_warnings(P, r.Y, lengthscale=0.3, sigma_m=2.0) == []
+    if motion == "translational":
+        P = np.vstack([np.zeros(2), np.cumsum(r.increments, axis=0)])
+        assert model_warnings(P, r.Y, lengthscale=0.3, sigma_m=2.0) == []
 
 
 def _recorded(n=60, seed=0):
