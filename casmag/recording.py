@@ -223,6 +223,21 @@ def _is_number(text: str) -> bool:
     return True
 
 
+#: Names other logs give the time and magnetometer columns: time, timestamp, stamp,
+#: seconds, time_s; mag_x, magx, mag.x, magnetometer_x, bx (and y, z).
+_TIME_ALIASES = ("time", "timestamp", "stamp", "seconds", "time_s", "t_s", "sec")
+_MAG_ALIAS = re.compile(r"^(?:mag(?:netometer|netic)?(?:_field)?[_.\-]?|b|m_)([xyz])(?:_ut)?$")
+
+
+def _alias(name: str) -> str | None:
+    """casmag's name for a time or magnetometer column named as other logs name it."""
+    low = name.strip().lower()
+    if low in _TIME_ALIASES:
+        return "t"
+    m = _MAG_ALIAS.match(low)
+    return f"m{m.group(1)}" if m else None
+
+
 def _column_hint(name: str) -> str:
     """A suggestion for an unknown column: a known name that differs only in case or is
     close (difflib ratio 0.75 or more, names of 3 or more characters), or what a bare
@@ -234,6 +249,9 @@ def _column_hint(name: str) -> str:
         return (
             f" (a true position is '{name.lower()}_true'; an odometry increment 'd{name.lower()}')"
         )
+    alias = _alias(name)
+    if alias is not None:
+        return f" (casmag names this column '{alias}')"
     close = difflib.get_close_matches(name, _KNOWN_COLUMNS, n=1, cutoff=0.75)
     if close and len(name) >= 3:
         return f" (did you mean '{close[0]}'?)"

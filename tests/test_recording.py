@@ -549,3 +549,18 @@ def test_write_into_missing_folder(tmp_path):
     with pytest.raises(DataError) as info:
         write_recording(path, np.arange(3.0), np.zeros((3, 3)), dxy=np.zeros((2, 2)))
     assert "cannot write" in str(info.value) and "folder.csv" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("header", "name", "casmag_name"),
+    [
+        ("time,dx,dy,mx,my,mz", "time", "t"),
+        ("timestamp,dx,dy,mx,my,mz", "timestamp", "t"),
+        ("t,dx,dy,mag_x,my,mz", "mag_x", "mx"),
+        ("t,dx,dy,mx,magY,mz", "magY", "my"),
+        ("t,dx,dy,mx,my,Bz", "Bz", "mz"),
+    ],
+)
+def test_other_logs_names_for_time_and_field_are_named(tmp_path, header, name, casmag_name):
+    msg = _error(_write(tmp_path, _csv(header, GOOD_ROWS)))
+    assert f"column '{name}': unknown column (casmag names this column '{casmag_name}')" in msg
