@@ -12,6 +12,7 @@ where the model deliberately differs from the world (the paper's "wrong sigma_f"
 from __future__ import annotations
 
 import copy
+import difflib
 import json
 import os
 import re
@@ -644,17 +645,23 @@ def _is_key(i: int, part: Any) -> bool:
     return not (_UNION_TAG.fullmatch(text) or any(ch in text for ch in "-[]'("))
 
 
-def validation_error(source: str, err: ValidationError) -> ProblemError:
+def validation_error(
+    source: str, err: ValidationError, schema: type[BaseModel] | None = None
+) -> ProblemError:
     """One ProblemError for a pydantic ValidationError of any casmag document: the source,
     the dotted key (without union members' type tags) and the reason. A value that fits
     none of a union's forms gets what each form wanted; a whole-file check (no location)
-    names the key its message starts with."""
+    names the key its message starts with. With the document's ``schema``, an unknown key
+    gets the known key it most likely means (:func:`key_suggestion`)."""
     errors = err.errors()
     first = errors[0]
     loc = tuple(part for i, part in enumerate(first["loc"]) if _is_key(i, part))
     where = ".".join(str(part) for part in loc)
     if first["type"] == "extra_forbidden":
-        return ProblemError(source, where, "unknown key")
+        found = key_suggestion(schema, where, first.get("input")) if schema else None
+        if found is None:
+            return ProblemError(source, where, "unknown key")
+        return ProblemError(source, found[0], f"unknown key (did you mean {found[1]!r}?)")
     if first["type"] == "missing":
         return ProblemError(source, where, "required key is missing")
     if not loc:
@@ -675,6 +682,47 @@ def validation_error(source: str, err: ValidationError) -> ProblemError:
     if isinstance(value, Mapping):  # a section's own check: its message names the keys
         return ProblemError(source, where, " or ".join(msgs))
     return ProblemError(source, where, f"{' or '.join(msgs)} (got {_short_repr(value)})")
+
+
+def schema_keys(schema: type[BaseModel], prefix: str = "") -> list[str]:
+    """Every dotted key of a document schema, sections and their keys."""
+    keys = []
+    for name, info in schema.model_fields.items():
+        key = f"{prefix}{info.alias or name}"
+        keys.append(key)
+        for sub in _models_in(info.annotation):
+            keys.extend(schema_keys(sub, key + "."))
+    return sorted(set(keys))
+
+
+def _models_in(annotation: Any) -> list[type[BaseModel]]:
+    """The pydantic models an annotation holds (through Optional, unions, Annotated)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for arg in getattr(annotation, "__args__", ()) for m in _models_in(arg)]
+
+
+def key_suggestion(schema: type[BaseModel], key: str, value: Any = None) -> tuple[str, str] | None:
+    """(the key as the user wrote it, the known key it most likely means) for an unknown
+    dotted ``key``: a close name in the same section (difflib ratio 0.75 or more); for an
+    unknown section holding one key (``value``), that key looked up as below; else the key
+    elsewhere whose last part is the same name, in the same top-level section when there
+    are several (``model.lengthscale`` for ``model.gp.lengthscale`` in a schema without
+    ``model.gp``). None when there is no such key."""
+    known = schema_keys(schema)
+    parent, _, name = key.rpartition(".")
+    siblings = [k.rpartition(".")[2] for k in known if k.rpartition(".")[0] == parent]
+    close = difflib.get_close_matches(name, siblings, n=1, cutoff=0.75)
+    if close and close[0] != name:
+        return key, f"{parent}.{close[0]}" if parent else close[0]
+    if isinstance(value, Mapping) and len(value) == 1:
+        inner = f"{key}.{next(iter(value))}"
+        found = key_suggestion(schema, inner)
+        return found if found is not None and found[1].count(".") < inner.count(".") else None
+    same = [k for k in known if k.rpartition(".")[2] == name and k != key]
+    if len(same) > 1:
+        same = [k for k in same if k.split(".")[0] == key.split(".")[0]]
+    return (key, same[0]) if len(same) == 1 else None
 
 
 def _short_repr(value: Any, limit: int = 200) -> str:
@@ -822,7 +870,9 @@ def validate_spec(
     try:
         return spec_class.model_validate(data), src
     except ValidationError as err:
-        raise (to_error or validation_error)(src, err) from None
+        if to_error is not None:
+            raise to_error(src, err) from None
+        raise validation_error(src, err, spec_class) from None
 
 
 def load_problem(

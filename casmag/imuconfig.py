@@ -22,7 +22,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from casmag.config import SolverSpec, Strict, read_yaml, validate_spec, validation_error
+from casmag.config import SolverSpec, Strict, read_yaml, validate_spec
 from casmag.errors import ProblemError
 from casmag.imusim import HANDWRITING_LETTERS
 
@@ -474,7 +474,7 @@ def load_imu_problem(
         if not overrides:
             return problem
         problem, source = problem.spec.model_dump(mode="python"), problem.source
-    spec, src = validate_spec(ImuProblemSpec, problem, overrides, source, validation_error)
+    spec, src = validate_spec(ImuProblemSpec, problem, overrides, source)
     out = ImuProblem(spec=spec, source=src)
     out.resolve_all()
     return out
@@ -589,5 +589,5 @@ def load_planar_options(
     data["solver"] = {**PLANAR_SOLVER_DEFAULTS, **(solver if isinstance(solver, dict) else {})}
     if solver is not None and not isinstance(solver, dict):
         data["solver"] = solver  # let validation name the bad value
-    spec, _ = validate_spec(PlanarSpec, data, overrides, source, validation_error)
+    spec, _ = validate_spec(PlanarSpec, data, overrides, source)
     return PlanarOptions(**spec.model.model_dump(), solver=spec.solver)

@@ -276,7 +276,7 @@ def load_sweep(
         try:
             table = TableSpec.model_validate(data)
         except ValidationError as err:
-            raise validation_error(src, err) from None
+            raise validation_error(src, err, TableSpec) from None
         keys = [r.key for r in table.rows]
         dup = sorted({k for k in keys if keys.count(k) > 1})
         if dup:

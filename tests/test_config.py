@@ -398,3 +398,34 @@ def test_overrides_as_a_mapping_equal_the_strings():
     with pytest.raises(ProblemError) as info:
         load_problem(REPO_ROOT / "problems/paper/base.yaml", {"model.gp.sigma_f": -1})
     assert info.value.field == "model.gp.sigma_f"
+
+
+# --------------------------------------------------------------------------- key suggestions
+@pytest.mark.parametrize(
+    ("override", "key", "hint"),
+    [
+        ("model.gp.lenghtscale=0.3", "model.gp.lenghtscale", "model.gp.lengthscale"),
+        ("modle.gp.sigma_f=1", "modle", "model"),
+        ("model.lengthscale=0.3", "model.lengthscale", "model.gp.lengthscale"),
+    ],
+)
+def test_an_unknown_key_gets_the_key_it_most_likely_means(override, key, hint):
+    with pytest.raises(ProblemError) as err:
+        load_problem("problems/paper/base.yaml", [override])
+    assert err.value.field == key
+    assert err.value.reason == f"unknown key (did you mean '{hint}'?)"
+
+
+def test_an_unknown_key_with_no_likely_meaning_gets_no_guess():
+    with pytest.raises(ProblemError) as err:
+        load_problem("problems/paper/base.yaml", ["model.foo=1"])
+    assert err.value.reason == "unknown key"
+
+
+def test_a_key_of_another_schema_gets_this_schemas_name_for_it():
+    from casmag.imuconfig import load_planar_options
+
+    with pytest.raises(ProblemError) as err:
+        load_planar_options(None, ["model.gp.lengthscale=0.3"])
+    assert err.value.field == "model.gp.lengthscale"
+    assert err.value.reason == "unknown key (did you mean 'model.lengthscale'?)"
