@@ -2,7 +2,8 @@
 by IPOPT.
 
     import casmag
-    problem = casmag.load_problem("problems/paper/base.yaml")
+    problem = casmag.load_problem("problems/paper/base.yaml", seed=7)
+    # settings as keyword sections: model={"gp": {"sigma_f": 0.2}}, solver={...}
     result = casmag.solve(problem)
     print(result.status, result.rmse_before, result.rmse_after)
     result.save("out")                      # result.json, arrays.npz, trajectory.csv, PNGs
@@ -10,10 +11,11 @@ by IPOPT.
     casmag.evaluate(result, "se")           # errors after a rigid alignment to the truth
 
     result = casmag.slam("walk.csv")        # a recording, casmag slam's defaults
+                                            # (translational or planar)
 """
 
 from casmag.api import solve
-from casmag.config import Problem, load_problem
+from casmag.config import Problem, ProblemSpec, load_problem
 from casmag.errors import CasmagError, DataError, ProblemError, SolverError
 from casmag.evaluation import evaluate_result as evaluate
 from casmag.recslam import slam, slam_sessions
@@ -25,6 +27,7 @@ __all__ = [
     "DataError",
     "Problem",
     "ProblemError",
+    "ProblemSpec",
     "Result",
     "SolverError",
     "__version__",

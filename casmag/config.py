@@ -748,6 +748,18 @@ def parse_override(text: str, source: str = "--set") -> tuple[list[str], Any]:
     return key.split("."), value
 
 
+def section_overrides(sections: Mapping[str, Any]) -> list[str]:
+    """Settings given as nested sections, ``model={"gp": {"lengthscale": 0.3}}, seed=7``,
+    as ``key.path=value`` overrides (one per leaf; a list is a value)."""
+
+    def leaves(prefix: str, value: Any) -> list[tuple[str, Any]]:
+        if isinstance(value, Mapping) and value:
+            return [kv for k, v in value.items() for kv in leaves(f"{prefix}.{k}", v)]
+        return [(prefix, value)]
+
+    return as_overrides(dict(kv for k, v in sections.items() for kv in leaves(k, v)))
+
+
 def as_overrides(
     overrides: str | Iterable[str] | Mapping[str, Any] | None,
 ) -> list[str]:
@@ -876,18 +888,24 @@ def validate_spec(
 
 
 def load_problem(
-    problem: str | Path | Mapping[str, Any] | Problem,
+    problem: str | Path | Mapping[str, Any] | Problem | ProblemSpec,
     overrides: str | Iterable[str] | Mapping[str, Any] = (),
     source: str | None = None,
+    **sections: Any,
 ) -> Problem:
-    """Load and validate a problem from a YAML path, a dictionary or a Problem.
+    """Load and validate a problem from a YAML path, a dictionary, a Problem or a typed
+    :class:`ProblemSpec` (built in Python, e.g. ``ProblemSpec(seed=3, model=ModelSpec(
+    gp=GPSpec(form="reduced_rank")))``).
 
     overrides: ``key.path=value`` strings (values parsed as YAML), or a mapping
-    ``{"key.path": value}``, applied before validation; one string is one override. Raises
-    ProblemError naming the file, the key and the reason (TypeError for overrides of
-    another type).
+    ``{"key.path": value}``, applied before validation; one string is one override.
+    sections: the same as keyword arguments, e.g. ``seed=7, model={"gp": {"sigma_f": 1.0}}``
+    (:func:`section_overrides`), applied after ``overrides``. Raises ProblemError naming
+    the file, the key and the reason (TypeError for overrides of another type).
     """
-    overrides = as_overrides(overrides)
+    overrides = [*as_overrides(overrides), *section_overrides(sections)]
+    if isinstance(problem, ProblemSpec):
+        problem = Problem(spec=problem, source=source or "<spec>")
     if isinstance(problem, Problem):
         return problem.with_overrides(overrides) if overrides else problem
     spec, src = validate_spec(ProblemSpec, problem, overrides, source)

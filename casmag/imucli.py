@@ -11,7 +11,7 @@ e.g. ``wrong_basin``; each flag's reason is printed on stderr).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
@@ -32,7 +32,7 @@ from casmag.clitools import (
 from casmag.errors import CasmagError
 
 if TYPE_CHECKING:
-    from casmag.recording import Recording
+    pass
 
 
 @click.command("imu")
@@ -48,7 +48,7 @@ def imu_command(
 ) -> None:
     """Solve an IMU PROBLEM (problems/imu/*.yaml): strapdown, IMU-only adjustment, GP-SLAM.
     Writes result.json, biases.md, trajectory.csv, trajectory.png and cost.png."""
-    from casmag.imuconfig import load_imu_problem
+    from casmag.imuconfig import load_imu_problem, refuse_unused_solver_keys
     from casmag.imuslam import solve_imu
 
     refuse_other_kind(problem, problem_kind(problem), "imu")
@@ -99,26 +99,6 @@ def imu_command(
         raise SystemExit(EXIT_UNTRUSTED)
 
 
-#: Solver settings only the translational solver uses (warm starts, the Laplace
-#: covariance); the IMU and planar models ignore them.
-UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncertainty_inflation")
-
-
-def refuse_unused_solver_keys(overrides: tuple[str, ...], command: str) -> None:
-    """Refuse ``--set`` keys the IMU and planar models would ignore (ProblemError naming
-    the key), so that a setting never silently does nothing."""
-    from casmag.config import as_overrides, parse_override
-    from casmag.errors import ProblemError
-
-    for text in as_overrides(overrides):
-        key = ".".join(parse_override(text)[0])
-        for unused in UNUSED_SOLVER_KEYS:
-            if key == unused or key.startswith(unused + "."):
-                raise ProblemError(
-                    "--set", key, f"{command} does not use {unused} (translational problems only)"
-                )
-
-
 # --------------------------------------------------------------------------- planar recordings
 def is_planar_recording(path: Path) -> bool:
     """Whether a recording's header names the planar motion columns ``dfwd,dleft,dyaw``
@@ -145,41 +125,22 @@ def planar_slam(
     field_check: bool = True,
     align: str = "none",
 ) -> None:
-    """``casmag slam`` on a planar recording (``dfwd,dleft,dyaw``): the planar model with a
-    heading-rate bias (:func:`casmag.planar.solve_planar_recording`). Settings from the
-    problem file's ``model``/``solver`` sections and ``--set model.KEY=...`` overrides
-    (:class:`casmag.imuconfig.PlanarModelSpec`). Writes result.json, trajectory.csv,
-    trajectory.png and cost.png; exits as every command does (0, 1 with IPOPT's status, 2).
-    A constant magnetometer carries no position information: the result is the dead
-    reckoning, status ``Odometry_Only`` (:func:`planar_odometry_only`; with ``field_check``
-    off, exit 2)."""
-    from casmag.checks import recording_warnings, warning_lines
-    from casmag.imuconfig import load_planar_options
-    from casmag.planar import solve_planar_recording
-    from casmag.recording import read_recording
-    from casmag.recslam import constant_magnetometer, refuse_constant_field
+    """``casmag slam`` on a planar recording (``dfwd,dleft,dyaw``): the library's
+    :func:`casmag.recslam.slam` (the planar model with a heading-rate bias,
+    :func:`casmag.recslam.slam_planar`), saved with its figures; exits as every command
+    does (0, 1 with IPOPT's status, 2; a constant magnetometer with ``field_check`` off:
+    2)."""
+    from casmag.recslam import slam as run_slam
 
     try:
-        refuse_unused_solver_keys(overrides, "casmag slam on a planar recording")
-        options = load_planar_options(problem, overrides)
-        rec = read_recording(recording)
-        found = recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)
-        for line in warning_lines(recording, found):
-            click.echo(line, err=True)
-        if constant_magnetometer(rec.Y):
-            if not field_check:
-                refuse_constant_field(recording)
-            result = planar_odometry_only(rec)
-        else:
-            result = solve_planar_recording(
-                recording, options, progress=None if quiet else print_progress
-            )
-        result.warnings = found
-        a = result.arrays
-        if a.get("P_true") is not None and a.get("psi_true") is None:
-            # True positions without a true heading: the heading column is written empty
-            # (NaN), as trajectory.csv has a heading beside every position.
-            a["psi_true"] = np.full(a["P_true"].shape[0], np.nan)
+        result = run_slam(
+            recording,
+            problem,
+            overrides,
+            progress=None if quiet else print_progress,
+            field_check=field_check,
+            on_warning=lambda line: click.echo(line, err=True),
+        )
         with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
@@ -202,62 +163,6 @@ def planar_slam(
             line += f"; heading-rate bias {np.degrees(result.bias[0]):.4f} deg/s"
         click.echo(line)
         click.echo(f"wrote {out_dir}/")
-
-
-def planar_odometry_only(rec: Recording) -> Any:
-    """The planar dead reckoning as the result of a recording whose magnetometer is constant
-    (status ``Odometry_Only``, the reason in ``info.fallback``), started where
-    :func:`casmag.planar.solve_planar` starts: the first true pose, else the origin."""
-    from casmag.metrics import rmse_and_max
-    from casmag.planar import PlanarResult, dead_reckon_planar
-    from casmag.recslam import CONSTANT_FIELD
-    from casmag.versions import __version__, versions
-
-    P_true = None if rec.P_true is None else rec.P_true[:, :2]
-    p0 = P_true[0] if P_true is not None else np.zeros(2)
-    psi0 = float(rec.yaw_true[0]) if P_true is not None and rec.yaw_true is not None else 0.0
-    P, psi = dead_reckon_planar(rec.increments, np.asarray(p0, dtype=float), psi0)
-    errors = (None, None) if P_true is None else rmse_and_max(P, P_true)
-    heading = None
-    if P_true is not None and rec.yaw_true is not None:
-        wrapped = np.angle(np.exp(1j * (psi - rec.yaw_true)))
-        heading = float(np.degrees(np.sqrt(np.mean(wrapped**2))))
-    name = Path(rec.path).stem
-    return PlanarResult(
-        status="Odometry_Only",
-        success=True,
-        iterations=0,
-        build_seconds=0.0,
-        solve_seconds=0.0,
-        rmse_before=errors[0],
-        max_before=errors[1],
-        rmse_after=errors[0],
-        max_after=errors[1],
-        heading_rms_deg_before=heading,
-        heading_rms_deg_after=heading,
-        bias=None,
-        hyperparameters={},
-        num_basis=0,
-        cost_blocks={},
-        cost_per_iteration=[],
-        info={
-            "name": name,
-            "samples": int(rec.n_samples),
-            "fallback": "homogeneous field: " + CONSTANT_FIELD,
-            "recording": str(rec.path),
-            "casmag": __version__,
-            "versions": versions(),
-        },
-        arrays={
-            "t": rec.t,
-            "P_odometry": P,
-            "psi_odometry": psi,
-            "P_estimate": P,
-            "psi_estimate": psi,
-            "P_true": P_true,
-            "psi_true": rec.yaw_true if P_true is not None else None,
-        },
-    )
 
 
 def _pass_iterations(p: dict) -> str:

@@ -22,7 +22,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from casmag.config import SolverSpec, Strict, read_yaml, validate_spec
+from casmag.config import SolverSpec, Strict, as_overrides, parse_override, read_yaml, validate_spec
 from casmag.errors import ProblemError
 from casmag.imusim import HANDWRITING_LETTERS
 
@@ -591,3 +591,20 @@ def load_planar_options(
         data["solver"] = solver  # let validation name the bad value
     spec, _ = validate_spec(PlanarSpec, data, overrides, source)
     return PlanarOptions(**spec.model.model_dump(), solver=spec.solver)
+
+
+#: Solver settings only the translational solver uses (warm starts, the Laplace
+#: covariance); the IMU and planar models ignore them.
+UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncertainty_inflation")
+
+
+def refuse_unused_solver_keys(overrides: Iterable[str], command: str) -> None:
+    """Refuse ``--set`` keys the IMU and planar models would ignore (ProblemError naming
+    the key), so that a setting never silently does nothing."""
+    for text in as_overrides(overrides):
+        key = ".".join(parse_override(text)[0])
+        for unused in UNUSED_SOLVER_KEYS:
+            if key == unused or key.startswith(unused + "."):
+                raise ProblemError(
+                    "--set", key, f"{command} does not use {unused} (translational problems only)"
+                )

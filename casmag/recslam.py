@@ -15,9 +15,17 @@ import numpy as np
 
 from casmag.api import solve
 from casmag.checks import model_warnings, recording_warnings, warning_lines
-from casmag.config import Problem, as_overrides, load_problem, parse_override, read_yaml
+from casmag.config import (
+    Problem,
+    as_overrides,
+    load_problem,
+    parse_override,
+    read_yaml,
+    section_overrides,
+)
 from casmag.errors import DataError, ProblemError
 from casmag.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
+from casmag.imuconfig import load_planar_options, refuse_unused_solver_keys
 from casmag.metrics import rmse_and_max
 from casmag.multisession import (
     FIRST_PREFIX,
@@ -26,6 +34,7 @@ from casmag.multisession import (
     solve_two_starts,
     stack,
 )
+from casmag.planar import PlanarResult, dead_reckon_planar, solve_planar_recording
 from casmag.recording import Recording, read_recording
 from casmag.result import Result
 from casmag.simulate import Dataset
@@ -326,7 +335,8 @@ def slam(
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
     on_warning: Callable[[str], None] | None = None,
-) -> Result:
+    **sections: Mapping[str, Any],
+) -> Result | PlanarResult:
     """GP-SLAM on a recording (CSV, see casmag.recording) with the defaults of
     :func:`recording_problem`. Without truth in the recording the RMSE fields are None.
 
@@ -340,10 +350,17 @@ def slam(
 
     Plausibility checks (casmag.checks: time unit, speed, field unit, sigma_m against the
     field's variation, lengthscale against the path) go to ``result.warnings``, and each
-    line to ``on_warning`` before the solve."""
-    overrides = as_overrides(overrides)
+    line to ``on_warning`` before the solve.
+
+    A planar recording (``dfwd,dleft,dyaw``) is solved with the planar heading model
+    (:func:`slam_planar`, a :class:`casmag.planar.PlanarResult`). ``sections``: settings as
+    keyword arguments, e.g. ``model={"gp": {"lengthscale": 0.3}}``, applied after
+    ``overrides`` (:func:`casmag.config.section_overrides`)."""
+    overrides = [*as_overrides(overrides), *section_overrides(sections)]
     check_recording_overrides(overrides)
     rec = read_recording(recording)
+    if rec.motion == "planar":
+        return slam_planar(rec, problem, overrides, progress, field_check, on_warning)
     data = rec.to_dataset()
     prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
     found = _plausibility(rec, data, prob)
@@ -428,3 +445,95 @@ def slam_sessions(
     result.info["sessions"] = session_rows(data, result, names)
     result.warnings = found
     return result
+
+
+def slam_planar(
+    rec: Recording,
+    problem: str | Path | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+    field_check: bool = True,
+    on_warning: Callable[[str], None] | None = None,
+) -> PlanarResult:
+    """A planar recording (``dfwd,dleft,dyaw``) with the planar model and a heading-rate
+    bias (:func:`casmag.planar.solve_planar_recording`). Settings from the problem file's
+    ``model``/``solver`` sections and ``model.KEY=...`` overrides
+    (:class:`casmag.imuconfig.PlanarModelSpec`). A constant magnetometer carries no
+    position information: the result is the dead reckoning, status ``Odometry_Only``
+    (:func:`planar_odometry_only`; with ``field_check`` off, DataError)."""
+    overrides = as_overrides(overrides)
+    refuse_unused_solver_keys(overrides, "casmag slam on a planar recording")
+    options = load_planar_options(problem, overrides)
+    found = recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)
+    for line in warning_lines(rec.path, found):
+        if on_warning is not None:
+            on_warning(line)
+    if constant_magnetometer(rec.Y):
+        if not field_check:
+            refuse_constant_field(rec.path)
+        result = planar_odometry_only(rec)
+    else:
+        result = solve_planar_recording(rec.path, options, progress=progress)
+    result.warnings = found
+    a = result.arrays
+    if a.get("P_true") is not None and a.get("psi_true") is None:
+        # True positions without a true heading: the heading column is written empty
+        # (NaN), as trajectory.csv has a heading beside every position.
+        a["psi_true"] = np.full(a["P_true"].shape[0], np.nan)
+    return result
+
+
+def planar_odometry_only(rec: Recording) -> PlanarResult:
+    """The planar dead reckoning as the result of a recording whose magnetometer is constant
+    (status ``Odometry_Only``, the reason in ``info.fallback``), started where
+    :func:`casmag.planar.solve_planar` starts: the first true pose, else the origin."""
+    P_true = None if rec.P_true is None else rec.P_true[:, :2]
+    p0 = P_true[0] if P_true is not None else np.zeros(2)
+    psi0 = float(rec.yaw_true[0]) if P_true is not None and rec.yaw_true is not None else 0.0
+    P, psi = dead_reckon_planar(rec.increments, np.asarray(p0, dtype=float), psi0)
+    errors = (None, None) if P_true is None else rmse_and_max(P, P_true)
+    heading = None
+    if P_true is not None and rec.yaw_true is not None:
+        wrapped = np.angle(np.exp(1j * (psi - rec.yaw_true)))
+        heading = float(np.degrees(np.sqrt(np.mean(wrapped**2))))
+    name = Path(rec.path).stem
+    return PlanarResult(
+        status="Odometry_Only",
+        success=True,
+        iterations=0,
+        build_seconds=0.0,
+        solve_seconds=0.0,
+        rmse_before=errors[0],
+        max_before=errors[1],
+        rmse_after=errors[0],
+        max_after=errors[1],
+        heading_rms_deg_before=heading,
+        heading_rms_deg_after=heading,
+        bias=None,
+        hyperparameters={},
+        num_basis=0,
+        cost_blocks={},
+        cost_per_iteration=[],
+        info={
+            "name": name,
+            "samples": int(rec.n_samples),
+            "anchor": {
+                "kind": "first true position" if P_true is not None else "origin (no truth)",
+                "position": [float(v) for v in p0],
+                "heading_rad": psi0,
+            },
+            "fallback": "homogeneous field: " + CONSTANT_FIELD,
+            "recording": str(rec.path),
+            "casmag": __version__,
+            "versions": versions(),
+        },
+        arrays={
+            "t": rec.t,
+            "P_odometry": P,
+            "psi_odometry": psi,
+            "P_estimate": P,
+            "psi_estimate": psi,
+            "P_true": P_true,
+            "psi_true": rec.yaw_true if P_true is not None else None,
+        },
+    )

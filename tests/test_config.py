@@ -429,3 +429,38 @@ def test_a_key_of_another_schema_gets_this_schemas_name_for_it():
         load_planar_options(None, ["model.gp.lengthscale=0.3"])
     assert err.value.field == "model.gp.lengthscale"
     assert err.value.reason == "unknown key (did you mean 'model.lengthscale'?)"
+
+
+# --------------------------------------------------------------------------- typed and keyword
+def test_settings_as_keyword_sections_equal_the_dotted_overrides():
+    by_keyword = load_problem(
+        "problems/paper/base.yaml", seed=7, model={"gp": {"form": "reduced_rank", "sigma_f": 0.2}}
+    )
+    dotted = load_problem(
+        "problems/paper/base.yaml",
+        {"seed": 7, "model.gp.form": "reduced_rank", "model.gp.sigma_f": 0.2},
+    )
+    assert by_keyword.spec == dotted.spec
+    assert by_keyword.spec.seed == 7 and by_keyword.spec.model.gp.sigma_f == 0.2
+
+
+def test_a_keyword_section_with_an_unknown_key_is_refused_naming_it():
+    err = _error_kw(model={"gp": {"lenghtscale": 0.3}})
+    assert err.field == "model.gp.lenghtscale"
+    assert "did you mean 'model.gp.lengthscale'" in err.reason
+
+
+def _error_kw(**sections):
+    with pytest.raises(ProblemError) as info:
+        load_problem("problems/paper/base.yaml", **sections)
+    return info.value
+
+
+def test_a_problem_built_from_typed_specs():
+    from casmag import ProblemSpec
+    from casmag.config import GPSpec, ModelSpec
+
+    spec = ProblemSpec(seed=4, model=ModelSpec(gp=GPSpec(form="reduced_rank", sigma_f=0.2)))
+    problem = load_problem(spec, seed=5)
+    assert problem.spec.seed == 5 and problem.spec.model.gp.form == "reduced_rank"
+    assert problem.source == "<spec>" and load_problem(spec).spec == spec

@@ -58,6 +58,16 @@ def _pair(seed: int = 7):
     it (no loop of its own) with a larger bias. One field drawn from the GP prior at both."""
     base = load_problem(ROOT / "problems/paper/base.yaml", ["model.gp.form=reduced_rank"])
     PA = simulate_problem(base).P_true
+    # The data below are not the problem's simulation: its model settings are given (the
+    # values its nulls stand for), as casmag.solve requires for such data.
+    base = base.with_overrides(
+        {
+            "model.gp.sigma_f": base.assumed_sigma_f,
+            "model.gp.lengthscale": base.assumed_lengthscale,
+            "model.magnetometer.sigma_m": base.assumed_sigma_m,
+            "model.odometry.sigma": base.assumed_sigma_odometry,
+        }
+    )
     PB = np.column_stack([np.linspace(-0.2, 0.2, 21), np.linspace(-0.08, 0.12, 21)])
     rng = np.random.default_rng(seed)
     X = np.vstack([PA, PB])

@@ -107,3 +107,22 @@ def test_slam_planar_mixed_motion_columns_is_bad_input(tmp_path, planar_recordin
     res = _run(["slam", bad, "--out", tmp_path / "out", "-q"])
     assert res.exit_code == 2
     assert "mixed motion inputs" in res.output and res.output.count("\n") == 1
+
+
+def test_the_library_slam_takes_a_planar_recording(planar_recording):
+    import casmag
+    from casmag.planar import PlanarResult
+
+    path, _ = planar_recording
+    lines = []
+    r = casmag.slam(
+        path,
+        model={"sigma_disp": 0.002, "sigma_dyaw": float(np.radians(0.05)), "num_basis": 120},
+        on_warning=lines.append,
+    )
+    assert isinstance(r, PlanarResult) and r.success and lines == []
+    assert r.rmse_after <= 0.25 * r.rmse_before
+    assert r.info["anchor"]["kind"] == "first true position"
+    with pytest.raises(casmag.ProblemError) as err:
+        casmag.slam(path, model={"gp": {"lengthscale": 0.3}})
+    assert "did you mean 'model.lengthscale'" in str(err.value)
