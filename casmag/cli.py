@@ -2,7 +2,8 @@
 
 Exit codes: 0 success; 1 the solver failed (IPOPT's status is printed and recorded);
 2 bad input (one line naming the file, the field and the reason; also an output path that
-would lose files); 3 solved but flagged (``casmag imu``); 130 / 143 interrupted by Ctrl-C /
+would lose files); 3 solved but not trusted (the
+verdict's reasons on stderr, casmag.verdict); 130 / 143 interrupted by Ctrl-C /
 SIGTERM (the previous output kept).
 """
 
@@ -18,6 +19,7 @@ from casmag.clitools import (
     EXIT_SOLVER_FAILED,
     INPUT_ERRORS,
     CasmagGroup,
+    exit_untrusted,
     fail,
     fail_bad_input,
     output_options,
@@ -141,6 +143,7 @@ def run(
     except INPUT_ERRORS as exc:
         fail_bad_input(problem, exc)
     _finish(result, problem, out_dir, quiet)
+    exit_untrusted(result, problem)
 
 
 def _warn(line: str) -> None:
@@ -260,6 +263,7 @@ def slam(
                 click.echo(
                     f"  {row['name']}: RMSE {row['rmse_before']:.4f} -> {row['rmse_after']:.4f} m"
                 )
+    exit_untrusted(result, recording)
 
 
 @main.command()

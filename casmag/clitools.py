@@ -175,3 +175,14 @@ def with_evaluation(result: Any, align: str) -> Any:
     """The result with its ``evaluation`` after ``--align`` (casmag.evaluation)."""
     result.evaluation = evaluate_result(result, align)
     return result
+
+
+def exit_untrusted(result: Any, source: Any) -> None:
+    """A solved result the verdict does not trust (casmag.verdict): each reason on stderr
+    (``casmag: not trusted: SOURCE: reason``), then exit 3. Nothing for a trusted one."""
+    v = result.verdict or {}
+    if not result.success or v.get("trusted", True):
+        return
+    for reason in v.get("reasons", []):
+        click.echo(f"casmag: not trusted: {source}: {reason}", err=True)
+    raise SystemExit(EXIT_UNTRUSTED)

@@ -19,8 +19,8 @@ import numpy as np
 from casmag.clitools import (
     EXIT_BAD_INPUT,
     EXIT_SOLVER_FAILED,
-    EXIT_UNTRUSTED,
     INPUT_ERRORS,
+    exit_untrusted,
     fail,
     fail_bad_input,
     output_options,
@@ -71,8 +71,6 @@ def imu_command(
             f"{result.iterations} iterations (recorded in {out_dir / 'result.json'})",
             EXIT_SOLVER_FAILED,
         )
-    for flag in result.flags:
-        click.echo(f"{problem}: {flag['name']}: {flag['reason']}", err=True)
     if not quiet:
         e = result.errors
         its = " + ".join(_pass_iterations(p) for p in result.gp_slam_passes) or "0"
@@ -95,8 +93,7 @@ def imu_command(
         click.echo(line)
         click.echo(result.bias_table(), nl=False)
         click.echo(f"wrote {out_dir}/")
-    if result.flags:
-        raise SystemExit(EXIT_UNTRUSTED)
+    exit_untrusted(result, problem)
 
 
 # --------------------------------------------------------------------------- planar recordings
@@ -163,6 +160,7 @@ def planar_slam(
             line += f"; heading-rate bias {np.degrees(result.bias[0]):.4f} deg/s"
         click.echo(line)
         click.echo(f"wrote {out_dir}/")
+    exit_untrusted(result, recording)
 
 
 def _pass_iterations(p: dict) -> str:

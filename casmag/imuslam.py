@@ -73,6 +73,7 @@ from casmag.outdir import save_atomic
 from casmag.reduced_rank import HilbertBasis, cached_basis
 from casmag.result import evaluation_of, finite_json, write_arrays
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
+from casmag.verdict import verdict
 from casmag.versions import __version__, versions
 
 Progress = Callable[[int, float, float, float], None]
@@ -1587,7 +1588,12 @@ class ImuResult:
     flags: list[dict[str, Any]] = field(default_factory=list)
     convergence: list[dict[str, Any]] = field(default_factory=list)
     evaluation: dict[str, Any] | None = None
+    verdict: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.verdict is None:
+            self.verdict = verdict(self)
 
     @property
     def rmse_after(self) -> float | None:
@@ -1595,8 +1601,8 @@ class ImuResult:
 
     @property
     def trusted(self) -> bool:
-        """Solved, and no flag raised against the estimate."""
-        return self.success and not self.flags
+        """Solved, and the verdict found nothing against the estimate (casmag.verdict)."""
+        return bool(self.verdict and self.verdict["trusted"])
 
     def to_dict(self) -> dict[str, Any]:
 
@@ -1650,8 +1656,9 @@ class ImuResult:
                 _write_csv(self, tmp / "trajectory.csv")
                 write_arrays(tmp, self.arrays)
             if figures and self.arrays:
-                _trajectory_figure(self, tmp / "trajectory.png")
-                from casmag.plotting import cost_figure, map_figure
+                from casmag.plotting import cost_figure, imu_trajectory_figure, map_figure
+
+                imu_trajectory_figure(self, tmp / "trajectory.png")
 
                 if self.cost_per_iteration:
                     cost_figure(self, tmp / "cost.png")
@@ -1696,75 +1703,6 @@ def _write_csv(r: ImuResult, path: Any) -> None:
     np.savetxt(
         path, np.column_stack(cols), delimiter=",", header=",".join(names), comments="", fmt=fmt
     )
-
-
-def _trajectory_figure(r: ImuResult, path: Any) -> None:
-    """The plane of motion (x-y) and the 3-D path: truth, strapdown (drawn only where it stays
-    within the frame of the others), IMU-only adjustment and GP-SLAM."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from matplotlib.ticker import MaxNLocator
-
-    a = r.arrays
-    ref = np.vstack([a[k] for k in ("P_true", "P_imu_only", "P_estimate") if a.get(k) is not None])
-    lo, hi = ref.min(axis=0), ref.max(axis=0)
-    pad = 0.25 * max(float(np.max(hi - lo)), 0.05)
-    fig = Figure(figsize=(11.0, 5.2))
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 2, 1)
-    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
-    series = [
-        ("P_true", "truth", dict(color="tab:red", lw=2.2, alpha=0.45)),
-        ("P_strapdown", "strapdown only", dict(color="tab:gray", lw=1.0, ls=":")),
-        ("P_imu_only", "IMU only + zero-position update", dict(color="tab:cyan", lw=1.0, ls="--")),
-        ("P_estimate", "GP-SLAM", dict(color="tab:blue", lw=1.0)),
-        (
-            "P_gp_slam_map",
-            "GP-SLAM map pass (not used: homogeneous field)",
-            dict(color="tab:orange", lw=0.8, ls="-."),
-        ),
-    ]
-    for key, label, style in series:
-        P = a.get(key)
-        if P is None:
-            continue
-        inside = np.all((P >= lo - pad) & (P <= hi + pad), axis=1)
-        Pc = np.where(inside[:, None], P, np.nan)
-        ax.plot(Pc[:, 0], Pc[:, 1], label=label, **style)
-        ax3.plot(Pc[:, 0], Pc[:, 1], Pc[:, 2], label=label, **style)
-    ax.set_xlim(lo[0] - pad, hi[0] + pad)
-    ax.set_ylim(lo[1] - pad, hi[1] + pad)
-    ax.set_aspect("equal", adjustable="box")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper right", fontsize=7)
-    start = ref[0]
-    ax.plot(*start[:2], "o", color="black", ms=5, label=None)
-    ax3.plot(*start[:, None], "o", color="black", ms=5)
-    for axis, k in ((ax3.set_xlim, 0), (ax3.set_ylim, 1), (ax3.set_zlim, 2)):
-        axis(lo[k] - pad, hi[k] + pad)  # scaled to the estimate, not to the strapdown
-    for axis in (ax3.xaxis, ax3.yaxis, ax3.zaxis):
-        axis.set_major_locator(MaxNLocator(4))
-    ax3.tick_params(labelsize=7)
-    ax3.set_xlabel("x [m]")
-    ax3.set_ylabel("y [m]")
-    ax3.set_zlabel("z [m]")
-    e = r.errors
-    status = r.status if r.success else f"FAILED ({r.status}, {r.failed_stage})"
-    lines = [f"{r.info.get('name', '')}: {status}" + (", flagged" if r.flags else "")]
-    parts = []
-    for key, label in (
-        ("strapdown", "strapdown"),
-        ("imu_only", "IMU only"),
-        ("gp_slam", "GP-SLAM"),
-    ):
-        if e[key]["rmse"] is not None:
-            parts.append(f"{label} {e[key]['rmse']:.4g} m")
-    lines.append("position RMSE: " + ", ".join(parts))
-    fig.suptitle("\n".join(lines), fontsize=9, color="black" if r.success else "tab:red")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
 
 
 def _errors(P: np.ndarray | None, Q: np.ndarray | None, Pt: Any, Qt: Any) -> dict[str, Any]:

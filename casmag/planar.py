@@ -37,6 +37,7 @@ from casmag.recording import read_recording
 from casmag.reduced_rank import HilbertBasis, cached_basis
 from casmag.result import evaluation_of, finite_json, write_arrays
 from casmag.rrmap import make_basis
+from casmag.verdict import verdict
 from casmag.versions import versions
 
 #: Keyframes per marginal-likelihood window and the most windows of the planar
@@ -148,7 +149,17 @@ class PlanarResult:
     convergence: list[dict[str, Any]] = field(default_factory=list)
     warnings: list[dict[str, Any]] = field(default_factory=list)
     evaluation: dict[str, Any] | None = None
+    verdict: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.verdict is None:
+            self.verdict = verdict(self)
+
+    @property
+    def trusted(self) -> bool:
+        """Solved, and the verdict found nothing against the estimate (casmag.verdict)."""
+        return bool(self.verdict and self.verdict["trusted"])
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""

@@ -13,6 +13,7 @@ from typing import Any, Protocol
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 
 class Drawable(Protocol):
@@ -66,7 +67,7 @@ def trajectory_figure(result: DrawableErrors, path: Path) -> Figure:
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=7)
-    ax.set_title(_title(result), fontsize=9, color="black" if result.success else "tab:red")
+    ax.set_title(_title(result), fontsize=9, color="black" if trusted(result) else "tab:red")
     if ax_err is not None:
         _error_panel(ax_err, a, label)
     fig.tight_layout()
@@ -84,7 +85,25 @@ def _title(result: DrawableErrors) -> str:
             f"\nRMSE {result.rmse_before:.4f} m -> {result.rmse_after:.4f} m, "
             f"max {result.max_before:.4f} m -> {result.max_after:.4f} m"
         )
-    return title
+    return title + untrusted_line(result)
+
+
+def trusted(result: Any) -> bool:
+    """Solved and trusted by its verdict (a result without one: solved)."""
+    verdict = getattr(result, "verdict", None) or {}
+    return bool(result.success) and bool(verdict.get("trusted", True))
+
+
+def untrusted_line(result: Any, width: int = 70) -> str:
+    """A title line saying a solved result is not trusted, with its first reason (cut to
+    ``width`` characters); empty for a trusted or failed one."""
+    verdict = getattr(result, "verdict", None) or {}
+    if not result.success or verdict.get("trusted", True):
+        return ""
+    reasons = verdict.get("reasons") or ["see result.json"]
+    first = reasons[0] if len(reasons[0]) <= width else reasons[0][: width - 3] + "..."
+    more = f" (+{len(reasons) - 1} more)" if len(reasons) > 1 else ""
+    return f"\nNOT TRUSTED: {first}{more}"
 
 
 def _covariance_label(result: Drawable) -> str:
@@ -92,9 +111,8 @@ def _covariance_label(result: Drawable) -> str:
     magnetometer residuals when that was applied (casmag.uncertainty)."""
     u = getattr(result, "uncertainty", None) or {}
     inflation = u.get("inflation") or {}
-    if inflation.get("active"):
-        return "Laplace, inflated for correlated residuals"
-    return "Laplace"
+    label = "Laplace, inflated for correlated residuals" if inflation.get("active") else "Laplace"
+    return label if trusted(result) or not result.success else label + ", NOT TRUSTED"
 
 
 def _error_panel(ax: Any, a: dict[str, Any], label: str) -> None:
@@ -236,7 +254,6 @@ def cost_figure(result: Drawable, path: Path) -> Figure:
     names and statuses, integer iteration ticks, and the final status in the title (red
     when IPOPT failed)."""
     import numpy as np
-    from matplotlib.ticker import MaxNLocator
 
     stages = result.convergence or [
         {
@@ -281,7 +298,8 @@ def cost_figure(result: Drawable, path: Path) -> Figure:
     title = f"{result.info.get('name', '')}: {result.status}, {result.iterations} iterations"
     if not result.success:
         title = f"FAILED: {title}"
-    ax.set_title(title, fontsize=9, color="black" if result.success else "tab:red")
+    title += untrusted_line(result)
+    ax.set_title(title, fontsize=9, color="black" if trusted(result) else "tab:red")
     fig.tight_layout()
     _save(fig, path)
     return fig
@@ -313,7 +331,8 @@ def map_figure(result: Drawable, path: Path) -> Figure:
     ax.set_facecolor("0.92")
     mesh = ax.pcolormesh(a["map_x"], a["map_y"], magnitude, shading="auto", cmap="viridis")
     fig.colorbar(mesh, ax=ax, label="|m| (field units)")
-    ax.set_title(title, fontsize=9)
+    title += untrusted_line(result, 50)
+    ax.set_title(title, fontsize=9, color="black" if trusted(result) else "tab:red")
     if std is not None:
         ax = axes[1]
         mesh = ax.pcolormesh(
@@ -330,4 +349,74 @@ def map_figure(result: Drawable, path: Path) -> Figure:
     axes[0].legend(loc="upper right", fontsize=7)
     fig.tight_layout()
     _save(fig, path)
+    return fig
+
+
+def imu_trajectory_figure(r: Any, path: Path) -> Figure:
+    """The plane of motion (x-y) and the 3-D path: truth, strapdown (drawn only where it stays
+    within the frame of the others), IMU-only adjustment and GP-SLAM."""
+    import numpy as np
+
+    a = r.arrays
+    ref = np.vstack([a[k] for k in ("P_true", "P_imu_only", "P_estimate") if a.get(k) is not None])
+    lo, hi = ref.min(axis=0), ref.max(axis=0)
+    pad = 0.25 * max(float(np.max(hi - lo)), 0.05)
+    fig = Figure(figsize=(11.0, 5.2))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 2, 1)
+    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
+    series = [
+        ("P_true", "truth", dict(color="tab:red", lw=2.2, alpha=0.45)),
+        ("P_strapdown", "strapdown only", dict(color="tab:gray", lw=1.0, ls=":")),
+        ("P_imu_only", "IMU only + zero-position update", dict(color="tab:cyan", lw=1.0, ls="--")),
+        ("P_estimate", "GP-SLAM", dict(color="tab:blue", lw=1.0)),
+        (
+            "P_gp_slam_map",
+            "GP-SLAM map pass (not used: homogeneous field)",
+            dict(color="tab:orange", lw=0.8, ls="-."),
+        ),
+    ]
+    for key, label, style in series:
+        P = a.get(key)
+        if P is None:
+            continue
+        inside = np.all((P >= lo - pad) & (P <= hi + pad), axis=1)
+        Pc = np.where(inside[:, None], P, np.nan)
+        ax.plot(Pc[:, 0], Pc[:, 1], label=label, **style)
+        ax3.plot(Pc[:, 0], Pc[:, 1], Pc[:, 2], label=label, **style)
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=7)
+    start = ref[0]
+    ax.plot(*start[:2], "o", color="black", ms=5, label=None)
+    ax3.plot(*start[:, None], "o", color="black", ms=5)
+    for axis, k in ((ax3.set_xlim, 0), (ax3.set_ylim, 1), (ax3.set_zlim, 2)):
+        axis(lo[k] - pad, hi[k] + pad)  # scaled to the estimate, not to the strapdown
+    for axis in (ax3.xaxis, ax3.yaxis, ax3.zaxis):
+        axis.set_major_locator(MaxNLocator(4))
+    ax3.tick_params(labelsize=7)
+    ax3.set_xlabel("x [m]")
+    ax3.set_ylabel("y [m]")
+    ax3.set_zlabel("z [m]")
+    e = r.errors
+    status = r.status if r.success else f"FAILED ({r.status}, {r.failed_stage})"
+    lines = [f"{r.info.get('name', '')}: {status}"]
+    parts = []
+    for key, label in (
+        ("strapdown", "strapdown"),
+        ("imu_only", "IMU only"),
+        ("gp_slam", "GP-SLAM"),
+    ):
+        if e[key]["rmse"] is not None:
+            parts.append(f"{label} {e[key]['rmse']:.4g} m")
+    lines.append("position RMSE: " + ", ".join(parts))
+    title = "\n".join(lines) + untrusted_line(r)
+    fig.suptitle(title, fontsize=9, color="black" if trusted(r) else "tab:red")
+    fig.tight_layout()
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=110)
     return fig

@@ -20,6 +20,7 @@ import numpy as np
 from casmag.errors import DataError
 from casmag.evaluation import evaluate_result
 from casmag.outdir import save_atomic
+from casmag.verdict import verdict
 
 
 @dataclass
@@ -47,7 +48,8 @@ class Result:
     ``uncertainty`` (sigma_mean, sigma_max [m], NEES against the truth, or ``error``);
     ``warnings`` (casmag.checks: ``check``, ``column``, ``reason``); ``evaluation``: the
     errors again after an optional alignment to the truth, with the anchor that fixed the
-    frame (casmag.evaluation; computed without alignment when not set).
+    frame (casmag.evaluation; computed without alignment when not set); ``verdict``:
+    whether the estimate can be trusted, the reasons and the checks (casmag.verdict).
 
     Arrays (N samples, d = 2 or 3 dimensions, a G x G map grid; absent or None when not
     computed): ``P_odometry``, ``P_estimate``, ``P_true`` (N, d) [m]; ``P_cov``,
@@ -79,7 +81,17 @@ class Result:
     convergence: list[dict[str, Any]] = field(default_factory=list)
     warnings: list[dict[str, Any]] = field(default_factory=list)
     evaluation: dict[str, Any] | None = None
+    verdict: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.verdict is None:
+            self.verdict = verdict(self)
+
+    @property
+    def trusted(self) -> bool:
+        """Solved, and the verdict found nothing against the estimate (casmag.verdict)."""
+        return bool(self.verdict and self.verdict["trusted"])
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""

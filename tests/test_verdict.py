@@ -1,0 +1,100 @@
+"""One verdict for every motion model (casmag.verdict): the checks, their reasons, exit code 3
+and the figures' titles."""
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from small_problems import planar_room_field
+
+import casmag
+from casmag import plotting
+from casmag.cli import main
+from casmag.imusim import simulate_planar
+from casmag.recording import write_recording
+from casmag.verdict import MISFIT_LIMIT, WORSE_RATIO, verdict
+
+
+def _result(**kw):
+    base = dict(
+        success=True,
+        status="Solve_Succeeded",
+        info={"n_samples": 100},
+        cost_blocks={"magnetometer": {"before": 900.0, "after": 150.0}},
+        rmse_before=0.2,
+        rmse_after=0.02,
+    )
+    return SimpleNamespace(**{**base, **kw})
+
+
+def test_a_good_estimate_passes_every_check():
+    v = verdict(_result())
+    assert v["trusted"] and v["reasons"] == []
+    assert v["checks"]["magnetometer_misfit"]["value"] == pytest.approx(1.0)
+    assert v["checks"]["against_truth"]["passed"] is True
+
+
+def test_residuals_far_above_the_assumed_noise_are_not_trusted():
+    v = verdict(_result(cost_blocks={"magnetometer": {"after": 150.0 * MISFIT_LIMIT}}))
+    assert not v["trusted"] and v["checks"]["magnetometer_misfit"]["passed"] is False
+    assert "assumed noise variance" in v["reasons"][0]
+
+
+def test_worse_than_the_dead_reckoning_is_not_trusted_and_without_truth_not_checked():
+    v = verdict(_result(rmse_after=0.2 * WORSE_RATIO * 1.01))
+    assert not v["trusted"] and "worse than the dead reckoning" in v["reasons"][0]
+    assert verdict(_result(rmse_after=0.2 * WORSE_RATIO))["trusted"]
+    v = verdict(_result(rmse_before=None, rmse_after=None))
+    assert v["trusted"] and "against_truth" not in v["checks"]
+
+
+def test_a_failed_solve_and_a_models_own_flags_are_reasons():
+    v = verdict(_result(success=False, status="Maximum_Iterations_Exceeded"))
+    assert not v["trusted"] and "Maximum_Iterations_Exceeded" in v["reasons"][0]
+    flag = {"name": "wrong_basin", "reason": "the truth costs less", "evidence": {}}
+    v = verdict(_result(flags=[flag]))
+    assert v["reasons"] == ["wrong_basin: the truth costs less"]
+    assert "against_truth" not in v["checks"]  # the model's flags judge it against the truth
+
+
+def test_the_base_case_is_trusted_and_says_so_in_result_json(tmp_path):
+    r = casmag.solve(casmag.load_problem("problems/paper/base.yaml", seed=1))
+    assert r.trusted and set(r.verdict["checks"]) == {
+        "solver",
+        "magnetometer_misfit",
+        "against_truth",
+    }
+    r.save(tmp_path / "out", figures=False)
+    saved = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert saved["verdict"] == r.verdict
+    assert casmag.Result.load(tmp_path / "out").verdict == r.verdict
+
+
+@pytest.fixture(scope="module")
+def worse_recording(tmp_path_factory):
+    """One loop without heading bias: the odometry is already good (RMSE 0.024 m) and the
+    planar GP-SLAM makes it worse (0.066 m, seed 4)."""
+    d = simulate_planar(4, planar_room_field(), size=(2.0, 1.5), loops=1, disp_noise=0.002)
+    rec = tmp_path_factory.mktemp("rec") / "walk.csv"
+    write_recording(rec, d.t, d.Y, planar=d.U, P_true=d.P, yaw_true=d.psi)
+    return rec
+
+
+def test_an_untrusted_result_exits_3_names_its_reason_and_its_figures_say_so(
+    tmp_path, worse_recording
+):
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["slam", str(worse_recording), "--out", str(out), "-q"])
+    r = json.loads((out / "result.json").read_text())
+    assert r["success"] and r["rmse_after"] > WORSE_RATIO * r["rmse_before"]
+    assert res.exit_code == 3
+    assert res.stderr.startswith(f"casmag: not trusted: {worse_recording}: worse than")
+    assert r["verdict"]["trusted"] is False
+    result = casmag.slam(worse_recording)
+    fig = plotting.trajectory_figure(result, tmp_path / "t.png")
+    title = fig.axes[0].get_title()
+    assert "NOT TRUSTED: worse than the dead reckoning" in title
+    assert fig.axes[0].title.get_color() == "tab:red"
+    assert all(np.isfinite(result.arrays["P_estimate"]).ravel())
