@@ -392,6 +392,7 @@ class RowSummary:
     errors: int
     missing: int
     iterations: float | None
+    untrusted: int = 0
 
     @classmethod
     def of(cls, row: Row) -> RowSummary:
@@ -413,6 +414,7 @@ class RowSummary:
             errors=sum(r.error is not None for r in row.runs),
             missing=max(row.expected - len(row.runs), 0),
             iterations=statistics.fmean(iters) if iters else None,
+            untrusted=sum(not (d.get("verdict") or {}).get("trusted", True) for d in solved),
         )
 
     @property
@@ -423,6 +425,8 @@ class RowSummary:
     def runs_text(self) -> str:
         text = f"{self.solved}/{self.row.expected}"
         notes = [f"{s} x{n}" for s, n in sorted(self.failed.items())]
+        if self.untrusted:
+            notes.append(f"not trusted x{self.untrusted}")
         if self.errors:
             notes.append(f"error x{self.errors}")
         if self.missing:
@@ -781,7 +785,8 @@ def markdown_table(table: Table, figures: dict[str, str] | None = None) -> str:
     note = (
         f"Position errors in metres against the truth, {table.frame}; mean, sample standard "
         f"deviation and worst case over the solved seeds{seeds}. Runs whose IPOPT solve failed "
-        "are counted under 'solved' with their status and left out of the statistics; "
+        "are counted under 'solved' with their status and left out of the statistics (solved "
+        "runs whose verdict does not trust them are counted as 'not trusted', casmag.verdict); "
         "'iterations' is the mean IPOPT iteration count."
     )
     if has_paper:

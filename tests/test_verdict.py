@@ -98,3 +98,12 @@ def test_an_untrusted_result_exits_3_names_its_reason_and_its_figures_say_so(
     assert "NOT TRUSTED: worse than the dead reckoning" in title
     assert fig.axes[0].title.get_color() == "tab:red"
     assert all(np.isfinite(result.arrays["P_estimate"]).ravel())
+
+
+def test_the_report_counts_solved_runs_it_does_not_trust(tmp_path, worse_recording):
+    out = tmp_path / "out"
+    CliRunner().invoke(main, ["slam", str(worse_recording), "--out", str(out), "-q"])
+    res = CliRunner().invoke(main, ["report", str(out)])
+    assert res.exit_code == 0, res.output
+    row = next(ln for ln in res.output.splitlines() if ln.startswith("| After SLAM"))
+    assert "1/1 (not trusted x1)" in row
