@@ -1561,7 +1561,17 @@ class ImuResult:
     RMSE is above :data:`WRONG_BASIN_RATIO` of the IMU-only adjustment's and the last solve
     started from the truth reaches a lower MAP cost; the evidence also gives the
     magnetometer's residual mean square per component in units of sigma_m^2 (about 1 at a
-    right optimum) and the field check's log Bayes factor."""
+    right optimum) and the field check's log Bayes factor. ``evaluation``
+    (casmag.evaluation) and ``verdict`` (casmag.verdict, from ``flags`` and the solver) as
+    for every result.
+
+    Arrays (K keyframes, a G x G map grid): ``t`` (K,) [s]; ``P_strapdown``,
+    ``P_imu_only``, ``P_estimate``, ``P_true`` (K, 3) [m] (``P_gp_slam_map``: the rejected
+    map pass when the field was found homogeneous); ``att_err_imu_only_deg``,
+    ``att_err_est_deg`` (K,) [deg], orientation error against the truth; with a
+    reduced-rank map, ``map_x``, ``map_y`` (G, G) [m], ``map_z`` (the grid's height [m]),
+    ``map_field``, ``map_std``, ``map_prior_std`` (G, G, 3) [field units]
+    (casmag.fieldmap)."""
 
     info: dict[str, Any]
     status: str

@@ -127,7 +127,22 @@ def cached_planar_nlp(s: PlanarStructure) -> NLP:
 class PlanarResult:
     """Outcome of a planar solve. Errors [m] and heading errors [deg] against the truth,
     no alignment (None without truth or when IPOPT failed); bias in rad/s (per step when no
-    times were given)."""
+    times were given).
+
+    Fields: ``status`` (IPOPT's, or ``Odometry_Only``), ``success``, ``iterations``,
+    ``build_seconds``, ``solve_seconds`` [s]; ``rmse_before``, ``max_before``,
+    ``rmse_after``, ``max_after`` [m]; ``heading_rms_deg_before``/``_after`` [deg];
+    ``bias`` (heading-rate bias: one value, or one per step for ``random_walk``);
+    ``hyperparameters`` (sigma_f, sigma_m [field units], lengthscale [m]); ``num_basis``;
+    ``cost_blocks`` (before/after); ``cost_per_iteration``; ``info`` (name, samples,
+    anchor, settings, ``starts``: each heading-bias start with its cost and whether it was
+    kept); ``convergence`` (casmag.nlp.Solution.trace); ``warnings`` (casmag.checks);
+    ``evaluation`` (casmag.evaluation); ``verdict`` (casmag.verdict).
+
+    Arrays (N samples, a G x G map grid): ``t`` (N,) [s]; ``P_odometry``, ``P_estimate``,
+    ``P_true`` (N, 2) [m]; ``psi_odometry``, ``psi_estimate``, ``psi_true`` (N,) [rad];
+    ``map_x``, ``map_y`` (G, G) [m], ``map_field``, ``map_std``, ``map_prior_std``
+    (G, G, 3) [field units] (casmag.fieldmap; after a successful solve)."""
 
     status: str
     success: bool

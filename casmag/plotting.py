@@ -215,7 +215,11 @@ def sessions_figure(result: Drawable, path: Path) -> Figure:
         ax.set_title(title, fontsize=9)
         if i == 0:
             ax.legend(loc="best", fontsize=7)
-    fig.suptitle(result.info.get("name", ""), fontsize=10)
+    fig.suptitle(
+        f"{result.info.get('name', '')}: {result.status}" + untrusted_line(result),
+        fontsize=10,
+        color="black" if trusted(result) else "tab:red",
+    )
     fig.tight_layout()
     _save(fig, path)
     return fig

@@ -1018,7 +1018,12 @@ def _panel_title(row: Row, run: Run) -> str:
     title = f"{_tex(row.label)} (seed {run.seed})"
     if run.solved:
         d = run.data
-        return title + f"\nRMSE {d['rmse_before']:.3f} -> {d['rmse_after']:.4f} m"
+        trusted = (d.get("verdict") or {}).get("trusted", True)
+        return (
+            title
+            + f"\n{d['status']}{'' if trusted else ', NOT TRUSTED'}: "
+            + f"RMSE {d['rmse_before']:.3f} -> {d['rmse_after']:.4f} m"
+        )
     if run.data is not None:
         return title + f"\nfailed: {run.data['status']}"
     return title + "\nerror"
