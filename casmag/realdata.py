@@ -52,6 +52,9 @@ class Sequence:
     t: np.ndarray
     loc: np.ndarray
     mag: np.ndarray
+    # Jittered time stamps, brought to a uniform grid on reading: the recorded intervals'
+    # spread (ptp / median) and row count; None when they were uniform.
+    resampled: dict[str, float] | None = None
 
     @property
     def rate(self) -> float:
@@ -88,8 +91,23 @@ def load_sequence(prefix: str | Path) -> Sequence:
     if t.shape[0] < 10 or not np.all(dt > 0):
         raise DataError(f"{files['time']}: times must increase strictly (at least 10 rows)")
     if np.ptp(dt) > SOURCE_RATE_TOLERANCE * np.median(dt) * 10:
-        raise DataError(f"{files['time']}: samples are not uniformly spaced")
+        return uniform(Sequence(prefix.name, t, loc, mag))
     return Sequence(prefix.name, t, loc, mag)
+
+
+def uniform(seq: Sequence) -> Sequence:
+    """A sequence with jittered or uneven time stamps on a uniform grid at its median
+    interval (positions and magnetometer interpolated linearly in time): the clock search
+    and the decimation of :func:`convert` count in samples."""
+    dt = np.diff(seq.t)
+    step = float(np.median(dt))
+    t = seq.t[0] + step * np.arange(int(np.floor((seq.t[-1] - seq.t[0]) / step)) + 1)
+
+    def at(A: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(t, seq.t, A[:, k]) for k in range(A.shape[1])])
+
+    spread = {"interval_spread": float(np.ptp(dt) / step), "rows": int(seq.t.size)}
+    return Sequence(seq.name, t, at(seq.loc), at(seq.mag), resampled=spread)
 
 
 def log_marginal(
@@ -211,6 +229,8 @@ def convert(seq: Sequence, protocol: Protocol = Protocol()) -> Converted:
     """Apply the protocol to a sequence; deterministic for a given seed."""
     rng = np.random.default_rng(protocol.seed)
     record: dict[str, Any] = {"sequence": seq.name, "protocol": asdict(protocol)}
+    if seq.resampled is not None:
+        record["resampled"] = seq.resampled
     if protocol.align:
         shift, search = clock_offset(seq)
         record["clock"] = search

@@ -4,18 +4,30 @@ A recording has a header row and one data row per magnetometer sample. Columns (
 names case-sensitive, whitespace around header names ignored):
 
 ``t``
-    time [s], strictly increasing.
+    time [s], never decreasing.
 motion input, exactly one group of :data:`MOTION_COLUMNS`
     ``dx,dy`` or ``dx,dy,dz``: world-frame position increment since the previous row [m];
     ``dfwd,dleft,dyaw``: body-frame displacement [m] and heading increment [rad] since the
     previous row; ``dqw,dqx,dqy,dqz,dvx,dvy,dvz``: strapdown IMU increments over the interval
     ending at the row (rotation quaternion, velocity increment [m/s]), sensor frame.
-    The first row's increments are ignored; only there may they be empty or NaN.
+    The first row's increments are ignored (they may be empty or NaN).
 ``mx,my,mz``
     magnetometer in the sensor frame, any consistent unit.
 optional truth, for evaluation only, in complete groups
     ``x_true,y_true[,z_true]`` [m], ``yaw_true`` [rad], ``qw_true,qx_true,qy_true,qz_true``
     (unit quaternion, w first).
+
+Rows as sensors write them. A field left empty means "not sampled at this row"; each group
+(the motion input, ``mx,my,mz``, each truth group) is given whole or not at all on a row.
+A row identical to the previous one (a logger writing twice) is dropped; other rows with
+the same time stamp are merged into one (motion increments summed, the other values
+averaged). When the motion input and the magnetometer are on different rows (two
+rates in one file), the dead reckoning is integrated at the motion rows, interpolated
+linearly in time to the magnetometer rows and turned back into increments between them
+(planar: in the body frame at the earlier row's heading); truth is interpolated the same
+way (quaternion truth must be on every magnetometer row); magnetometer rows after the last
+motion row are dropped. The reader says what it did in ``Recording.notes`` (warnings in
+result.json). IMU recordings take complete rows only.
 
 Every problem with a file raises :class:`~casmag.errors.DataError` as one line naming the
 file, the row (header = row 1, first data row = row 2) or column, and the reason.
@@ -102,7 +114,9 @@ class Recording:
     2..N (the first row's are dropped), in the order of ``increment_names``; Y: (N, 3)
     magnetometer (field units). Truth, None when the file has none: P_true (N, 2) or (N, 3)
     positions [m], yaw_true (N,) heading [rad], q_true (N, 4) orientation quaternion (w, x,
-    y, z).
+    y, z). notes: what reading changed (rows sharing a time stamp merged, odometry and
+    magnetometer at different rates brought to the magnetometer's rows), each a warning
+    ``{"check", "column", "reason"}`` (casmag.checks).
     """
 
     path: str
@@ -114,6 +128,7 @@ class Recording:
     P_true: np.ndarray | None = None
     yaw_true: np.ndarray | None = None
     q_true: np.ndarray | None = None
+    notes: tuple[dict[str, str], ...] = ()
 
     @property
     def n_samples(self) -> int:
@@ -347,13 +362,18 @@ def _locate_bad_value(
 
 
 def _parse_values(
-    path: str, rows: list[list[str]], names: list[str], motion_idx: list[int]
-) -> np.ndarray:
-    """(N, n_columns) float64 values; empty first-row motion fields become NaN."""
-    first = rows[0]
-    for j in motion_idx:
-        if not first[j].strip():
-            first[j] = "nan"
+    path: str, rows: list[list[str]], names: list[str], time_idx: int, motion_idx: list[int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N, n_columns) float64 values and the (N, n_columns) mask of empty fields, which
+    become NaN: a sensor not sampled at that row (every column but the time). The first
+    row's motion increments (ignored) may also be NaN."""
+    absent = np.zeros((len(rows), len(names)), dtype=bool)
+    for i, fields in enumerate(rows):
+        if "" in fields or any(not f.strip() for f in fields):
+            for j, value in enumerate(fields):
+                if j != time_idx and not value.strip():
+                    fields[j] = "nan"
+                    absent[i, j] = True
     error = _locate_bad_value(path, rows, names)
     if error is not None:
         raise error
@@ -362,8 +382,8 @@ def _parse_values(
     except ValueError:
         error = _locate_bad_value(path, rows, names, every_row=True)
         raise (error or _error(path, "", "cannot convert the values to numbers")) from None
-    bad = ~np.isfinite(A)
-    bad[0, motion_idx] = np.isinf(A[0, motion_idx])  # NaN (or empty) allowed there only
+    bad = ~np.isfinite(A) & ~absent  # a NaN written as such is an error, an empty field not
+    bad[0, motion_idx] = np.isinf(A[0, motion_idx])
     if bad.any():
         i, j = np.argwhere(bad)[0]
         kind = "NaN" if np.isnan(A[i, j]) else "infinite"
@@ -378,7 +398,7 @@ def _parse_values(
             f"value {A[i, j]:g} is beyond what the numerics can carry "
             f"(|value| <= {MAX_ABS_VALUE:g})",
         )
-    return A
+    return A, absent
 
 
 def read_recording(path: str | Path) -> Recording:
@@ -416,19 +436,24 @@ def read_recording(path: str | Path) -> Recording:
         )
 
     col = {name: j for j, name in enumerate(names)}
-    A = _parse_values(path, rows, names, [col[c] for c in motion_cols])
+    A, absent = _parse_values(path, rows, names, col[TIME_COLUMN], [col[c] for c in motion_cols])
 
     t = A[:, col[TIME_COLUMN]]
     steps = np.diff(t)
-    not_increasing = np.flatnonzero(~(steps > 0))
-    if not_increasing.size:
-        k = int(not_increasing[0]) + 1
+    backwards = np.flatnonzero(~(steps >= 0))
+    if backwards.size:
+        k = int(backwards[0]) + 1
         raise _error(
             path,
             f"row {k + 2}",
-            f"time {float(t[k])!r} is not after the previous row's {float(t[k - 1])!r} "
-            f"(column '{TIME_COLUMN}' must increase strictly)",
+            f"time {float(t[k])!r} is before the previous row's {float(t[k - 1])!r} "
+            f"(column '{TIME_COLUMN}' must not decrease)",
         )
+    truth_cols = [c for c in (*POSITION_TRUTH_COLUMNS, YAW_TRUTH_COLUMN) if c in col]
+    if QUATERNION_TRUTH_COLUMNS[0] in col:
+        truth_cols += list(QUATERNION_TRUTH_COLUMNS)
+    A, notes = _regularise(path, A, absent, col, motion, motion_cols, truth_cols)
+    t = A[:, col[TIME_COLUMN]]
 
     def columns(group: Sequence[str]) -> np.ndarray | None:
         if not all(c in col for c in group):
@@ -464,7 +489,197 @@ def read_recording(path: str | Path) -> Recording:
         P_true=columns(position_cols) if position_cols else None,
         yaw_true=A[:, col[YAW_TRUTH_COLUMN]].copy() if YAW_TRUTH_COLUMN in col else None,
         q_true=q_true,
+        notes=tuple(notes),
     )
+
+
+def _regularise(
+    path: str,
+    A: np.ndarray,
+    absent: np.ndarray,
+    col: dict[str, int],
+    motion: str,
+    motion_cols: Sequence[str],
+    truth_cols: Sequence[str],
+) -> tuple[np.ndarray, list[dict[str, str]]]:
+    """The rows as the solver takes them, one per magnetometer sample, from rows as sensors
+    write them (see :func:`read_recording`); the notes say what was changed."""
+    notes: list[dict[str, str]] = []
+    mi = [col[c] for c in motion_cols]
+    yi = [col[c] for c in MAGNETOMETER_COLUMNS]
+    groups = [(mi, motion_cols), (yi, MAGNETOMETER_COLUMNS)]
+    for cols in (
+        [c for c in POSITION_TRUTH_COLUMNS if c in truth_cols],
+        [YAW_TRUTH_COLUMN] if YAW_TRUTH_COLUMN in truth_cols else [],
+        [c for c in QUATERNION_TRUTH_COLUMNS if c in truth_cols],
+    ):
+        if cols:
+            groups.append(([col[c] for c in cols], cols))
+    for idx, names in groups:
+        miss = absent[:, idx]
+        partial = miss.any(axis=1) & ~miss.all(axis=1)
+        if idx is mi:
+            partial[0] = False  # the first row's increments are ignored
+        if partial.any():
+            i = int(np.flatnonzero(partial)[0])
+            j = int(np.flatnonzero(miss[i])[0])
+            raise _error(
+                path,
+                f"row {i + 2}, column '{names[j]}'",
+                f"empty value (the columns {_names(names)} are given together: all or none)",
+            )
+    absent = absent.copy()
+    absent[0, mi] = True  # the first row's increments are ignored (may be NaN)
+    has_motion = ~absent[:, mi].any(axis=1)
+    has_motion[0] = True  # the first row is where the dead reckoning starts
+    has_mag = ~absent[:, yi].any(axis=1)
+    if motion == "imu" and not (has_motion.all() and has_mag.all()):
+        i = int(np.flatnonzero(~(has_motion & has_mag))[0])
+        j = next(j for j in (*mi, *yi) if absent[i, j] and (i > 0 or j in yi))
+        name = [*motion_cols, *MAGNETOMETER_COLUMNS][[*mi, *yi].index(j)]
+        raise _error(
+            path,
+            f"row {i + 2}, column '{name}'",
+            "empty value (IMU increments and the magnetometer are needed on every row)",
+        )
+    same = np.r_[False, np.all((A[1:] == A[:-1]) | (absent[1:] & absent[:-1]), axis=1)]
+    if same.any():  # a row written twice by the logger: one of them
+        A, absent = A[~same], absent[~same]
+        notes.append(
+            {
+                "check": "duplicate_row",
+                "column": TIME_COLUMN,
+                "reason": f"{int(same.sum())} rows repeat the previous row exactly and were "
+                "dropped",
+            }
+        )
+    A, absent, has_motion, has_mag, merged = _merge_equal_times(A, absent, col, mi, yi)
+    if merged:
+        notes.append(
+            {
+                "check": "duplicate_time",
+                "column": TIME_COLUMN,
+                "reason": f"{merged} rows repeat the previous row's time stamp and were merged "
+                "into it (motion increments summed, magnetometer and truth averaged)",
+            }
+        )
+    if has_motion.all() and has_mag.all():
+        return A, notes
+    return _to_magnetometer_rows(path, A, absent, col, motion, mi, yi, has_motion, has_mag, notes)
+
+
+def _merge_equal_times(
+    A: np.ndarray, absent: np.ndarray, col: dict[str, int], mi: list[int], yi: list[int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Rows of one time stamp as one row: present motion increments summed, every other
+    present value averaged. Returns the rows, their absent mask, which rows have motion
+    and magnetometer, and how many rows were merged away."""
+    t = A[:, col[TIME_COLUMN]]
+    starts = np.flatnonzero(np.r_[True, np.diff(t) > 0])
+    merged = A.shape[0] - starts.size
+    if merged:
+        present = ~absent
+        values = np.where(present, A, 0.0)
+        sums = np.add.reduceat(values, starts, axis=0)
+        counts = np.add.reduceat(present.astype(np.int64), starts, axis=0)
+        out = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+        out[:, mi] = np.where(counts[:, mi] > 0, sums[:, mi], np.nan)  # increments add up
+        out[:, col[TIME_COLUMN]] = t[starts]
+        A, absent = out, counts == 0
+        absent[:, col[TIME_COLUMN]] = False
+    has_motion = ~absent[:, mi].any(axis=1)
+    has_motion[0] = True
+    return A, absent, has_motion, ~absent[:, yi].any(axis=1), merged
+
+
+def _to_magnetometer_rows(
+    path: str,
+    A: np.ndarray,
+    absent: np.ndarray,
+    col: dict[str, int],
+    motion: str,
+    mi: list[int],
+    yi: list[int],
+    has_motion: np.ndarray,
+    has_mag: np.ndarray,
+    notes: list[dict[str, str]],
+) -> tuple[np.ndarray, list[dict[str, str]]]:
+    """Odometry and magnetometer at different rates: the dead reckoning integrated at the
+    odometry's rows, interpolated linearly in time to the magnetometer's rows, and turned
+    back into increments between them (planar: body-frame displacement and heading
+    change); truth interpolated the same way. Magnetometer rows after the last odometry
+    row cannot be placed and are dropped."""
+    t = A[:, col[TIME_COLUMN]]
+    tm = t[has_motion]
+    U = np.where(absent[:, mi], 0.0, A[:, mi])[has_motion]
+    U[0] = 0.0
+    if motion == "planar":
+        psi = np.cumsum(U[:, 2])
+        heading = np.r_[0.0, psi[:-1]]
+        step = np.column_stack(
+            [
+                np.cos(heading) * U[:, 0] - np.sin(heading) * U[:, 1],
+                np.sin(heading) * U[:, 0] + np.cos(heading) * U[:, 1],
+            ]
+        )
+        pose = np.column_stack([np.cumsum(step, axis=0), psi])
+    else:
+        pose = np.cumsum(U, axis=0)
+    keep = has_mag & (t <= tm[-1])
+    dropped = int(np.sum(has_mag & ~keep))
+    if keep.sum() < _MIN_ROWS:
+        raise _error(
+            path,
+            "",
+            f"needs at least {_MIN_ROWS} magnetometer rows within the odometry's time span "
+            f"(got {int(keep.sum())})",
+        )
+    tk = t[keep]
+    at = np.column_stack([np.interp(tk, tm, pose[:, k]) for k in range(pose.shape[1])])
+    if motion == "planar":
+        d = np.diff(at[:, :2], axis=0)
+        h = at[:-1, 2]
+        inc = np.column_stack(
+            [
+                np.cos(h) * d[:, 0] + np.sin(h) * d[:, 1],
+                -np.sin(h) * d[:, 0] + np.cos(h) * d[:, 1],
+                np.diff(at[:, 2]),
+            ]
+        )
+    else:
+        inc = np.diff(at, axis=0)
+    out = A[keep].copy()
+    out[0, mi] = np.nan
+    out[1:, mi] = inc
+    for name in (*POSITION_TRUTH_COLUMNS, YAW_TRUTH_COLUMN, *QUATERNION_TRUTH_COLUMNS):
+        if name not in col:
+            continue
+        j = col[name]
+        have = ~absent[:, j]
+        if have[keep].all():
+            continue
+        if name in QUATERNION_TRUTH_COLUMNS or have.sum() < 2:
+            i = int(np.flatnonzero(keep & ~have)[0])
+            raise _error(
+                path,
+                f"row {i + 2}, column '{name}'",
+                "empty value (this truth is needed on every magnetometer row)",
+            )
+        values = A[have, j]
+        if name == YAW_TRUTH_COLUMN:
+            values = np.unwrap(values)
+        out[:, j] = np.interp(tk, t[have], values)
+    n_motion, n_mag = int(has_motion[1:].sum()), int(has_mag.sum())
+    reason = (
+        f"odometry on {n_motion} rows and magnetometer on {n_mag}: the dead reckoning was "
+        f"interpolated in time to the magnetometer's rows"
+    )
+    if dropped:
+        reason += f"; {dropped} magnetometer rows after the last odometry row were dropped"
+    notes.append(
+        {"check": "resampled", "column": ", ".join(MAGNETOMETER_COLUMNS), "reason": reason}
+    )
+    return out, notes
 
 
 def _check_resolution(path: str, U: np.ndarray, names: Sequence[str]) -> None:

@@ -380,8 +380,9 @@ def slam(
 
 
 def _plausibility(rec: Recording, data: Dataset, prob: Problem) -> list[dict[str, str]]:
-    """casmag.checks on one recording and the lengthscale its problem uses."""
-    found = recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)
+    """What reading the recording changed (rows merged or resampled), then casmag.checks on
+    it and on the lengthscale its problem uses."""
+    found = [*rec.notes, *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)]
     return found + model_warnings(
         data.dead_reckoning(), rec.Y, prob.assumed_lengthscale, prob.assumed_sigma_m
     )
@@ -464,7 +465,7 @@ def slam_planar(
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(overrides, "casmag slam on a planar recording")
     options = load_planar_options(problem, overrides)
-    found = recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)
+    found = [*rec.notes, *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)]
     for line in warning_lines(rec.path, found):
         if on_warning is not None:
             on_warning(line)

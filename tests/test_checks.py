@@ -177,3 +177,21 @@ def test_settings_given_or_estimated_or_simulated_data_pass_the_check():
         },
     )
     refuse_simulation_truths(estimated, _recorded())
+
+
+def test_slam_says_what_reading_the_recording_changed(tmp_path):
+    t, U, _, P = _walk(n=80)
+    Y = np.tile([20.0, -5.0, 40.0], (80, 1))  # constant: the odometry is the result, fast
+    rec = tmp_path / "dup.csv"
+    write_recording(rec, t, Y, dxy=U, P_true=P)
+    lines = rec.read_text().splitlines()
+    lines.insert(5, lines[4])  # a row written twice
+    rec.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["slam", str(rec), "--out", str(out), "-q", "--no-figures"])
+    assert res.exit_code == 0, res.output
+    assert res.stderr.startswith(f"casmag: warning: {rec}: t: 1 rows repeat the previous row")
+    r = json.loads((out / "result.json").read_text())
+    assert [w["check"] for w in r["warnings"]] == ["duplicate_row"]
+    assert r["info"]["n_samples"] == 80
+    assert r["rmse_before"] == pytest.approx(0.0, abs=1e-9)  # the dead reckoning is intact

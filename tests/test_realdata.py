@@ -259,3 +259,22 @@ def test_slam_keeps_the_lower_cost_of_two_starts(tmp_path):
     cost = sum(v["after"] for v in res.cost_blocks.values())
     assert cost <= kept["cost"] * (1 + 1e-5)  # IPOPT tolerance: measured 1.4e-6 above
     assert res.iterations >= sum(st["iterations"] for st in starts)
+
+
+def test_jittered_time_stamps_are_brought_to_a_uniform_grid(tmp_path):
+    seq = _synthetic_sequence()
+    rng = np.random.default_rng(5)
+    step = float(np.median(np.diff(seq.t)))
+    t = seq.t + rng.uniform(-0.2, 0.2, seq.t.size) * step  # a phone's clock jitter
+    for name, A in (("time", t[:, None]), ("loc", seq.loc), ("mag", seq.mag)):
+        np.savetxt(tmp_path / f"3-{name}.csv", A, delimiter=",")
+    read = load_sequence(tmp_path / "3")
+    assert read.resampled is not None and read.resampled["interval_spread"] > 0.3
+    intervals = np.diff(read.t)
+    assert np.ptp(intervals) < 1e-9 * step and abs(intervals[0] - step) < 0.05 * step
+    np.testing.assert_allclose(read.loc, np.column_stack(
+        [np.interp(read.t, t, seq.loc[:, k]) for k in range(2)]))  # fmt: skip
+    out = tmp_path / "rec.csv"
+    r = CliRunner().invoke(main, ["convert", str(tmp_path / "3"), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert json.loads(out.with_suffix(".json").read_text())["resampled"]["rows"] == t.size

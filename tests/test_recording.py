@@ -467,10 +467,89 @@ def test_time_not_increasing(tmp_path):
     assert "row 6" in msg and "2.5" in msg and "3.0" in msg and "'t'" in msg
 
 
-def test_time_repeated(tmp_path):
-    rows = [GOOD_ROWS[0], "0,0.1,0.2,1,2,3", GOOD_ROWS[2]]
+def test_rows_of_one_time_stamp_are_merged(tmp_path):
+    rows = [GOOD_ROWS[0], "1,0.1,0.2,1,2,3", "1,0.3,0.4,3,4,5", "2,0.1,0.2,1.2,2.2,3.2"]
+    rec = read_recording(_write(tmp_path, _csv(GOOD_HEADER, rows)))
+    np.testing.assert_array_equal(rec.t, [0, 1, 2])
+    np.testing.assert_allclose(rec.increments, [[0.4, 0.6], [0.1, 0.2]])  # summed
+    np.testing.assert_allclose(rec.Y[1], [2, 3, 4])  # averaged
+    assert [n["check"] for n in rec.notes] == ["duplicate_time"]
+    assert "1 rows repeat the previous row's time stamp" in rec.notes[0]["reason"]
+
+
+def test_time_going_back_is_refused(tmp_path):
+    rows = [GOOD_ROWS[0], "1,0.1,0.2,1,2,3", "0.5,0.1,0.2,1,2,3"]
     msg = _error(_write(tmp_path, _csv(GOOD_HEADER, rows)))
-    assert "row 3" in msg and "0.0" in msg
+    assert "row 4" in msg and "before the previous row's 1.0" in msg
+
+
+def _two_rates(motion: str, n: int = 41):
+    """A curving walk: poses at 20 Hz; odometry rows at 20 Hz, magnetometer rows at 10 Hz
+    between them (t = 0.025 + 0.1 k), one file with empty cells. Returns the CSV text and
+    the true poses at the magnetometer rows."""
+    t = np.arange(n) * 0.05
+    psi = 0.8 * t
+    pos = np.column_stack([np.sin(psi) / 0.8 * 0.5, (1 - np.cos(psi)) / 0.8 * 0.5])
+    rows = []
+    tm = np.arange(0.025, t[-1] - 0.1, 0.1)
+    events = [(ti, "odo", i) for i, ti in enumerate(t)] + [
+        (ti, "mag", i) for i, ti in enumerate(tm)
+    ]
+    for ti, kind, i in sorted(events):
+        if kind == "odo":
+            if motion == "planar":
+                d = pos[i] - pos[i - 1] if i else np.zeros(2)
+                h = psi[i - 1] if i else 0.0
+                inc = [np.cos(h) * d[0] + np.sin(h) * d[1], -np.sin(h) * d[0] + np.cos(h) * d[1]]
+                inc.append(psi[i] - psi[i - 1] if i else 0.0)
+            else:
+                inc = list(pos[i] - pos[i - 1]) if i else [0.0, 0.0]
+            rows.append([f"{ti:.4f}", *(f"{v:.12g}" for v in inc), "", "", "", "", ""])
+        else:
+            x, y = np.interp(ti, t, pos[:, 0]), np.interp(ti, t, pos[:, 1])
+            rows.append([f"{ti:.4f}", *([""] * (3 if motion == "planar" else 2)), "1", "2", "3",
+                         f"{x:.12g}", f"{y:.12g}"])  # fmt: skip
+    names = "dfwd,dleft,dyaw" if motion == "planar" else "dx,dy"
+    header = f"t,{names},mx,my,mz,x_true,y_true"
+    return _csv(header, [",".join(r) for r in rows]), tm
+
+
+@pytest.mark.parametrize("motion", ["translation", "planar"])
+def test_odometry_and_magnetometer_at_two_rates_are_brought_to_the_magnetometer_rows(
+    tmp_path, motion
+):
+    text, tm = _two_rates(motion)
+    rec = read_recording(_write(tmp_path, text))
+    np.testing.assert_allclose(rec.t, tm, atol=1e-9)
+    assert rec.motion == motion and rec.increments.shape == (
+        tm.size - 1,
+        3 if motion == "planar" else 2,
+    )
+    if motion == "planar":
+        from casmag.planar import dead_reckon_planar
+
+        P, _ = dead_reckon_planar(rec.increments, rec.P_true[0], 0.8 * tm[0])
+    else:
+        P = rec.P_true[0] + np.vstack([np.zeros(2), np.cumsum(rec.increments, axis=0)])
+    # the dead reckoning at the magnetometer rows, up to linear interpolation between 20 Hz
+    # odometry rows on a 0.6 m circle
+    assert np.abs(P - rec.P_true).max() < 2e-3
+    assert [n["check"] for n in rec.notes] == ["resampled"]
+    assert "odometry on 40 rows and magnetometer on" in rec.notes[0]["reason"]
+
+
+def test_magnetometer_rows_after_the_last_odometry_row_are_dropped(tmp_path):
+    rows = [GOOD_ROWS[0], "1,0.1,0.2,,,", "1.5,,,1,2,3", "2,0.1,0.2,1.2,2.2,3.2", "3,,,1,2,3"]
+    rec = read_recording(_write(tmp_path, _csv(GOOD_HEADER, rows)))
+    np.testing.assert_array_equal(rec.t, [0, 1.5, 2])
+    np.testing.assert_allclose(rec.increments, [[0.15, 0.3], [0.05, 0.1]])
+    assert "1 magnetometer rows after the last odometry row were dropped" in rec.notes[0]["reason"]
+
+
+def test_a_group_given_in_part_is_refused(tmp_path):
+    rows = [GOOD_ROWS[0], "1,0.1,,1,2,3", GOOD_ROWS[2]]
+    msg = _error(_write(tmp_path, _csv(GOOD_HEADER, rows)))
+    assert "row 3, column 'dy': empty value (the columns dx, dy are given together" in msg
 
 
 @pytest.mark.parametrize(
