@@ -88,8 +88,8 @@ def recording_warnings(
                     names,
                     f"mean speed {speed:.3g} m/s (over {MAX_SPEED:g} m/s for walking or an "
                     "indoor robot): are the increments in centimetres or millimetres, or "
-                    "cumulative positions rather than steps since the previous row? casmag "
-                    "reads metres per step",
+                    "cumulative positions rather than steps since the previous row, or is t "
+                    "in minutes? casmag reads metres per step and seconds",
                 )
             )
     if motion == "planar" and increments.size and t.size > 1 and dt <= MAX_SAMPLE_INTERVAL:

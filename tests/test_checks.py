@@ -43,6 +43,12 @@ def test_time_in_milliseconds_is_named():
     assert found[0]["column"] == "t" and "milliseconds" in found[0]["reason"]
 
 
+def test_time_in_minutes_is_named_by_the_speed():
+    t, U, Y, _ = _walk()
+    found = recording_warnings(t / 60.0, U, Y, "translation")
+    assert [w["check"] for w in found] == ["speed"] and "t in minutes" in found[0]["reason"]
+
+
 @pytest.mark.parametrize("case", ["centimetres", "cumulative"])
 def test_increments_in_centimetres_or_cumulative_are_named(case):
     t, U, Y, P = _walk()
