@@ -19,6 +19,7 @@ from casmag.clitools import (
     EXIT_SOLVER_FAILED,
     INPUT_ERRORS,
     CasmagGroup,
+    align_option,
     exit_untrusted,
     fail,
     fail_bad_input,
@@ -29,7 +30,6 @@ from casmag.clitools import (
     with_evaluation,
 )
 from casmag.errors import CasmagError
-from casmag.evaluation import ALIGNMENTS
 from casmag.imucli import imu_command
 from casmag.sweep import sweep_command
 
@@ -278,13 +278,9 @@ def slam(
     ),
 )
 @click.option("--no-figures", is_flag=True, help="Tables only.")
-@click.option(
-    "--align",
-    type=click.Choice(ALIGNMENTS),
-    default="none",
-    show_default=True,
-    help="Errors measured again after this alignment to the truth, from each result's "
-    "arrays.npz (casmag.evaluation).",
+@align_option(
+    "Errors measured again after this alignment to the truth, from each result's "
+    "arrays.npz (casmag.evaluation)."
 )
 def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool, align: str) -> None:
     """Tabulate saved results (result.json files, or folders searched for them and for

@@ -63,6 +63,13 @@ def distinct_set_keys(ctx: click.Context, param: click.Parameter, value: Any) ->
     return value
 
 
+def align_option(help_text: str) -> Callable[..., Any]:
+    """--align {none,start,se} (casmag.evaluation)."""
+    return click.option(
+        "--align", type=click.Choice(ALIGNMENTS), default="none", show_default=True, help=help_text
+    )
+
+
 def output_options(command: Callable[..., Any]) -> Callable[..., Any]:
     """--out DIR (required), --set KEY.PATH=VALUE (repeatable), --no-figures, --quiet,
     --align {none,start,se}."""
@@ -84,13 +91,9 @@ def output_options(command: Callable[..., Any]) -> Callable[..., Any]:
         ),
         click.option("--no-figures", is_flag=True, help="Skip the PNG figures."),
         click.option("--quiet", "-q", is_flag=True, help="No progress lines, nothing on success."),
-        click.option(
-            "--align",
-            type=click.Choice(ALIGNMENTS),
-            default="none",
-            show_default=True,
-            help="Errors against the truth also after this alignment (result.json "
-            "'evaluation'): start = first positions matched, se = rigid least squares.",
+        align_option(
+            "Errors against the truth also after this alignment (result.json 'evaluation'): "
+            "start = first positions matched, se = rigid least squares."
         ),
     ]
 

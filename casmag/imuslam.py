@@ -71,9 +71,8 @@ from casmag.metrics import rmse_and_max
 from casmag.nlp import NLP, STALLED, NLPBuilder, Solution
 from casmag.outdir import save_atomic
 from casmag.reduced_rank import HilbertBasis, cached_basis
-from casmag.result import evaluation_of, finite_json, write_arrays
+from casmag.result import Judged, evaluation_of, finite_json, write_arrays
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
-from casmag.verdict import verdict
 from casmag.versions import __version__, versions
 
 Progress = Callable[[int, float, float, float], None]
@@ -1534,7 +1533,7 @@ def _grown_pass(
 
 # --------------------------------------------------------------------------- result
 @dataclass
-class ImuResult:
+class ImuResult(Judged):
     """Outcome of an IMU problem: both stages, errors against the truth and biases.
 
     Position errors [m] and orientation errors [deg] are at keyframes, against the truth,
@@ -1601,18 +1600,9 @@ class ImuResult:
     verdict: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
 
-    def __post_init__(self) -> None:
-        if self.verdict is None:
-            self.verdict = verdict(self)
-
     @property
     def rmse_after(self) -> float | None:
         return self.errors["gp_slam"]["rmse"]
-
-    @property
-    def trusted(self) -> bool:
-        """Solved, and the verdict found nothing against the estimate (casmag.verdict)."""
-        return bool(self.verdict and self.verdict["trusted"])
 
     def to_dict(self) -> dict[str, Any]:
 

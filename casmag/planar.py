@@ -35,9 +35,8 @@ from casmag.nlp import NLP
 from casmag.outdir import save_atomic
 from casmag.recording import read_recording
 from casmag.reduced_rank import HilbertBasis, cached_basis
-from casmag.result import evaluation_of, finite_json, write_arrays
+from casmag.result import Judged, evaluation_of, finite_json, write_arrays
 from casmag.rrmap import make_basis
-from casmag.verdict import verdict
 from casmag.versions import versions
 
 #: Keyframes per marginal-likelihood window and the most windows of the planar
@@ -124,7 +123,7 @@ def cached_planar_nlp(s: PlanarStructure) -> NLP:
 
 
 @dataclass
-class PlanarResult:
+class PlanarResult(Judged):
     """Outcome of a planar solve. Errors [m] and heading errors [deg] against the truth,
     no alignment (None without truth or when IPOPT failed); bias in rad/s (per step when no
     times were given).
@@ -166,15 +165,6 @@ class PlanarResult:
     evaluation: dict[str, Any] | None = None
     verdict: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
-
-    def __post_init__(self) -> None:
-        if self.verdict is None:
-            self.verdict = verdict(self)
-
-    @property
-    def trusted(self) -> bool:
-        """Solved, and the verdict found nothing against the estimate (casmag.verdict)."""
-        return bool(self.verdict and self.verdict["trusted"])
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""

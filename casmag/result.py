@@ -23,8 +23,24 @@ from casmag.outdir import save_atomic
 from casmag.verdict import verdict
 
 
+class Judged:
+    """What every result class shares: its ``verdict`` made on construction when not given
+    (casmag.verdict), and ``trusted``."""
+
+    verdict: dict[str, Any] | None
+
+    def __post_init__(self) -> None:
+        if self.verdict is None:
+            self.verdict = verdict(self)
+
+    @property
+    def trusted(self) -> bool:
+        """Solved, and the verdict found nothing against the estimate (casmag.verdict)."""
+        return bool(self.verdict and self.verdict["trusted"])
+
+
 @dataclass
-class Result:
+class Result(Judged):
     """Outcome of one solve.
 
     Errors are position errors in metres against the truth without alignment (None when the
@@ -83,15 +99,6 @@ class Result:
     evaluation: dict[str, Any] | None = None
     verdict: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
-
-    def __post_init__(self) -> None:
-        if self.verdict is None:
-            self.verdict = verdict(self)
-
-    @property
-    def trusted(self) -> bool:
-        """Solved, and the verdict found nothing against the estimate (casmag.verdict)."""
-        return bool(self.verdict and self.verdict["trusted"])
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""
