@@ -1,6 +1,6 @@
 """IMU GP-SLAM (the paper's tightly coupled model): a small problem as a dictionary (the
 schema of problems/imu/README.md), simulated, solved in stages (IMU-only adjustment, then
-GP-SLAM), with the errors of every stage and any flag raised against the estimate.
+GP-SLAM), with the errors of every stage and the verdict on the estimate.
 
     python examples/imu.py [OUT_DIR]
 """
@@ -25,8 +25,9 @@ print(f"{result.status} (IMU-only stage: {result.status_imu_only})")
 for stage, e in result.errors.items():
     if e["rmse"] is not None:
         print(f"  {stage} position RMSE {e['rmse']:.4f} m")
-for flag in result.flags:  # e.g. wrong_basin, worse_than_imu_only
-    print(f"  flag {flag['name']}: {flag['reason']}")
+print(f"  trusted: {result.trusted}")  # casmag.verdict: solver, misfit, flags
+for reason in result.verdict["reasons"]:  # e.g. wrong_basin, worse_than_imu_only
+    print(f"  not trusted: {reason}")
 out = sys.argv[1] if len(sys.argv) > 1 else tempfile.mkdtemp(prefix="casmag-example-")
 result.save(out)  # result.json, biases.md, trajectory.csv, trajectory.png, cost.png
 print(f"saved to {out}")

@@ -12,6 +12,8 @@ import casmag
 
 result = casmag.Result.load(sys.argv[1])
 print(f"{result.info.get('name')}: {result.status}, success {result.success}")
+print(f"  trusted: {result.trusted} {result.verdict['reasons']}")
+print(f"  after an SE alignment: {casmag.evaluate(result, 'se')['after']['rmse']} m")
 for stage in result.convergence:  # every IPOPT solve of the run
     print(f"  {stage['stage']}: {stage['status']}, {stage['iterations']} iterations")
 for key, value in sorted(result.arrays.items()):
