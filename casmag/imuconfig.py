@@ -246,10 +246,10 @@ class ImuGPSpec(Strict):
     both always), and is kept when its final MAP cost is lower by more than
     ``casmag.imuslam.SCHEDULE_MARGIN``; both are recorded under ``schedules``.
 
-    fallback_grow: prefix fractions of a third schedule (null: none), run only when the
-    anneal and coarse-to-fine schedules both failed: the anneal factors on each growing
-    prefix (as ``grow`` with ``grow_anneal``), from the IMU-only adjustment, kept by the
-    same rule.
+    fallback_grow: prefix fractions of a third schedule (null: none), run when the
+    schedule kept so far failed or fits clearly badly (misfit above
+    ``casmag.imuslam.GROW_MISFIT``): the anneal factors on each growing prefix (as ``grow``
+    with ``grow_anneal``), from the IMU-only adjustment, kept by the same rule.
 
     hyper_window, hyper_windows: keyframes per window of the windowed marginal likelihood
     (``estimate``, and the field check) and the most windows, evenly spread (``all``: every
