@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -10,9 +10,13 @@ import casadi as ca
 import numpy as np
 
 from casmag.checks import refuse_simulation_truths
-from casmag.config import Problem, load_problem
+from casmag.config import Problem, document_kind, load_problem, read_yaml
+from casmag.errors import ProblemError
 from casmag.evaluation import anchor_info
 from casmag.fieldmap import grid_over
+from casmag.imuconfig import ImuProblem
+from casmag.imusim import ImuData
+from casmag.imuslam import ImuResult, solve_imu
 from casmag.metrics import rmse_and_max
 from casmag.result import Result
 from casmag.simulate import Dataset, simulate_problem
@@ -36,14 +40,17 @@ from casmag.windowing import Stage, continued, solve_growing
 
 
 def solve(
-    problem: Problem | str | Path | dict[str, Any],
-    data: Dataset | None = None,
+    problem: Problem | ImuProblem | str | Path | dict[str, Any],
+    data: Dataset | ImuData | None = None,
     progress: Callable[[int, float, float, float], None] | None = None,
     initial_positions: np.ndarray | None = None,
-) -> Result:
+) -> Result | ImuResult:
     """Solve a GP-SLAM problem and return its result.
 
     problem: a Problem, a YAML path or a dictionary (validated with :func:`load_problem`).
+    A problem of the IMU model (an ImuProblem, or a file or dictionary whose keys say so,
+    casmag.config.document_kind) is solved by :func:`casmag.imuslam.solve_imu` (an
+    ImuResult); a table file or a real-data problem file is refused naming its entry point.
     data: the data set to use; simulated from the problem (with its seed) when omitted.
     Data not simulated (no ``M_true``, e.g. a recording) need the model's noise and GP
     settings given (or estimated): a null there means "the simulation's value" and is
@@ -54,6 +61,12 @@ def solve(
     A failed solve is returned with ``success = False`` and IPOPT's ``status``; its error
     fields are None, so a failure is never mistaken for a result.
     """
+    kind = _kind(problem)
+    if kind == "imu":
+        return solve_imu(problem, data, progress)  # type: ignore[arg-type]
+    if kind in ("table", "recording"):
+        where = "casmag.sweep (casmag sweep FILE)" if kind == "table" else "casmag solve FILE"
+        raise ProblemError(str(problem), "", f"a {kind} file is not one problem; use {where}")
     problem = load_problem(problem)
     if data is None:
         data = simulate_problem(problem)
@@ -162,6 +175,17 @@ def solve(
             "map_prior_std": None if std_grid is None else std_grid[1].reshape(*grid_x.shape, 3),
         },
     )
+
+
+def _kind(problem: Any) -> str:
+    """The document kind of what :func:`solve` was given (casmag.config.document_kind)."""
+    if isinstance(problem, ImuProblem):
+        return "imu"
+    if isinstance(problem, (str, Path)):
+        return document_kind(read_yaml(Path(problem)))
+    if isinstance(problem, Mapping):
+        return document_kind(problem)
+    return "translational"
 
 
 # Largest number of unknowns for which the Laplace covariance is computed (a dense factor

@@ -143,3 +143,19 @@ def test_progress_callback_sees_every_iteration():
     r = casmag.solve(prob, progress=lambda k, cost, step, s: calls.append((k, cost)))
     assert [k for k, _ in calls] == list(range(r.iterations + 1))
     np.testing.assert_allclose([c for _, c in calls], r.cost_per_iteration)
+
+
+def test_the_library_solve_takes_an_imu_problem_and_names_the_entry_point_of_other_files():
+    import yaml
+
+    from casmag.imuslam import ImuResult
+
+    imu = yaml.safe_load(Path("problems/imu/rectangle.yaml").read_text())
+    imu["simulation"]["scenario"]["loops"] = 1
+    imu["model"]["gp"] = {"form": "none"}  # the IMU-only adjustment: a second
+    r = casmag.solve(imu)
+    assert isinstance(r, ImuResult) and r.status_imu_only == "Solve_Succeeded"
+    with pytest.raises(casmag.ProblemError, match=r"use casmag\.sweep"):
+        casmag.solve("problems/paper/table1.yaml")
+    with pytest.raises(casmag.ProblemError, match="use casmag solve FILE"):
+        casmag.solve("problems/real/seq1-drift0.5.yaml")
