@@ -7,14 +7,14 @@ by IPOPT.
     result = casmag.solve(problem)
     print(result.status, result.rmse_before, result.rmse_after)
     result.save("out")                      # result.json, arrays.npz, trajectory.csv, PNGs
-    again = casmag.Result.load("out")
+    again = casmag.load_result("out")       # any result folder (translational, planar, IMU)
     casmag.evaluate(result, "se")           # errors after a rigid alignment to the truth
 
     result = casmag.slam("walk.csv")        # a recording, casmag slam's defaults
                                             # (translational or planar)
 """
 
-from casmag.api import solve
+from casmag.api import load_result, solve
 from casmag.config import Problem, ProblemSpec, load_problem
 from casmag.errors import CasmagError, DataError, ProblemError, SolverError
 from casmag.evaluation import evaluate_result as evaluate
@@ -33,6 +33,7 @@ __all__ = [
     "__version__",
     "evaluate",
     "load_problem",
+    "load_result",
     "slam",
     "slam_sessions",
     "solve",

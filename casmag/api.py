@@ -18,7 +18,8 @@ from casmag.imuconfig import ImuProblem
 from casmag.imusim import ImuData
 from casmag.imuslam import ImuResult, solve_imu
 from casmag.metrics import rmse_and_max
-from casmag.result import Result
+from casmag.planar import PlanarResult
+from casmag.result import Result, read_result_json, result_kind
 from casmag.simulate import Dataset, simulate_problem
 from casmag.sliding import solve_coarse_to_fine, solve_sliding
 from casmag.translational import (
@@ -175,6 +176,15 @@ def solve(
             "map_prior_std": None if std_grid is None else std_grid[1].reshape(*grid_x.shape, 3),
         },
     )
+
+
+def load_result(folder: str | Path) -> Result | PlanarResult | ImuResult:
+    """Any saved result folder (result.json, arrays.npz): a translational ``Result``, a
+    planar ``PlanarResult`` or an IMU ``ImuResult``, by what its result.json holds."""
+    path = Path(folder) / "result.json"
+    kind = result_kind(read_result_json(path))
+    cls = {"imu": ImuResult, "planar": PlanarResult}.get(kind, Result)
+    return cls.load(folder)
 
 
 def _kind(problem: Any) -> str:

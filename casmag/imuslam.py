@@ -1581,6 +1581,8 @@ class ImuResult(Judged):
     ``map_field``, ``map_std``, ``map_prior_std`` (G, G, 3) [field units]
     (casmag.fieldmap)."""
 
+    KIND = "imu"
+
     info: dict[str, Any]
     status: str
     success: bool

@@ -143,6 +143,8 @@ class PlanarResult(Judged):
     ``map_x``, ``map_y`` (G, G) [m], ``map_field``, ``map_std``, ``map_prior_std``
     (G, G, 3) [field units] (casmag.fieldmap; after a successful solve)."""
 
+    KIND = "planar"
+
     status: str
     success: bool
     iterations: int

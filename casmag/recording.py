@@ -199,6 +199,17 @@ def _parse_header(path: str, line: str) -> list[str]:
     if not line.strip():
         raise _error(path, "row 1", "empty header row (expected column names)")
     names = [name.strip() for name in fields]
+    if path.lower().endswith((".yaml", ".yml")) or line.strip() == "---":
+        raise _error(
+            path,
+            "",
+            "not a CSV recording (it reads as YAML: a problem file is solved by casmag "
+            "solve FILE, casmag.solve)",
+        )
+    if line.lstrip().startswith("#"):
+        raise _error(
+            path, "row 1", "a comment line; the first row must be the header (remove comments)"
+        )
     if all(_is_number(name) for name in names):
         raise _error(
             path,

@@ -25,9 +25,38 @@ from casmag.verdict import verdict
 
 class Judged:
     """What every result class shares: its ``verdict`` made on construction when not given
-    (casmag.verdict), and ``trusted``."""
+    (casmag.verdict), ``trusted``, and :meth:`load`."""
 
+    #: What :func:`result_kind` calls a saved result of this class.
+    KIND = "translational"
     verdict: dict[str, Any] | None
+
+    @classmethod
+    def load(cls, folder: str | Path) -> Any:
+        """A result saved by ``save``: result.json and, when saved, arrays.npz (arrays
+        saved as None come back absent). Raises DataError naming the file when it is
+        missing, not a casmag result, or a result of another class (named; the library's
+        ``casmag.load_result`` reads any)."""
+        folder = Path(folder)
+        path = folder / "result.json"
+        data = read_result_json(path)
+        kind = result_kind(data)
+        if kind != cls.KIND:
+            raise DataError(f"{path}: a {kind} result; read it with casmag.load_result")
+        names = {f.name for f in fields(cls)} - {"arrays"}  # type: ignore[arg-type]
+        required = [
+            f.name
+            for f in fields(cls)  # type: ignore[arg-type]
+            if f.name in names and f.default is MISSING and f.default_factory is MISSING
+        ]
+        absent = [n for n in required if n not in data]
+        if absent:
+            raise DataError(f"{path}: not a casmag result (no {', '.join(absent[:3])})")
+        arrays: dict[str, np.ndarray] = {}
+        if (folder / ARRAYS_FILE).is_file():
+            with np.load(folder / ARRAYS_FILE, allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+        return cls(**{k: v for k, v in data.items() if k in names}, arrays=arrays)
 
     def __post_init__(self) -> None:
         if self.verdict is None:
@@ -131,35 +160,30 @@ class Result(Judged):
 
         return save_atomic(out_dir, write)
 
-    @classmethod
-    def load(cls, folder: str | Path) -> Result:
-        """A result saved by :meth:`save`: result.json and, when saved, arrays.npz (arrays
-        saved as None come back absent). Raises DataError naming the file when it is
-        missing or not a casmag result."""
-        folder = Path(folder)
-        path = folder / "result.json"
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, ValueError) as exc:
-            raise DataError(f"{path}: cannot read a casmag result ({exc})") from None
-        names = {f.name for f in fields(cls)} - {"arrays"}
-        required = [
-            f.name
-            for f in fields(cls)
-            if f.name in names and f.default is MISSING and f.default_factory is MISSING
-        ]
-        absent = [n for n in required if not isinstance(data, dict) or n not in data]
-        if absent:
-            raise DataError(f"{path}: not a casmag result (no {', '.join(absent[:3])})")
-        arrays: dict[str, np.ndarray] = {}
-        if (folder / ARRAYS_FILE).is_file():
-            with np.load(folder / ARRAYS_FILE, allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files}
-        return cls(**{k: v for k, v in data.items() if k in names}, arrays=arrays)
-
 
 #: The arrays of a saved result (numpy's npz; names as in Result.arrays).
 ARRAYS_FILE = "arrays.npz"
+
+
+def read_result_json(path: Path) -> dict[str, Any]:
+    """A result.json as a mapping; DataError naming the file when it cannot be read."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: cannot read a casmag result ({exc})") from None
+    if not isinstance(data, dict):
+        raise DataError(f"{path}: not a casmag result (not a JSON object)")
+    return data
+
+
+def result_kind(data: dict[str, Any]) -> str:
+    """``imu`` (errors per stage), ``planar`` (heading errors) or ``translational``: which
+    result class a result.json was saved from."""
+    if isinstance(data.get("errors"), dict) and "gp_slam" in data["errors"]:
+        return "imu"
+    if "heading_rms_deg_before" in data:
+        return "planar"
+    return "translational"
 
 
 def evaluation_of(result: Any) -> dict[str, Any]:

@@ -643,3 +643,15 @@ def test_write_into_missing_folder(tmp_path):
 def test_other_logs_names_for_time_and_field_are_named(tmp_path, header, name, casmag_name):
     msg = _error(_write(tmp_path, _csv(header, GOOD_ROWS)))
     assert f"column '{name}': unknown column (casmag names this column '{casmag_name}')" in msg
+
+
+def test_a_problem_file_given_as_a_recording_is_named(tmp_path):
+    path = tmp_path / "walk.yaml"
+    path.write_text("# a problem\nseed: 1\n")
+    msg = _error(path)
+    assert "not a CSV recording (it reads as YAML" in msg and "casmag solve FILE" in msg
+
+
+def test_a_comment_line_before_the_header_is_named(tmp_path):
+    msg = _error(_write(tmp_path, "# logged by an app\n" + _csv(GOOD_HEADER, GOOD_ROWS)))
+    assert "row 1: a comment line; the first row must be the header" in msg

@@ -37,3 +37,27 @@ def test_the_package_exports_the_recording_entry_points():
 
     assert casmag.slam is slam and casmag.slam_sessions is slam_sessions
     assert {"solve", "slam", "slam_sessions", "load_problem", "Result"} <= set(casmag.__all__)
+
+
+def test_every_result_class_is_loaded_back_and_load_result_tells_them_apart(tmp_path):
+    from small_problems import planar_room_field
+
+    from casmag.imuconfig import load_imu_problem
+    from casmag.imusim import simulate_planar
+    from casmag.imuslam import ImuResult, solve_imu
+    from casmag.planar import PlanarResult, solve_planar
+
+    d = simulate_planar(4, planar_room_field(), size=(2.0, 1.5), loops=1, disp_noise=0.002)
+    planar = solve_planar(*d.U.T, d.Y, t=d.t, truth={"P": d.P, "psi": d.psi})
+    planar.save(tmp_path / "planar", figures=False)
+    tiny = ["simulation.scenario.loops=1", "model.gp.form=none"]
+    imu = solve_imu(load_imu_problem("problems/imu/rectangle.yaml", tiny))
+    imu.save(tmp_path / "imu", figures=False)
+    for folder, cls, original in (("planar", PlanarResult, planar), ("imu", ImuResult, imu)):
+        back = casmag.load_result(tmp_path / folder)
+        assert type(back) is cls and back.status == original.status
+        assert back.verdict == original.verdict
+        np.testing.assert_array_equal(back.arrays["P_estimate"], original.arrays["P_estimate"])
+        assert type(cls.load(tmp_path / folder)) is cls
+        with pytest.raises(DataError, match=f"a {folder} result; read it with"):
+            Result.load(tmp_path / folder)
