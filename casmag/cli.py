@@ -2,9 +2,8 @@
 
 Exit codes: 0 success; 1 the solver failed (IPOPT's status is printed and recorded);
 2 bad input (one line naming the file, the field and the reason; also an output path that
-would lose files); 3 solved but not trusted (the
-verdict's reasons on stderr, casmag.verdict); 130 / 143 interrupted by Ctrl-C /
-SIGTERM (the previous output kept).
+would lose files); 3 solved but not trusted (the verdict's reasons on stderr,
+casmag.verdict); 130 / 143 interrupted by Ctrl-C / SIGTERM (the previous output kept).
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from casmag.outdir import OutputError, check_output_dir
 
 EXIT_SOLVER_FAILED = 1
 EXIT_BAD_INPUT = 2
-EXIT_UNTRUSTED = 3  # solved, but the result is flagged (e.g. a wrong optimum)
+EXIT_UNTRUSTED = 3  # solved, but the verdict does not trust it (casmag.verdict)
 # Interrupted by a signal: 128 + its number (130 SIGINT / Ctrl-C, 143 SIGTERM).
 EXIT_INTERRUPTED = 130
 

@@ -4,8 +4,8 @@
 
 Exit codes: 0 success; 1 IPOPT failed in either stage (its status is printed and recorded in
 result.json with ``success: false``); 2 bad input (one line naming the file, the key and the
-reason; nothing is written); 3 solved, but the result is flagged (``flags`` in result.json,
-e.g. ``wrong_basin``; each flag's reason is printed on stderr).
+reason; nothing is written); 3 solved, but not trusted (``verdict`` in result.json, e.g. a
+``wrong_basin`` flag; each reason is printed on stderr).
 """
 
 from __future__ import annotations
