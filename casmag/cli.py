@@ -183,6 +183,14 @@ def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
     help="Problem file whose model and solver sections override the defaults.",
 )
 @click.option(
+    "--anchor",
+    type=click.Choice(["truth", "origin"]),
+    default="truth",
+    show_default=True,
+    help="Where the estimate starts: the first true pose (when the recording has truth, "
+    "else the origin) or the origin; compare with --align then.",
+)
+@click.option(
     "--no-field-check",
     is_flag=True,
     help="Solve even when the field shows no position information (default: odometry only).",
@@ -195,6 +203,7 @@ def slam(
     no_figures: bool,
     quiet: bool,
     align: str,
+    anchor: str,
     no_field_check: bool,
 ) -> None:
     """GP-SLAM on RECORDINGS (CSV: t, motion increments, mx,my,mz, optional truth).
@@ -225,6 +234,7 @@ def slam(
             quiet,
             field_check=not no_field_check,
             align=align,
+            anchor=anchor,
         )
         return
     progress = None if quiet else print_progress
@@ -240,8 +250,14 @@ def slam(
                 progress=progress,
                 field_check=not no_field_check,
                 on_warning=_warn,
+                anchor=anchor,
             )
         else:
+            if anchor != "truth":
+                raise CasmagError(
+                    "--anchor origin: several sessions need each one's first position in the "
+                    "common frame (their truth)"
+                )
             result = slam_sessions(
                 recordings,
                 problem,

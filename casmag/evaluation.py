@@ -109,7 +109,7 @@ def anchor_info(data: Any, sigma: float) -> dict[str, Any]:
         firsts = np.asarray(data.P_true)[list(getattr(data, "starts", None) or [0])]
         if firsts.shape == anchor.shape and np.allclose(firsts, anchor):
             kind = "first true position"
-    elif not anchor.any():
-        kind = "origin (no truth)"
+    if kind == "given" and not anchor.any():
+        kind = "origin (no truth)" if data.P_true is None else "origin"
     rows = [[float(v) for v in a] for a in anchor]
     return {"kind": kind, "position": rows[0] if len(rows) == 1 else rows, "sigma": sigma}

@@ -121,6 +121,7 @@ def planar_slam(
     quiet: bool,
     field_check: bool = True,
     align: str = "none",
+    anchor: str = "truth",
 ) -> None:
     """``casmag slam`` on a planar recording (``dfwd,dleft,dyaw``): the library's
     :func:`casmag.recslam.slam` (the planar model with a heading-rate bias,
@@ -137,6 +138,7 @@ def planar_slam(
             progress=None if quiet else print_progress,
             field_check=field_check,
             on_warning=lambda line: click.echo(line, err=True),
+            anchor=anchor,
         )
         with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:

@@ -425,10 +425,14 @@ def _map_arrays(
 
 
 def solve_planar_recording(
-    path: Any, options: PlanarOptions | None = None, progress: Progress | None = None
+    path: Any,
+    options: PlanarOptions | None = None,
+    progress: Progress | None = None,
+    anchor: str = "truth",
 ) -> PlanarResult:
     """Read a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.recording``) and solve
-    it; truth columns, when present, are used for evaluation only."""
+    it; truth columns, when present, are used for evaluation only, and (``anchor``
+    ``truth``, the default) for the first pose; ``origin``: the origin, heading 0."""
     rec = read_recording(path)
     if rec.motion != "planar":
         raise DataError(
@@ -450,6 +454,9 @@ def solve_planar_recording(
         t=rec.t,
         progress=progress,
         name=Path(path).stem,
+        **({"p0": np.zeros(2), "psi0": 0.0} if anchor == "origin" else {}),
     )
+    if anchor == "origin":
+        result.info["anchor"]["kind"] = "origin"
     result.info["recording"] = str(path)
     return result

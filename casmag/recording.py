@@ -147,11 +147,13 @@ class Recording:
         """Whether any truth (positions, yaw or quaternions) was recorded."""
         return any(x is not None for x in (self.P_true, self.yaw_true, self.q_true))
 
-    def to_dataset(self) -> Dataset:
+    def to_dataset(self, anchor: str = "truth") -> Dataset:
         """The translational data set: U = increments (N-1, d), Y (N, 3), anchor (d,).
 
-        The anchor is the first true position when the recording has one, else the origin.
-        Raises DataError for motion inputs the solver does not support yet (planar, imu).
+        ``anchor``: ``truth`` (default), the first true position when the recording has
+        one, else the origin; ``origin``: the origin (the estimate in the odometry's frame;
+        compare with the truth after an alignment, casmag.evaluation). Raises DataError for
+        motion inputs the solver does not support yet (planar, imu).
         """
         if self.motion != "translation":
             raise DataError(
@@ -167,8 +169,10 @@ class Recording:
                     f"translation input is {dim}-D"
                 )
             )
-        anchor = self.P_true[0].copy() if self.P_true is not None else np.zeros(dim)
-        return Dataset(U=self.increments, Y=self.Y, anchor=anchor, P_true=self.P_true)
+        start = np.zeros(dim)
+        if anchor == "truth" and self.P_true is not None:
+            start = self.P_true[0].copy()
+        return Dataset(U=self.increments, Y=self.Y, anchor=start, P_true=self.P_true)
 
 
 # --------------------------------------------------------------------------- reading

@@ -328,6 +328,10 @@ def solve_from_two_starts(
     return result
 
 
+#: Where a recording's estimate starts (casmag.recslam.slam's ``anchor``).
+ANCHORS = ("truth", "origin")
+
+
 def slam(
     recording: str | Path,
     problem: str | Path | None = None,
@@ -335,6 +339,7 @@ def slam(
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
     on_warning: Callable[[str], None] | None = None,
+    anchor: str = "truth",
     **sections: Mapping[str, Any],
 ) -> Result | PlanarResult:
     """GP-SLAM on a recording (CSV, see casmag.recording) with the defaults of
@@ -355,13 +360,20 @@ def slam(
     A planar recording (``dfwd,dleft,dyaw``) is solved with the planar heading model
     (:func:`slam_planar`, a :class:`casmag.planar.PlanarResult`). ``sections``: settings as
     keyword arguments, e.g. ``model={"gp": {"lengthscale": 0.3}}``, applied after
-    ``overrides`` (:func:`casmag.config.section_overrides`)."""
+    ``overrides`` (:func:`casmag.config.section_overrides`).
+
+    anchor: where the estimate starts: ``truth`` (default) the first true pose when the
+    recording has truth, else the origin; ``origin`` the origin (heading 0) always, the
+    odometry's frame (then compare with the truth after an alignment, casmag.evaluation).
+    ``info["anchor"]`` records which."""
+    if anchor not in ANCHORS:
+        raise DataError(f"anchor: expected one of {', '.join(ANCHORS)}, got {anchor!r}")
     overrides = [*as_overrides(overrides), *section_overrides(sections)]
     check_recording_overrides(overrides)
     rec = read_recording(recording)
     if rec.motion == "planar":
-        return slam_planar(rec, problem, overrides, progress, field_check, on_warning)
-    data = rec.to_dataset()
+        return slam_planar(rec, problem, overrides, progress, field_check, on_warning, anchor)
+    data = rec.to_dataset(anchor)
     prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
     found = _plausibility(rec, data, prob)
     for line in warning_lines(recording, found):
@@ -455,6 +467,7 @@ def slam_planar(
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
     on_warning: Callable[[str], None] | None = None,
+    anchor: str = "truth",
 ) -> PlanarResult:
     """A planar recording (``dfwd,dleft,dyaw``) with the planar model and a heading-rate
     bias (:func:`casmag.planar.solve_planar_recording`). Settings from the problem file's
@@ -472,9 +485,9 @@ def slam_planar(
     if constant_magnetometer(rec.Y):
         if not field_check:
             refuse_constant_field(rec.path)
-        result = planar_odometry_only(rec)
+        result = planar_odometry_only(rec, anchor)
     else:
-        result = solve_planar_recording(rec.path, options, progress=progress)
+        result = solve_planar_recording(rec.path, options, progress=progress, anchor=anchor)
     result.warnings = found
     a = result.arrays
     if a.get("P_true") is not None and a.get("psi_true") is None:
@@ -484,13 +497,15 @@ def slam_planar(
     return result
 
 
-def planar_odometry_only(rec: Recording) -> PlanarResult:
+def planar_odometry_only(rec: Recording, anchor: str = "truth") -> PlanarResult:
     """The planar dead reckoning as the result of a recording whose magnetometer is constant
     (status ``Odometry_Only``, the reason in ``info.fallback``), started where
-    :func:`casmag.planar.solve_planar` starts: the first true pose, else the origin."""
+    :func:`casmag.planar.solve_planar` starts: the first true pose, else (or with
+    ``anchor`` ``origin``) the origin."""
     P_true = None if rec.P_true is None else rec.P_true[:, :2]
-    p0 = P_true[0] if P_true is not None else np.zeros(2)
-    psi0 = float(rec.yaw_true[0]) if P_true is not None and rec.yaw_true is not None else 0.0
+    known = P_true is not None and anchor == "truth"
+    p0 = P_true[0] if known else np.zeros(2)
+    psi0 = float(rec.yaw_true[0]) if known and rec.yaw_true is not None else 0.0
     P, psi = dead_reckon_planar(rec.increments, np.asarray(p0, dtype=float), psi0)
     errors = (None, None) if P_true is None else rmse_and_max(P, P_true)
     heading = None
@@ -519,7 +534,9 @@ def planar_odometry_only(rec: Recording) -> PlanarResult:
             "name": name,
             "samples": int(rec.n_samples),
             "anchor": {
-                "kind": "first true position" if P_true is not None else "origin (no truth)",
+                "kind": "first true position"
+                if known
+                else ("origin (no truth)" if P_true is None else "origin"),
                 "position": [float(v) for v in p0],
                 "heading_rad": psi0,
             },

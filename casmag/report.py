@@ -192,8 +192,19 @@ class Table:
 
     @property
     def frame(self) -> str:
-        """How the errors were measured: "no alignment" or after which alignment."""
-        return "no alignment" if self.align == "none" else f"after alignment {self.align!r}"
+        """How the errors were measured: the anchor that fixed the runs' frame (when their
+        result.json records it), then "no alignment" or after which alignment."""
+        kinds = sorted(
+            {
+                str(((r.data.get("info") or {}).get("anchor") or {}).get("kind"))
+                for row in self.rows
+                for r in row.runs
+                if r.data is not None and (r.data.get("info") or {}).get("anchor")
+            }
+        )
+        anchored = f"anchored at the {' / '.join(kinds)}, " if kinds else ""
+        how = "no alignment" if self.align == "none" else f"after alignment {self.align!r}"
+        return anchored + how
 
 
 def _read_manifest(path: Path) -> dict[str, Any]:

@@ -20,7 +20,8 @@ so in their titles. The checks:
   ``worse_than_imu_only``, see casmag.imuslam).
 - ``against_truth`` (evaluation only, when the data have truth and the model raises no flags
   of its own): the estimate's RMSE at most :data:`WORSE_RATIO` times that of the trajectory
-  it started from (dead reckoning); worse means the map made the path worse.
+  it started from (dead reckoning); worse means the map made the path worse. In the
+  anchored frame, or after a rigid alignment of each when the frame is the origin's.
 
 A verdict is about what can be seen: a wrong estimate that explains the data as well as
 the right one (a drifted path with a map bent to match) passes the truth-free checks.
@@ -29,6 +30,8 @@ the right one (a drifted path with a map bent to match) passes the truth-free ch
 from __future__ import annotations
 
 from typing import Any
+
+from casmag.evaluation import evaluate_result
 
 #: An estimate more than this factor worse (RMSE against the truth) than the trajectory it
 #: started from is not trusted (the IMU scenarios' criterion of equal quality).
@@ -60,10 +63,15 @@ def magnetometer_misfit(result: Any) -> tuple[float, int] | None:
 
 def _errors(result: Any) -> tuple[float | None, float | None]:
     """(RMSE of the starting trajectory, RMSE of the estimate) against the truth, in the
-    anchored frame."""
+    anchored frame; after a rigid alignment of each (casmag.evaluation) when the frame was
+    not anchored at the truth (``anchor: origin`` on a recording with truth)."""
     errors = getattr(result, "errors", None)
     if isinstance(errors, dict) and "gp_slam" in errors:
         return errors["imu_only"]["rmse"], errors["gp_slam"]["rmse"]
+    kind = str(((result.info or {}).get("anchor") or {}).get("kind", ""))
+    if kind.startswith("origin") and getattr(result, "arrays", None):
+        e = evaluate_result(result, "se")
+        return e["before"]["rmse"], e["after"]["rmse"]
     return result.rmse_before, result.rmse_after
 
 

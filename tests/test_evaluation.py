@@ -151,3 +151,24 @@ def test_planar_results_carry_the_anchor(tmp_path):
     assert r["evaluation"]["align"] == "se"
     assert r["evaluation"]["anchor"]["kind"] == "first true position"
     assert r["evaluation"]["before"]["rmse"] <= r["rmse_before"] + 1e-12
+
+
+def test_the_anchor_is_an_option_and_the_report_states_it(tmp_path):
+    d = simulate_planar(4, planar_room_field(), size=(2.0, 1.5), loops=2, disp_noise=0.002)
+    rec = tmp_path / "walk.csv"
+    write_recording(rec, d.t, d.Y, planar=d.U, P_true=d.P, yaw_true=d.psi)
+    out = tmp_path / "origin"
+    res = _invoke(
+        ["slam", rec, "--out", out, "--anchor", "origin", "--align", "se", "-q", "--no-figures"]
+    )
+    r = json.loads((out / "result.json").read_text())
+    assert res.exit_code == (0 if r["verdict"]["trusted"] else 3), res.output
+    e = r["evaluation"]
+    assert e["anchor"]["kind"] == "origin" and e["anchor"]["position"] == [0.0, 0.0]
+    # the frame is the odometry's: without alignment the error holds the frame's offset
+    assert r["max_before"] >= np.linalg.norm(d.P[0]) - 1e-9  # the first sample: |p_0|
+    assert e["before"]["rmse"] < 0.2 * r["rmse_before"]
+    rep = _invoke(["report", out, "--align", "se"])
+    assert "anchored at the origin, after alignment 'se'" in rep.output
+    sessions = _invoke(["slam", rec, rec, "--out", tmp_path / "two", "--anchor", "origin"])
+    assert sessions.exit_code == 2 and "several sessions" in sessions.output
