@@ -148,6 +148,12 @@ def model_warnings(
     return out + _lengthscale(P, lengthscale)
 
 
+def lengthscale_warnings(P: np.ndarray, lengthscale: float) -> list[dict[str, str]]:
+    """Findings on a map's lengthscale [m] against a path P (N, d): longer than its extent,
+    or shorter than its median step."""
+    return _lengthscale(np.asarray(P, dtype=float), float(lengthscale))
+
+
 def _lengthscale(P: np.ndarray, lengthscale: float) -> list[dict[str, str]]:
     extent = float(np.ptp(P, axis=0).max())
     step = float(np.median(np.linalg.norm(np.diff(P, axis=0), axis=1)))

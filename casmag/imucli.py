@@ -48,6 +48,7 @@ def imu_command(
 ) -> None:
     """Solve an IMU PROBLEM (problems/imu/*.yaml): strapdown, IMU-only adjustment, GP-SLAM.
     Writes result.json, biases.md, trajectory.csv, trajectory.png and cost.png."""
+    from casmag.checks import warning_lines
     from casmag.imuconfig import load_imu_problem, refuse_unused_solver_keys
     from casmag.imuslam import solve_imu
 
@@ -56,6 +57,8 @@ def imu_command(
         refuse_unused_solver_keys(overrides, "casmag imu")
         prob = load_imu_problem(problem, overrides)
         result = solve_imu(prob, progress=None if quiet else print_progress)
+        for line in warning_lines(problem, result.warnings):
+            click.echo(line, err=True)
         with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)

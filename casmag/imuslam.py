@@ -58,6 +58,7 @@ import scipy.linalg
 import scipy.sparse
 
 from casmag import strapdown as sd
+from casmag.checks import lengthscale_warnings
 from casmag.config import SolverSpec
 from casmag.exactgp import add_exact_prior
 from casmag.fieldmap import map_arrays, unwhitened
@@ -1570,7 +1571,8 @@ class ImuResult(Judged):
     RMSE is above :data:`WRONG_BASIN_RATIO` of the IMU-only adjustment's and the last solve
     started from the truth reaches a lower MAP cost; the evidence also gives the
     magnetometer's residual mean square per component in units of sigma_m^2 (about 1 at a
-    right optimum) and the field check's log Bayes factor. ``evaluation``
+    right optimum) and the field check's log Bayes factor. ``warnings``: casmag.checks on
+    the map's lengthscale against the IMU-only path (on stderr too). ``evaluation``
     (casmag.evaluation) and ``verdict`` (casmag.verdict, from ``flags`` and the solver) as
     for every result.
 
@@ -1607,6 +1609,7 @@ class ImuResult(Judged):
     schedules: list[dict[str, Any]] = field(default_factory=list)
     map_decision: str = "map"
     flags: list[dict[str, Any]] = field(default_factory=list)
+    warnings: list[dict[str, Any]] = field(default_factory=list)
     convergence: list[dict[str, Any]] = field(default_factory=list)
     evaluation: dict[str, Any] | None = None
     verdict: dict[str, Any] | None = None
@@ -1678,6 +1681,15 @@ class ImuResult(Judged):
                     map_figure(self, tmp / "map.png")
 
         return save_atomic(out_dir, write)
+
+
+def _map_warnings(problem: ImuProblem, res: ImuSolution) -> list[dict[str, Any]]:
+    """casmag.checks on the map's lengthscale against the IMU-only path (the keyframes'
+    extent and step), when a map was solved."""
+    ell = res.hyperparameters.get("lengthscale")
+    if problem.spec.model.gp.form == "none" or ell is None or not np.isfinite(ell):
+        return []
+    return lengthscale_warnings(res.imu_only.P, ell)
 
 
 def _map_arrays(st: ImuSolveStage) -> dict[str, np.ndarray]:
@@ -1906,6 +1918,7 @@ def solve_imu(
         schedules=res.schedules,
         map_decision=decision,
         flags=flags,
+        warnings=_map_warnings(problem, res),
         convergence=[s1.solution.trace("IMU only")]
         + [
             p.solution.trace(

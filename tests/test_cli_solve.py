@@ -139,3 +139,19 @@ def test_every_imu_file_is_solved_at_tiny_size(tmp_path, path):
     r = json.loads((out / "result.json").read_text())
     assert r["status_imu_only"] == "Solve_Succeeded"
     assert r["errors"]["imu_only"]["rmse"] < r["errors"]["strapdown"]["rmse"]
+
+
+def test_an_imu_map_lengthscale_longer_than_the_path_is_named(tmp_path):
+    out = tmp_path / "out"
+    sets = [
+        "simulation.scenario.loops=1",
+        "model.gp.lengthscale=30",
+        "model.gp.sigma_f=0.1",
+        "solver.max_iter=3",
+    ]
+    args = ["imu", "problems/imu/rectangle.yaml", "--out", str(out), "-q"]
+    res = _invoke([*args, *(x for s in sets for x in ("--set", s))])
+    assert res.exit_code == 1  # three iterations: the solve fails, and says so
+    assert "model.gp.lengthscale: 30 m is longer than the path's extent" in res.stderr
+    r = json.loads((out / "result.json").read_text())
+    assert [w["check"] for w in r["warnings"]] == ["lengthscale"]
