@@ -14,7 +14,7 @@ from casmag.config import Problem, document_kind, load_problem, read_yaml
 from casmag.errors import ProblemError
 from casmag.evaluation import anchor_info
 from casmag.fieldmap import grid_over
-from casmag.imuconfig import ImuProblem
+from casmag.imuconfig import ImuProblem, load_imu_problem
 from casmag.imusim import ImuData
 from casmag.imuslam import ImuResult, solve_imu
 from casmag.metrics import rmse_and_max
@@ -62,13 +62,16 @@ def solve(
     A failed solve is returned with ``success = False`` and IPOPT's ``status``; its error
     fields are None, so a failure is never mistaken for a result.
     """
+    source = str(problem) if isinstance(problem, (str, Path)) else None
+    if source is not None:  # read once: its keys say which kind it is
+        problem = read_yaml(Path(source))
     kind = _kind(problem)
     if kind == "imu":
-        return solve_imu(problem, data, progress)  # type: ignore[arg-type]
+        return solve_imu(load_imu_problem(problem, source=source), data, progress)
     if kind in ("table", "recording"):
         where = "casmag.sweep (casmag sweep FILE)" if kind == "table" else "casmag solve FILE"
-        raise ProblemError(str(problem), "", f"a {kind} file is not one problem; use {where}")
-    problem = load_problem(problem)
+        raise ProblemError(source or "<dict>", "", f"a {kind} file is not one problem; use {where}")
+    problem = load_problem(problem, source=source)
     if data is None:
         data = simulate_problem(problem)
     else:
@@ -191,8 +194,6 @@ def _kind(problem: Any) -> str:
     """The document kind of what :func:`solve` was given (casmag.config.document_kind)."""
     if isinstance(problem, ImuProblem):
         return "imu"
-    if isinstance(problem, (str, Path)):
-        return document_kind(read_yaml(Path(problem)))
     if isinstance(problem, Mapping):
         return document_kind(problem)
     return "translational"

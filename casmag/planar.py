@@ -33,7 +33,7 @@ from casmag.imuslam import (
 from casmag.metrics import rmse_and_max
 from casmag.nlp import NLP
 from casmag.outdir import save_atomic
-from casmag.recording import read_recording
+from casmag.recording import Recording, read_recording
 from casmag.reduced_rank import HilbertBasis, cached_basis
 from casmag.result import Judged, evaluation_of, finite_json, write_arrays
 from casmag.rrmap import make_basis
@@ -430,10 +430,12 @@ def solve_planar_recording(
     progress: Progress | None = None,
     anchor: str = "truth",
 ) -> PlanarResult:
-    """Read a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.recording``) and solve
-    it; truth columns, when present, are used for evaluation only, and (``anchor``
-    ``truth``, the default) for the first pose; ``origin``: the origin, heading 0."""
-    rec = read_recording(path)
+    """Solve a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.recording``: a path,
+    or a Recording already read); truth columns, when present, are used for evaluation
+    only, and (``anchor`` ``truth``, the default) for the first pose; ``origin``: the
+    origin, heading 0."""
+    rec = path if isinstance(path, Recording) else read_recording(path)
+    path = rec.path
     if rec.motion != "planar":
         raise DataError(
             f"{path}: motion input is {rec.motion!r}, the planar model needs dfwd,dleft,dyaw"

@@ -24,6 +24,7 @@ from casmag.config import (
     section_overrides,
 )
 from casmag.errors import DataError, ProblemError
+from casmag.evaluation import anchor_info
 from casmag.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
 from casmag.imuconfig import load_planar_options, refuse_unused_solver_keys
 from casmag.metrics import rmse_and_max
@@ -248,6 +249,7 @@ def odometry_only(problem: Problem, data: Dataset, reason: str) -> Result:
             "name": problem.name,
             "source": problem.source,
             "n_samples": data.n_samples,
+            "anchor": anchor_info(data, problem.spec.model.anchor.sigma),
             "fallback": reason,
             "casmag": __version__,
             "versions": versions(),
@@ -487,7 +489,7 @@ def slam_planar(
             refuse_constant_field(rec.path)
         result = planar_odometry_only(rec, anchor)
     else:
-        result = solve_planar_recording(rec.path, options, progress=progress, anchor=anchor)
+        result = solve_planar_recording(rec, options, progress=progress, anchor=anchor)
     result.warnings = found
     a = result.arrays
     if a.get("P_true") is not None and a.get("psi_true") is None:
