@@ -338,15 +338,17 @@ def convert(
 ) -> None:
     """Turn a recorded sequence into a recording CSV (casmag.realdata's protocol).
 
-    SOURCE is a sequence prefix (DIR/N for DIR/N-time.csv, N-loc.csv, N-mag.csv) or a
-    real-data problem file (problems/real/*.yaml) whose ``recording`` section gives the
-    settings; options override either. Writes OUT and OUT's stem + .json (the protocol
+    SOURCE is a sequence prefix (DIR/N for DIR/N-time.csv, N-loc.csv, N-mag.csv), a
+    handheld recording with the device's pose (a .mat file: t, dPos, quat, m; planar
+    odometry with the publishing paper's noise and a 0.005 rad/s heading-rate bias by
+    default) or a real-data problem file (problems/real/*.yaml) whose ``recording`` section
+    gives the settings; options override either. Writes OUT and OUT's stem + .json (the protocol
     record: clock shift, bias, measured drift).
     """
     import json
 
     from casmag.realbench import load_real_problem, sequence_path
-    from casmag.realdata import Protocol, load_sequence
+    from casmag.realdata import Protocol, arkit_protocol, load_arkit, load_sequence
     from casmag.realdata import convert as convert_sequence
     from casmag.recording import write_recording
 
@@ -362,15 +364,18 @@ def convert(
     if no_align:
         given["align"] = False
     try:
-        if source.suffix in (".yaml", ".yml"):
-            spec = load_real_problem(source)
-            settings = spec.recording.model_dump()
-            prefix = sequence_path(spec, source)
-            settings.pop("sequence")
+        if source.suffix == ".mat":
+            conv = convert_sequence(load_arkit(source), arkit_protocol(**given))
         else:
-            settings, prefix = {}, source
-        settings.update(given)
-        conv = convert_sequence(load_sequence(prefix), Protocol(**settings))
+            if source.suffix in (".yaml", ".yml"):
+                spec = load_real_problem(source)
+                settings = spec.recording.model_dump()
+                prefix = sequence_path(spec, source)
+                settings.pop("sequence")
+            else:
+                settings, prefix = {}, source
+            settings.update(given)
+            conv = convert_sequence(load_sequence(prefix), Protocol(**settings))
         record = out_file.with_suffix(".json")
         write_recording(out_file, **conv.arrays)
         tmp = record.with_name(f".{record.name}.tmp")

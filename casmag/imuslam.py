@@ -75,6 +75,7 @@ from casmag.reduced_rank import HilbertBasis, cached_basis
 from casmag.result import Judged, evaluation_of, finite_json, write_arrays
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
 from casmag.versions import __version__, versions
+from casmag.windowing import continues
 
 Progress = Callable[[int, float, float, float], None]
 
@@ -1532,7 +1533,7 @@ def _grown_pass(
             last = k == K and i == len(factors) - 1
             # An earlier solve only starts the next: the iteration limit does not stop the
             # growth (as casmag.windowing's stages); any other failure does.
-            if not (sol.success or (not last and sol.status == "Maximum_Iterations_Exceeded")):
+            if not continues(sol, last):
                 stopped = True
                 break
         if stopped:

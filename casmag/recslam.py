@@ -26,7 +26,11 @@ from casmag.config import (
 from casmag.errors import DataError, ProblemError
 from casmag.evaluation import anchor_info
 from casmag.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
-from casmag.imuconfig import load_planar_options, refuse_unused_solver_keys
+from casmag.imuconfig import (
+    PLANAR_WARM_START_KEYS,
+    load_planar_options,
+    refuse_unused_solver_keys,
+)
 from casmag.metrics import rmse_and_max
 from casmag.multisession import (
     FIRST_PREFIX,
@@ -478,7 +482,9 @@ def slam_planar(
     position information: the result is the dead reckoning, status ``Odometry_Only``
     (:func:`planar_odometry_only`; with ``field_check`` off, DataError)."""
     overrides = as_overrides(overrides)
-    refuse_unused_solver_keys(overrides, "casmag slam on a planar recording")
+    refuse_unused_solver_keys(
+        overrides, "casmag slam on a planar recording", PLANAR_WARM_START_KEYS
+    )
     options = load_planar_options(problem, overrides)
     found = [*rec.notes, *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)]
     for line in warning_lines(rec.path, found):

@@ -20,8 +20,9 @@ otherwise is reported with IPOPT's status and ends the solve.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -58,6 +59,35 @@ def stage_lengths(n: int, first: int, growth: float) -> list[int]:
     return [*sizes, n]
 
 
+State = TypeVar("State")
+
+
+def continues(sol: Solution, last: bool) -> bool:
+    """Whether growing prefixes go on after a solve: it succeeded, or it stopped at the
+    iteration limit before the last stage (an earlier stage only starts the next); any other
+    failure ends the growth."""
+    return sol.success or (not last and sol.status == "Maximum_Iterations_Exceeded")
+
+
+def grow(
+    sizes: list[int], solve_stage: Callable[[int, State | None, bool], tuple[Solution, State]]
+) -> list[tuple[int, Solution, State]]:
+    """The growing-prefix loop of every motion model: ``solve_stage(k, previous, last)``
+    solves the first k samples (keyframes) from the previous stage's state (None for the
+    first) and returns its solution and state. Returns (k, solution, state) of each stage
+    solved, the last being the full problem unless a stage ended the growth
+    (:func:`continues`)."""
+    out: list[tuple[int, Solution, State]] = []
+    state: State | None = None
+    for k in sizes:
+        last = k == sizes[-1]
+        sol, state = solve_stage(k, state, last)
+        out.append((k, sol, state))
+        if not continues(sol, last):
+            break
+    return out
+
+
 def continued(previous: np.ndarray, dead_reckoning: np.ndarray) -> np.ndarray:
     """(n, d) positions: ``previous`` (m, d) for the first m samples, then the dead
     reckoning shifted so that it continues from the last previous position."""
@@ -74,36 +104,33 @@ def solve_growing(
     (``sol.x["bias"]`` is the total per-step bias), the data set the final stage solved
     (increments with the earlier stages' bias removed) and the stages."""
     ws = problem.spec.solver.warm_start
-    bias_total = np.zeros(data.dim)
-    positions: np.ndarray | None = None
-    stages: list[Stage] = []
     estimate_bias = problem.spec.model.odometry.estimate_bias
-    lengths = stage_lengths(data.n_samples, ws.first_samples, ws.growth)
     stage_problem = problem.with_overrides([f"solver.max_iter={ws.stage_max_iter}"])
-    for n in lengths:
-        last = n == lengths[-1]
+
+    def stage(n: int, prev: tuple | None, last: bool) -> tuple[Solution, tuple]:
+        bias_total = np.zeros(data.dim) if prev is None else prev[-1]
         part = data.prefix(n).debiased(bias_total)
-        start = None if positions is None else continued(positions, part.dead_reckoning())
-        sol, nlp, hyper, field, structure = solve_translational(
-            problem if last else stage_problem, part, progress, start
-        )
-        bias = sol.x.get("bias")
+        start = None if prev is None else continued(prev[0].x["P"], part.dead_reckoning())
+        solved = solve_translational(problem if last else stage_problem, part, progress, start)
+        bias = solved[0].x.get("bias")
         if estimate_bias and bias is not None:
             bias_total = bias_total + np.ravel(bias)
-        stages.append(
-            Stage(
-                samples=n,
-                status=sol.status,
-                success=sol.success,
-                iterations=sol.iterations,
-                solve_seconds=sol.solve_seconds,
-                build_seconds=nlp.build_seconds,
-                bias=[float(v) for v in bias_total] if estimate_bias else None,
-            )
+        return solved[0], (*solved, part, bias_total)
+
+    solved = grow(stage_lengths(data.n_samples, ws.first_samples, ws.growth), stage)
+    stages = [
+        Stage(
+            samples=n,
+            status=so.status,
+            success=so.success,
+            iterations=so.iterations,
+            solve_seconds=so.solve_seconds,
+            build_seconds=state[1].build_seconds,
+            bias=[float(v) for v in state[-1]] if estimate_bias else None,
         )
-        if not (sol.success or (not last and sol.status == "Maximum_Iterations_Exceeded")):
-            break
-        positions = sol.x["P"]
+        for n, so, state in solved
+    ]
+    sol, nlp, hyper, field, structure, part, bias_total = solved[-1][2]
     if estimate_bias:
         sol.x["bias"] = bias_total.reshape(1, -1)
     return sol, nlp, hyper, field, structure, part, stages

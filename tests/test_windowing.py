@@ -232,3 +232,34 @@ def test_without_the_bias_prior_short_windows_run_away():
         assert sm.completed
         err[prior] = np.abs(sm.bias - data.bias_true).max()
     assert err["none"] > 1.0e-3 and err["laplace"] < 2.5e-4, err
+
+
+@pytest.mark.parametrize(
+    ("statuses", "solved"),
+    [
+        (["Solve_Succeeded"] * 3, 3),
+        (["Maximum_Iterations_Exceeded", "Solve_Succeeded", "Solve_Succeeded"], 3),
+        (["Solve_Succeeded", "Restoration_Failed", "Solve_Succeeded"], 2),
+        (["Solve_Succeeded", "Solve_Succeeded", "Maximum_Iterations_Exceeded"], 3),
+    ],
+)
+def test_grow_goes_on_past_an_early_iteration_limit_and_stops_at_any_other_failure(
+    statuses, solved
+):
+    """casmag.windowing.grow, the loop every motion model's growing prefixes run: each stage
+    gets the previous one's state; an earlier stage at the iteration limit still starts the
+    next, any other failure ends the growth."""
+    from types import SimpleNamespace
+
+    from casmag.windowing import grow
+
+    seen = []
+
+    def stage(k, prev, last):
+        seen.append((k, prev, last))
+        status = statuses[len(seen) - 1]
+        return SimpleNamespace(status=status, success=status == "Solve_Succeeded"), k
+
+    out = grow([10, 20, 40], stage)
+    assert [k for k, _, _ in out] == [10, 20, 40][:solved]
+    assert seen == [(10, None, False), (20, 10, False), (40, 20, True)][:solved]
