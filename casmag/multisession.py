@@ -36,6 +36,7 @@ import numpy as np
 from casmag.api import solve
 from casmag.config import Problem
 from casmag.metrics import rmse_and_max
+from casmag.nlp import lowest_cost
 from casmag.result import Result
 from casmag.simulate import Dataset
 from casmag.translational import solve_translational
@@ -227,10 +228,10 @@ def solve_two_starts(problem: Problem, data: Dataset) -> tuple[np.ndarray, list[
         sol_g, nlp_g, _, _, _, solved, _ = solve_growing(grow, data)
         if solved.n_samples == data.n_samples:
             tried.append((sol_g, _stage(data, sol_g, nlp_g, "growing prefixes")))
-    ok = [t for t in tried if t[0].success]
-    if not ok:
+    i = lowest_cost([t[0] for t in tried], [t[1]["cost"] for t in tried])
+    if i is None:
         return data.dead_reckoning(), [t[1] for t in tried]
-    best = min(ok, key=lambda t: t[1]["cost"])
+    best = tried[i]
     for _, st in tried:
         st["kept"] = st is best[1]
     return best[0].x["P"], [t[1] for t in tried]

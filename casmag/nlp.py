@@ -10,7 +10,7 @@ warm starts), which is what sweeps and windowing rely on.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -299,6 +299,17 @@ class Solution:
             "inf_pr": list(self.inf_pr_per_iteration),
             "inf_du": list(self.inf_du_per_iteration),
         }
+
+
+def lowest_cost(
+    solutions: Sequence[Solution], costs: Sequence[float | None] | None = None
+) -> int | None:
+    """Index of the successful solution with the lowest MAP cost (``costs``, by default
+    each solution's objective), None when none succeeded: how every choice among several
+    starts is made (two starts of a recording, heading-bias starts, hyperparameter starts)."""
+    values = [s.objective for s in solutions] if costs is None else list(costs)
+    ok = [i for i, s in enumerate(solutions) if s.success]
+    return min(ok, key=lambda i: values[i]) if ok else None
 
 
 @dataclass

@@ -31,7 +31,7 @@ from casmag.imuslam import (
     whiten,
 )
 from casmag.metrics import rmse_and_max
-from casmag.nlp import NLP
+from casmag.nlp import NLP, lowest_cost
 from casmag.outdir import save_atomic
 from casmag.recording import Recording, read_recording
 from casmag.reduced_rank import HilbertBasis, cached_basis
@@ -408,8 +408,8 @@ def solve_planar(
              "iterations": so.iterations}
             for b0, so in solves
         ]  # fmt: skip
-        ok = [i for i, (_, so) in enumerate(solves) if so.success]
-        best = min(ok, key=lambda i: solves[i][1].objective) if ok else 0
+        best = lowest_cost([so for _, so in solves])
+        best = 0 if best is None else best  # none succeeded: the dead reckoning's
         sol = solves[best][1]
         for i, st in enumerate(starts):
             st["kept"] = i == best

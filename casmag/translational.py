@@ -34,7 +34,7 @@ from casmag.fieldmap import field_at, reduced_rank_std
 from casmag.hyper import estimate_conditional
 from casmag.kernels import FIELD_DIM, get_kernel
 from casmag.knots import Knots
-from casmag.nlp import NLP, NLPBuilder, Solution
+from casmag.nlp import NLP, NLPBuilder, Solution, lowest_cost
 from casmag.reduced_rank import HilbertBasis, cached_basis
 from casmag.rrmap import (
     GaussNewtonHessian,
@@ -462,7 +462,13 @@ def _better_of_two_starts(
         x0_assumed[f"log_{h}"] = np.log(value)
     other = nlp.solve(params, x0_assumed, progress=progress)
     solves = {"marginal_likelihood": (ml, sol), "assumed": (dict(start["assumed"]), other)}
-    chosen = min(solves, key=lambda k: (not solves[k][1].success, solves[k][1].objective))
+    names = list(solves)
+    best_ok = lowest_cost([solves[k][1] for k in names])
+    chosen = (
+        names[best_ok]
+        if best_ok is not None
+        else min(names, key=lambda k: solves[k][1].objective)  # both failed: the lower
+    )
     start["solves"] = {
         k: {
             "start": v,

@@ -263,3 +263,19 @@ def test_grow_goes_on_past_an_early_iteration_limit_and_stops_at_any_other_failu
     out = grow([10, 20, 40], stage)
     assert [k for k, _, _ in out] == [10, 20, 40][:solved]
     assert seen == [(10, None, False), (20, 10, False), (40, 20, True)][:solved]
+
+
+def test_lowest_cost_keeps_the_cheapest_successful_start():
+    """casmag.nlp.lowest_cost, the choice among starts of every model: a failed solve is
+    never kept however low its cost; none succeeded gives None; costs may be given."""
+    from types import SimpleNamespace
+
+    from casmag.nlp import lowest_cost
+
+    def sol(ok, f):
+        return SimpleNamespace(success=ok, objective=f)
+
+    assert lowest_cost([sol(True, 3.0), sol(False, 1.0), sol(True, 2.0)]) == 2
+    assert lowest_cost([sol(False, 1.0), sol(False, 0.5)]) is None
+    assert lowest_cost([sol(True, 3.0), sol(True, 2.0)], costs=[1.0, 5.0]) == 0
+    assert lowest_cost([sol(True, 2.0), sol(True, 2.0)]) == 0  # ties: the first
