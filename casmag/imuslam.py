@@ -75,7 +75,7 @@ from casmag.reduced_rank import HilbertBasis, cached_basis
 from casmag.result import Judged, evaluation_of, finite_json, write_arrays
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
 from casmag.versions import __version__, versions
-from casmag.windowing import continues
+from casmag.windowing import continues, grow
 
 Progress = Callable[[int, float, float, float], None]
 
@@ -1496,17 +1496,18 @@ def _grown_pass(
     K = kf.idx.size
     full = _start_from(prev, data)
     records: list[dict[str, Any]] = []
-    st: ImuSolveStage | None = None
-    start: dict[str, Any] = {}
-    stopped = False
-    for k in grow_sizes(K, fractions):
-        if st is None:
+
+    def stage(
+        k: int, before: tuple[ImuSolveStage, Any, dict[str, Any]] | None, last_prefix: bool
+    ) -> tuple[Solution, tuple[ImuSolveStage, Any, dict[str, Any]]]:
+        if before is None:
             start = {
                 name: (v[:k] if name in ("P", "V", "Q") or v.shape[0] == K else v)
                 for name, v in full.items()
             }
         else:
-            start = continue_start(start, st, prev, k)
+            start = continue_start(before[2], before[0], prev, k)
+        st: ImuSolveStage | None = None
         for i, factor in enumerate(factors):
             if i > 0:  # the same basis: the map weights carry over (reduced rank)
                 start = _start_from(st, data)
@@ -1530,15 +1531,15 @@ def _grown_pass(
                 }
             )
             st.grow = list(records)
-            last = k == K and i == len(factors) - 1
             # An earlier solve only starts the next: the iteration limit does not stop the
-            # growth (as casmag.windowing's stages); any other failure does.
-            if not continues(sol, last):
-                stopped = True
+            # growth (casmag.windowing.continues, as every model's stages); any other failure
+            # does.
+            if not continues(sol, last_prefix and i == len(factors) - 1):
                 break
-        if stopped:
-            break
-    assert st is not None
+        assert st is not None
+        return st.solution, (st, s2, start)
+
+    st, s2, _ = grow(grow_sizes(K, fractions), stage)[-1][2]
     size = s2.hilbert_basis().num_basis if problem.spec.model.gp.form == "reduced_rank" else None
     return st, s2, size
 
@@ -1586,6 +1587,8 @@ class ImuResult(Judged):
     (casmag.fieldmap)."""
 
     KIND = "imu"
+    #: Its flags compare GP-SLAM with the IMU-only adjustment (strapdown is no reference).
+    FLAGS_JUDGE_TRUTH = True
 
     info: dict[str, Any]
     status: str

@@ -17,11 +17,13 @@ so in their titles. The checks:
   nothing about an estimate whose map absorbed the path's error (real sequence 1: 0.08,
   RMSE no better than the dead reckoning).
 - ``flags``: what a model's own checks raised (IMU problems: ``wrong_basin``,
-  ``worse_than_imu_only``, see casmag.imuslam).
-- ``against_truth`` (evaluation only, when the data have truth and the model raises no flags
-  of its own): the estimate's RMSE at most :data:`WORSE_RATIO` times that of the trajectory
-  it started from (dead reckoning); worse means the map made the path worse. In the
-  anchored frame, or after a rigid alignment of each when the frame is the origin's.
+  ``worse_than_imu_only``, see casmag.imuslam; planar recordings with truth:
+  ``wrong_basin``, see casmag.planar).
+- ``against_truth`` (evaluation only, when the data have truth and the model's flags do not
+  judge the estimate against the truth themselves, as the IMU model's do): the estimate's
+  RMSE at most :data:`WORSE_RATIO` times that of the trajectory it started from (dead
+  reckoning); worse means the map made the path worse. In the anchored frame, or after a
+  rigid alignment of each when the frame is the origin's.
 
 A verdict is about what can be seen: a wrong estimate that explains the data as well as
 the right one (a drifted path with a map bent to match) passes the truth-free checks.
@@ -102,7 +104,7 @@ def verdict(result: Any) -> dict[str, Any]:
     if flags is not None:
         checks["flags"] = {"passed": not flags, "names": [f["name"] for f in flags]}
         reasons.extend(f"{f['name']}: {f['reason']}" for f in flags)
-    else:
+    if flags is None or not getattr(result, "FLAGS_JUDGE_TRUTH", False):
         before, after = _errors(result)
         if result.success and before is not None and after is not None:
             ok = after <= WORSE_RATIO * before

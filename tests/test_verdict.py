@@ -54,9 +54,12 @@ def test_a_failed_solve_and_a_models_own_flags_are_reasons():
     v = verdict(_result(success=False, status="Maximum_Iterations_Exceeded"))
     assert not v["trusted"] and "Maximum_Iterations_Exceeded" in v["reasons"][0]
     flag = {"name": "wrong_basin", "reason": "the truth costs less", "evidence": {}}
-    v = verdict(_result(flags=[flag]))
+    v = verdict(_result(flags=[flag], FLAGS_JUDGE_TRUTH=True))
     assert v["reasons"] == ["wrong_basin: the truth costs less"]
-    assert "against_truth" not in v["checks"]  # the model's flags judge it against the truth
+    assert "against_truth" not in v["checks"]  # the IMU model's flags judge it against the truth
+    v = verdict(_result(flags=[flag]))  # the planar model's: the truth is checked too
+    assert v["reasons"] == ["wrong_basin: the truth costs less"]
+    assert v["checks"]["against_truth"]["passed"] is True
 
 
 def test_the_base_case_is_trusted_and_says_so_in_result_json(tmp_path):
