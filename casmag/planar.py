@@ -308,15 +308,20 @@ def solve_planar(
     sigma_lin = options.sigma_lin
     if sigma_lin is None:
         sigma_lin = float(np.abs(Y_local.mean(axis=0)).max() + Y_local.std()) or 1.0
-    hb = make_basis(options.kernel, P_dr, float(ell), options.num_basis, options.margin)
-    s = PlanarStructure(
-        n=n,
-        bias=options.bias,
-        kernel=options.kernel,
-        basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
-        solver=options.solver.model_dump_json(),
-        curvature=options.curvature,
-    )
+
+    def structure(k: int, around: np.ndarray, solver: Any) -> PlanarStructure:
+        """The first k samples' problem, its map box around the positions ``around``."""
+        hb = make_basis(options.kernel, around, float(ell), options.num_basis, options.margin)
+        return PlanarStructure(
+            n=k,
+            bias=options.bias,
+            kernel=options.kernel,
+            basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
+            solver=solver.model_dump_json(),
+            curvature=options.curvature,
+        )
+
+    s = structure(n, P_dr, options.solver)
     nlp = cached_planar_nlp(s)
     params: dict[str, Any] = {
         "U": U,
@@ -347,15 +352,7 @@ def solve_planar(
         if k == n and stage_solver is options.solver:
             nlp_k, basis_k, params_k = nlp, basis, params
         else:
-            hb_k = make_basis(options.kernel, P0, float(ell), options.num_basis, options.margin)
-            s_k = PlanarStructure(
-                n=k,
-                bias=options.bias,
-                kernel=options.kernel,
-                basis=(tuple(hb_k.domain.center), tuple(hb_k.domain.half_width), hb_k.num_basis),
-                solver=stage_solver.model_dump_json(),
-                curvature=options.curvature,
-            )
+            s_k = structure(k, P0, stage_solver)
             nlp_k, basis_k = cached_planar_nlp(s_k), s_k.hilbert_basis()
             params_k = {**params, "U": U[: k - 1], "dt": dt[: k - 1].reshape(-1, 1), "Y": Y[:k]}
         Y0 = sd.rotate(sd.quat_from_euler(0.0 * psi_0, 0.0 * psi_0, psi_0), Y[:k])
