@@ -195,6 +195,14 @@ def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
     is_flag=True,
     help="Solve even when the field shows no position information (default: odometry only).",
 )
+@click.option(
+    "--mag-lag",
+    type=float,
+    default=None,
+    metavar="SECONDS",
+    help="Remove this magnetometer lag behind the motion first (casmag estimates it and "
+    "warns when it is a sample or more; result.json info.magnetometer_lag).",
+)
 def slam(
     recordings: tuple[Path, ...],
     out_dir: Path,
@@ -205,6 +213,7 @@ def slam(
     align: str,
     anchor: str,
     no_field_check: bool,
+    mag_lag: float | None,
 ) -> None:
     """GP-SLAM on RECORDINGS (CSV: t, motion increments, mx,my,mz, optional truth).
 
@@ -235,6 +244,7 @@ def slam(
             field_check=not no_field_check,
             align=align,
             anchor=anchor,
+            mag_lag=mag_lag,
         )
         return
     progress = None if quiet else print_progress
@@ -251,8 +261,11 @@ def slam(
                 field_check=not no_field_check,
                 on_warning=_warn,
                 anchor=anchor,
+                mag_lag=mag_lag,
             )
         else:
+            if mag_lag:
+                raise CasmagError("--mag-lag: one recording at a time")
             if anchor != "truth":
                 raise CasmagError(
                     "--anchor origin: several sessions need each one's first position in the "

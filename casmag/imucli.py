@@ -125,6 +125,7 @@ def planar_slam(
     field_check: bool = True,
     align: str = "none",
     anchor: str = "truth",
+    mag_lag: float | None = None,
 ) -> None:
     """``casmag slam`` on a planar recording (``dfwd,dleft,dyaw``): the library's
     :func:`casmag.recslam.slam` (the planar model with a heading-rate bias,
@@ -142,6 +143,7 @@ def planar_slam(
             field_check=field_check,
             on_warning=lambda line: click.echo(line, err=True),
             anchor=anchor,
+            mag_lag=mag_lag,
         )
         with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:

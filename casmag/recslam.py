@@ -7,14 +7,17 @@ added one at a time, two starts kept by cost)."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
 from casmag.api import solve
 from casmag.checks import model_warnings, recording_warnings, warning_lines
+from casmag.clock import LagEstimate, estimate_lag, lag_warning, shift_magnetometer
 from casmag.config import (
     Problem,
     as_overrides,
@@ -346,6 +349,7 @@ def slam(
     field_check: bool = True,
     on_warning: Callable[[str], None] | None = None,
     anchor: str = "truth",
+    mag_lag: float | None = None,
     **sections: Mapping[str, Any],
 ) -> Result | PlanarResult:
     """GP-SLAM on a recording (CSV, see casmag.recording) with the defaults of
@@ -371,17 +375,30 @@ def slam(
     anchor: where the estimate starts: ``truth`` (default) the first true pose when the
     recording has truth, else the origin; ``origin`` the origin (heading 0) always, the
     odometry's frame (then compare with the truth after an alignment, casmag.evaluation).
-    ``info["anchor"]`` records which."""
+    ``info["anchor"]`` records which.
+
+    The magnetometer's lag behind the motion is estimated from the dead reckoning
+    (casmag.clock) and recorded in ``info["magnetometer_lag"]``, with a warning when it is a
+    sample or more; ``mag_lag`` [s] removes a lag (``casmag slam --mag-lag``) before
+    anything else."""
     if anchor not in ANCHORS:
         raise DataError(f"anchor: expected one of {', '.join(ANCHORS)}, got {anchor!r}")
     overrides = [*as_overrides(overrides), *section_overrides(sections)]
     check_recording_overrides(overrides)
-    rec = read_recording(recording)
+    rec = with_lag_removed(read_recording(recording), mag_lag)
     if rec.motion == "planar":
-        return slam_planar(rec, problem, overrides, progress, field_check, on_warning, anchor)
+        return slam_planar(
+            rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag
+        )
     data = rec.to_dataset(anchor)
     prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
-    found = _plausibility(rec, data, prob)
+    hyper = SimpleNamespace(
+        sigma_f=prob.assumed_sigma_f,
+        lengthscale=prob.assumed_lengthscale,
+        sigma_m=prob.assumed_sigma_m,
+    )
+    lag = estimate_lag(rec.t, data.dead_reckoning(), rec.Y, hyper)
+    found = _plausibility(rec, data, prob) + lag_warning(lag)
     for line in warning_lines(recording, found):
         if on_warning is not None:
             on_warning(line)
@@ -393,8 +410,41 @@ def slam(
         result = solve_from_two_starts(prob, data, progress)
     result.info["recording"] = str(recording)
     result.info["defaults"] = how
+    result.info["magnetometer_lag"] = _lag_record(lag, mag_lag)
     result.warnings = found
     return result
+
+
+def with_lag_removed(rec: Recording, mag_lag: float | None) -> Recording:
+    """The recording with a magnetometer lag of ``mag_lag`` seconds removed (unchanged for
+    None or 0), the change noted as a warning."""
+    if not mag_lag:
+        return rec
+    note = {
+        "check": "magnetometer_lag",
+        "column": "mx,my,mz",
+        "reason": f"shifted by {mag_lag:g} s (a lag removed as asked)",
+    }
+    return dataclasses.replace(
+        rec, Y=shift_magnetometer(rec.t, rec.Y, mag_lag), notes=(*rec.notes, note)
+    )
+
+
+def _lag_record(lag: LagEstimate | None, applied: float | None) -> dict[str, Any]:
+    """``info["magnetometer_lag"]``: the estimate (after any lag removed) and what was
+    removed."""
+    return {"removed_seconds": applied or 0.0, "estimate": None if lag is None else lag.to_dict()}
+
+
+def _planar_lag(rec: Recording) -> LagEstimate | None:
+    """The magnetometer lag of a planar recording: its field turned into the world frame
+    along the dead-reckoned heading, against the dead-reckoned path (from the origin)."""
+    inc = rec.increments
+    P, psi = dead_reckon_planar(inc, np.zeros(2), 0.0)
+    c, s = np.cos(psi), np.sin(psi)
+    Y = rec.Y
+    world = np.column_stack([c * Y[:, 0] - s * Y[:, 1], s * Y[:, 0] + c * Y[:, 1], Y[:, 2]])
+    return estimate_lag(rec.t, P, world)
 
 
 def _plausibility(rec: Recording, data: Dataset, prob: Problem) -> list[dict[str, str]]:
@@ -474,6 +524,7 @@ def slam_planar(
     field_check: bool = True,
     on_warning: Callable[[str], None] | None = None,
     anchor: str = "truth",
+    mag_lag: float | None = None,
 ) -> PlanarResult:
     """A planar recording (``dfwd,dleft,dyaw``) with the planar model and a heading-rate
     bias (:func:`casmag.planar.solve_planar_recording`). Settings from the problem file's
@@ -486,7 +537,12 @@ def slam_planar(
         overrides, "casmag slam on a planar recording", PLANAR_WARM_START_KEYS
     )
     options = load_planar_options(problem, overrides)
-    found = [*rec.notes, *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)]
+    lag = _planar_lag(rec)
+    found = [
+        *rec.notes,
+        *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
+        *lag_warning(lag),
+    ]
     for line in warning_lines(rec.path, found):
         if on_warning is not None:
             on_warning(line)
@@ -497,6 +553,7 @@ def slam_planar(
     else:
         result = solve_planar_recording(rec, options, progress=progress, anchor=anchor)
     result.warnings = found
+    result.info["magnetometer_lag"] = _lag_record(lag, mag_lag)
     a = result.arrays
     if a.get("P_true") is not None and a.get("psi_true") is None:
         # True positions without a true heading: the heading column is written empty

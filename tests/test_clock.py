@@ -1,0 +1,96 @@
+"""The magnetometer's lag behind the motion, estimated without truth (casmag.clock) and
+removed on request (casmag slam --mag-lag)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from small_problems import tiny_walk
+
+from casmag.cli import main
+from casmag.clock import estimate_lag, shift_magnetometer
+from casmag.realdata import convert, load_sequence
+from casmag.recording import dataset_to_recording_arrays, write_recording
+from casmag.recslam import slam
+from casmag.simulate import simulate_problem
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data" / "magnetic-data" / "invensense"
+
+
+def _walk(lag_samples: int, drift: float = 0.3, seed: int = 0):
+    """A 10 Hz walk over a smooth field (uT) whose magnetometer lags the motion by
+    ``lag_samples`` samples, and a dead reckoning drifting ``drift`` m."""
+    rng = np.random.default_rng(seed)
+    n = 1200
+    t = np.arange(n) / 10.0
+    P = np.column_stack([2.5 * np.cos(0.3 * t) + 0.5 * np.sin(1.1 * t), 1.5 * np.sin(0.4 * t)])
+    x, y = P[:, 0], P[:, 1]
+    F = np.column_stack(
+        [20 + 6 * np.sin(3.1 * x) * np.cos(2.7 * y), -5 + 5 * np.cos(2.3 * x), -40 + 4 * y]
+    )
+    k = np.clip(np.arange(n) - lag_samples, 0, n - 1)  # sample k: the field at k - lag
+    Y = F[k] + 0.05 * rng.standard_normal(F.shape)
+    P_dr = P + np.outer(t / t[-1], [drift, -0.5 * drift])
+    return t, P_dr, Y
+
+
+@pytest.mark.parametrize("lag_samples", [0, 2, 3, -2])
+def test_the_lag_is_found_from_the_dead_reckoning(lag_samples):
+    t, P_dr, Y = _walk(lag_samples)
+    est = estimate_lag(t, P_dr, Y)
+    assert est.lag_seconds == pytest.approx(lag_samples / 10.0, abs=0.041)
+    assert est.significant is (lag_samples != 0)
+    # Removing it leaves nothing to find.
+    again = estimate_lag(t, P_dr, shift_magnetometer(t, Y, est.lag_seconds))
+    assert abs(again.lag_seconds) <= 0.041 and not again.significant
+
+
+def test_too_short_a_recording_gives_no_estimate():
+    t, P_dr, Y = _walk(0)
+    assert estimate_lag(t[:150], P_dr[:150], Y[:150]) is None
+
+
+@pytest.mark.skipif(
+    not (SHARED / "5-time.csv").is_file(),
+    reason=f"real data not found at {SHARED} (../shared beside the repository)",
+)
+def test_robot_sequence_lag_without_truth_matches_the_motion_capture_one():
+    """Sequence 5 at its recorded timing, 0.5 m of drift: the lag found from the dead
+    reckoning is within 0.05 s of the one the motion capture gives (0.28 s)."""
+    seq = load_sequence(SHARED / "5")
+    from casmag.realdata import Protocol, clock_offset
+
+    truth_based = -clock_offset(seq)[1]["shift_seconds"]
+    a = convert(seq, Protocol(drift=0.5, seed=1, align=False)).arrays
+    P_dr = np.vstack([a["P_true"][0], a["P_true"][0] + np.cumsum(a["dxy"], axis=0)])
+    est = estimate_lag(a["t"], P_dr, a["Y"])
+    assert est.significant and est.lag_seconds == pytest.approx(truth_based, abs=0.05)
+
+
+def test_slam_reports_a_lag_and_removes_one_on_request(tmp_path):
+    data = simulate_problem(tiny_walk(["simulation.trajectory.samples=600"]))
+    arrays = dataset_to_recording_arrays(data, dt=0.1)
+    arrays["Y"] = np.vstack([np.repeat(arrays["Y"][:3], 1, axis=0), arrays["Y"][:-3]])
+    path = tmp_path / "late.csv"
+    write_recording(path, **arrays)
+    lines = []
+    r = slam(path, on_warning=lines.append)
+    lag = r.info["magnetometer_lag"]
+    assert lag["removed_seconds"] == 0.0
+    assert lag["estimate"]["lag_seconds"] == pytest.approx(0.3, abs=0.05)
+    assert any("appears to lag the motion by 0.3" in ln for ln in lines)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["slam", str(path), "--out", str(out), "-q", "--mag-lag", "0.3"])
+    assert res.exit_code in (0, 3), res.output
+    saved = json.loads((out / "result.json").read_text())
+    assert saved["info"]["magnetometer_lag"]["removed_seconds"] == 0.3
+    assert abs(saved["info"]["magnetometer_lag"]["estimate"]["lag_seconds"]) <= 0.05
+    assert "appears to lag" not in res.output
+    assert any(w["check"] == "magnetometer_lag" for w in saved["warnings"])
+    res = CliRunner().invoke(
+        main, ["slam", str(path), str(path), "--out", str(tmp_path / "o2"), "--mag-lag", "0.3"]
+    )
+    assert res.exit_code == 2 and "--mag-lag: one recording at a time" in res.output
