@@ -2,7 +2,6 @@
 removed on request (casmag slam --mag-lag)."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,13 +10,9 @@ from small_problems import tiny_walk
 
 from casmag.cli import main
 from casmag.clock import estimate_lag, shift_magnetometer
-from casmag.realdata import convert, load_sequence
 from casmag.recording import dataset_to_recording_arrays, write_recording
 from casmag.recslam import slam
 from casmag.simulate import simulate_problem
-
-ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "data" / "magnetic-data" / "invensense"
 
 
 def _walk(lag_samples: int, drift: float = 0.3, seed: int = 0):
@@ -53,23 +48,6 @@ def test_too_short_a_recording_gives_no_estimate():
     assert estimate_lag(t[:150], P_dr[:150], Y[:150]) is None
 
 
-@pytest.mark.skipif(
-    not (SHARED / "5-time.csv").is_file(),
-    reason=f"real data not found at {SHARED} (../shared beside the repository)",
-)
-def test_robot_sequence_lag_without_truth_matches_the_motion_capture_one():
-    """Sequence 5 at its recorded timing, 0.5 m of drift: the lag found from the dead
-    reckoning is within 0.05 s of the one the motion capture gives (0.28 s)."""
-    seq = load_sequence(SHARED / "5")
-    from casmag.realdata import Protocol, clock_offset
-
-    truth_based = -clock_offset(seq)[1]["shift_seconds"]
-    a = convert(seq, Protocol(drift=0.5, seed=1, align=False)).arrays
-    P_dr = np.vstack([a["P_true"][0], a["P_true"][0] + np.cumsum(a["dxy"], axis=0)])
-    est = estimate_lag(a["t"], P_dr, a["Y"])
-    assert est.significant and est.lag_seconds == pytest.approx(truth_based, abs=0.05)
-
-
 def test_slam_reports_a_lag_and_removes_one_on_request(tmp_path):
     data = simulate_problem(tiny_walk(["simulation.trajectory.samples=600"]))
     arrays = dataset_to_recording_arrays(data, dt=0.1)
@@ -77,14 +55,15 @@ def test_slam_reports_a_lag_and_removes_one_on_request(tmp_path):
     path = tmp_path / "late.csv"
     write_recording(path, **arrays)
     lines = []
-    r = slam(path, on_warning=lines.append)
+    r = slam(path, on_warning=lines.append, field_check=False, solver={"max_iter": 1})
     lag = r.info["magnetometer_lag"]
     assert lag["removed_seconds"] == 0.0
     assert lag["estimate"]["lag_seconds"] == pytest.approx(0.3, abs=0.05)
     assert any("appears to lag the motion by 0.3" in ln for ln in lines)
     out = tmp_path / "out"
-    res = CliRunner().invoke(main, ["slam", str(path), "--out", str(out), "-q", "--mag-lag", "0.3"])
-    assert res.exit_code in (0, 3), res.output
+    args = ["slam", str(path), "--out", str(out), "-q", "--mag-lag", "0.3"]
+    res = CliRunner().invoke(main, [*args, "--no-field-check", "--set", "solver.max_iter=1"])
+    assert res.exit_code == 1, res.output  # one iteration: the solve is not the point
     saved = json.loads((out / "result.json").read_text())
     assert saved["info"]["magnetometer_lag"]["removed_seconds"] == 0.3
     assert abs(saved["info"]["magnetometer_lag"]["estimate"]["lag_seconds"]) <= 0.05
