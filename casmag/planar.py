@@ -347,8 +347,9 @@ def solve_planar(
     def solve_prefix(
         k: int, P0: np.ndarray, psi_0: np.ndarray, bias0: np.ndarray, stage_solver: Any
     ) -> tuple[Any, NLP, HilbertBasis]:
-        """The first k samples' problem from (P0, psi_0, bias0), its map box around P0
-        (k = n with the full solver: the batch, box around the dead reckoning)."""
+        """The first k samples' problem from (P0, psi_0, bias0), its map box around P0;
+        k = n with the full solver is the batch's problem, its box around the dead
+        reckoning (also the last growing stage's, and the solve from the truth's)."""
         if k == n and stage_solver is options.solver:
             nlp_k, basis_k, params_k = nlp, basis, params
         else:
