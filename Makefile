@@ -28,8 +28,11 @@ demo: $(STAMP) ## Solve the paper's base case; writes results/demo/ (table, figu
 	$(VENV)/bin/casmag report results/demo --out results/demo/table.md
 	@cat results/demo/table.md
 
+# One worker per core (pytest-xdist), a test file's tests on one worker so that a module's
+# fixtures are built once. PYTEST_ARGS=-n0 runs them in this process, one after another.
+PYTEST_ARGS ?= -n auto --dist loadfile
 test: $(STAMP) ## Run the test suite (under 10 minutes)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 # uv resolves the lock for every platform (--universal) at Python 3.11; the lock's own tool
 # lives in its own environment so that it never enters casmag's.
@@ -54,7 +57,7 @@ test-lowest: ## Run the test suite on the lower bounds in pyproject.toml (.venv-
 	$(LOWEST)/bin/python -m pip install --quiet -r $(LOWEST)/requirements.txt
 	$(LOWEST)/bin/python -m pip install --quiet --no-deps -e .
 	$(LOWEST)/bin/python -c 'import casmag.versions as v; print(v.line())'
-	$(LOWEST)/bin/python -m pytest -q
+	$(LOWEST)/bin/python -m pytest -q $(PYTEST_ARGS)
 
 # The whole suite on the newest versions the ranges in pyproject.toml allow (no lock), in
 # its own environment made anew each time.
@@ -65,7 +68,7 @@ test-latest: ## Run the test suite on the newest versions pyproject.toml allows 
 	$(LATEST)/bin/python -m pip install --quiet --upgrade pip
 	$(LATEST)/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -e '.[dev]'
 	$(LATEST)/bin/python -c 'import casmag.versions as v; print(v.line())'
-	$(LATEST)/bin/python -m pytest -q
+	$(LATEST)/bin/python -m pytest -q $(PYTEST_ARGS)
 
 # The paper's Tables 1-5 (problems/paper/table*.yaml): SEEDS seeds per row, runs saved under
 # $(PAPER)/runs/ (resumable: finished runs are skipped), tables and figures in $(PAPER)/.
