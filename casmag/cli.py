@@ -9,7 +9,7 @@ casmag.verdict); 130 / 143 interrupted by Ctrl-C / SIGTERM (the previous output 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -40,6 +40,20 @@ if TYPE_CHECKING:
 @click.version_option(package_name="casmag")
 def main() -> None:
     """casmag: magnetic-field SLAM with a Gaussian-process map (CasADi + IPOPT)."""
+
+
+class LagParam(click.ParamType):
+    """Seconds (a float) or ``auto``."""
+
+    name = "lag"
+
+    def convert(self, value: Any, param: Any, ctx: Any) -> float | str:
+        if isinstance(value, float) or value == "auto":
+            return value
+        try:
+            return float(value)
+        except ValueError:
+            self.fail(f"expected seconds or 'auto', got {value!r}", param, ctx)
 
 
 @main.command()
@@ -197,11 +211,18 @@ def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
 )
 @click.option(
     "--mag-lag",
-    type=float,
+    type=LagParam(),
     default=None,
-    metavar="SECONDS",
-    help="Remove this magnetometer lag behind the motion first (casmag estimates it and "
-    "warns when it is a sample or more; result.json info.magnetometer_lag).",
+    metavar="SECONDS|auto",
+    help="Remove this magnetometer lag behind the motion first; 'auto' removes the one "
+    "casmag estimates when it is clear (translational recordings). Without it casmag "
+    "estimates the lag and warns (result.json info.magnetometer_lag).",
+)
+@click.option(
+    "--refit-noise",
+    is_flag=True,
+    help="Estimate sigma_m again where the path returns and solve again with it when it is "
+    "clearly larger (translational recordings; casmag.recslam.refit_sigma_m).",
 )
 def slam(
     recordings: tuple[Path, ...],
@@ -213,7 +234,8 @@ def slam(
     align: str,
     anchor: str,
     no_field_check: bool,
-    mag_lag: float | None,
+    mag_lag: float | str | None,
+    refit_noise: bool,
 ) -> None:
     """GP-SLAM on RECORDINGS (CSV: t, motion increments, mx,my,mz, optional truth).
 
@@ -234,6 +256,12 @@ def slam(
 
     recording = recordings[0]
     if len(recordings) == 1 and is_planar_recording(recording):  # the planar heading model
+        if mag_lag == "auto" or refit_noise:
+            fail(
+                f"{recording}: --mag-lag auto and --refit-noise are for translational "
+                "recordings; this one is planar",
+                EXIT_BAD_INPUT,
+            )
         planar_slam(
             recording,
             out_dir,
@@ -262,10 +290,11 @@ def slam(
                 on_warning=_warn,
                 anchor=anchor,
                 mag_lag=mag_lag,
+                refit_noise=refit_noise,
             )
         else:
-            if mag_lag:
-                raise CasmagError("--mag-lag: one recording at a time")
+            if mag_lag or refit_noise:
+                raise CasmagError("--mag-lag, --refit-noise: one recording at a time")
             if anchor != "truth":
                 raise CasmagError(
                     "--anchor origin: several sessions need each one's first position in the "

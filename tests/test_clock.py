@@ -48,7 +48,7 @@ def test_too_short_a_recording_gives_no_estimate():
     assert estimate_lag(t[:150], P_dr[:150], Y[:150]) is None
 
 
-def test_slam_reports_a_lag_and_removes_one_on_request(tmp_path):
+def test_slam_reports_a_lag_removes_it_on_request_or_when_asked_to_find_it(tmp_path):
     data = simulate_problem(tiny_walk(["simulation.trajectory.samples=600"]))
     arrays = dataset_to_recording_arrays(data, dt=0.1)
     arrays["Y"] = np.vstack([np.repeat(arrays["Y"][:3], 1, axis=0), arrays["Y"][:-3]])
@@ -60,6 +60,16 @@ def test_slam_reports_a_lag_and_removes_one_on_request(tmp_path):
     assert lag["removed_seconds"] == 0.0
     assert lag["estimate"]["lag_seconds"] == pytest.approx(0.3, abs=0.05)
     assert any("appears to lag the motion by 0.3" in ln for ln in lines)
+    lines = []
+    r = slam(
+        path, on_warning=lines.append, field_check=False, solver={"max_iter": 1}, mag_lag="auto"
+    )
+    lag = r.info["magnetometer_lag"]
+    assert lag["removed_seconds"] == lag["estimate"]["lag_seconds"]
+    assert lag["removed_seconds"] == pytest.approx(0.3, abs=0.05)
+    assert any("estimated from the dead reckoning" in ln for ln in lines)
+    assert not any("appears to lag" in ln for ln in lines)
+    np.testing.assert_allclose(r.arrays["Y"][10:-10], data.Y[10:-10], atol=0.05 * np.ptp(data.Y))
     out = tmp_path / "out"
     args = ["slam", str(path), "--out", str(out), "-q", "--mag-lag", "0.3"]
     res = CliRunner().invoke(main, [*args, "--no-field-check", "--set", "solver.max_iter=1"])
@@ -72,4 +82,28 @@ def test_slam_reports_a_lag_and_removes_one_on_request(tmp_path):
     res = CliRunner().invoke(
         main, ["slam", str(path), str(path), "--out", str(tmp_path / "o2"), "--mag-lag", "0.3"]
     )
-    assert res.exit_code == 2 and "--mag-lag: one recording at a time" in res.output
+    assert res.exit_code == 2 and "--mag-lag, --refit-noise: one recording at a time" in res.output
+    res = CliRunner().invoke(
+        main, ["slam", str(path), "--out", str(tmp_path / "o3"), "--mag-lag", "x"]
+    )
+    assert res.exit_code == 2 and "expected seconds or 'auto', got 'x'" in res.output
+
+
+def test_refit_noise_solves_again_with_the_noise_that_does_not_repeat(tmp_path):
+    """A slow magnetometer error (period 60 s, 6 sigma_m): the windowed likelihood reads it
+    as field, the revisits do not; with --refit-noise the MAP is solved again from the
+    first estimate with their sigma_m, and info.sigma_m_refit says so."""
+    problem = tiny_walk(["simulation.trajectory.samples=600"])
+    data = simulate_problem(problem)
+    arrays = dataset_to_recording_arrays(data, dt=0.1)
+    t = 0.1 * np.arange(arrays["Y"].shape[0])
+    slow = np.sin(2.0 * np.pi * t[:, None] / 60.0 + np.array([0.0, 2.0, 4.0]))
+    arrays["Y"] = arrays["Y"] + 6.0 * problem.assumed_sigma_m * slow
+    path = tmp_path / "slow.csv"
+    write_recording(path, **arrays)
+    r = slam(path, field_check=False, refit_noise=True)
+    refit = r.info["sigma_m_refit"]
+    assert refit["refit"] and refit["kept"] == "refit" and refit["pairs"] >= 30
+    assert refit["revisit"] > 1.5 * refit["first"]
+    assert r.hyperparameters["sigma_m"] == refit["revisit"]
+    assert "sigma_m_refit" not in slam(path, field_check=False, solver={"max_iter": 1}).info

@@ -14,7 +14,8 @@ from casmag import plotting
 from casmag.cli import main
 from casmag.imusim import simulate_planar
 from casmag.recording import write_recording
-from casmag.verdict import MISFIT_LIMIT, WORSE_RATIO, verdict
+from casmag.recslam import revisit_noise
+from casmag.verdict import MISFIT_LIMIT, WORSE_RATIO, revisit_fraction, verdict
 
 
 def _result(**kw):
@@ -67,8 +68,10 @@ def test_the_base_case_is_trusted_and_says_so_in_result_json(tmp_path):
     assert r.trusted and set(r.verdict["checks"]) == {
         "solver",
         "magnetometer_misfit",
+        "revisits",
         "against_truth",
     }
+    assert r.verdict["checks"]["revisits"]["fraction"] > 0.5  # the paper's path loops
     r.save(tmp_path / "out", figures=False)
     saved = json.loads((tmp_path / "out" / "result.json").read_text())
     assert saved["verdict"] == r.verdict
@@ -110,3 +113,56 @@ def test_the_report_counts_solved_runs_it_does_not_trust(tmp_path, worse_recordi
     assert res.exit_code == 0, res.output
     row = next(ln for ln in res.output.splitlines() if ln.startswith("| After SLAM"))
     assert "1/1 (not trusted x1)" in row
+
+
+def _loop(turns: float, n: int = 400, radius: float = 1.0) -> np.ndarray:
+    a = np.linspace(0.0, 2.0 * np.pi * turns, n)
+    return radius * np.column_stack([np.cos(a), np.sin(a)])
+
+
+def test_revisits_are_counted_after_two_lengthscales_of_path():
+    line = np.column_stack([np.linspace(0.0, 10.0, 200), np.zeros(200)])
+    assert revisit_fraction(line, 0.3) == (0.0, 0)  # neighbours are not revisits
+    share, pairs = revisit_fraction(_loop(2.0), 0.3)  # every sample comes back once
+    assert share == pytest.approx(1.0) and pairs > 400
+    share, _ = revisit_fraction(_loop(1.25), 0.3)  # the last quarter turn returns
+    assert 0.3 < share < 0.6
+
+
+def test_a_translational_path_that_never_returns_is_not_trusted():
+    line = np.column_stack([np.linspace(0.0, 10.0, 100), np.zeros(100)])
+    hyper = {"lengthscale": 0.3}
+    v = verdict(_result(KIND="translational", arrays={"P_estimate": line}, hyperparameters=hyper))
+    assert not v["trusted"] and v["checks"]["revisits"]["fraction"] == 0.0
+    assert "no loop closure" in v["reasons"][0]
+    loop = _loop(2.0, 100)
+    v = verdict(_result(KIND="translational", arrays={"P_estimate": loop}, hyperparameters=hyper))
+    assert v["trusted"] and v["checks"]["revisits"]["passed"]
+    # The heading models' magnetometer is also a compass; the dead reckoning has no map.
+    assert (
+        "revisits"
+        not in verdict(_result(KIND="planar", arrays={"P_estimate": line}, hyperparameters=hyper))[
+            "checks"
+        ]
+    )
+    v = verdict(
+        _result(
+            KIND="translational",
+            status="Odometry_Only",
+            arrays={"P_estimate": line},
+            hyperparameters=hyper,
+        )
+    )
+    assert "revisits" not in v["checks"]
+
+
+def test_revisit_noise_is_the_noise_that_does_not_repeat():
+    """Two passes over a loop: a field that repeats cancels (the map's, at the same place);
+    noise independent between the passes remains, its standard deviation per component."""
+    rng = np.random.default_rng(4)
+    P = _loop(2.0, 2000)
+    field = np.column_stack([np.sin(3 * P[:, 0]), np.cos(2 * P[:, 1]), P[:, 0] * P[:, 1]])
+    Y = field + 0.2 * rng.standard_normal(field.shape)
+    noise, pairs = revisit_noise(P, Y, field, 0.3)
+    assert pairs > 1000 and noise == pytest.approx(0.2, rel=0.1)
+    assert np.isnan(revisit_noise(P[:500], Y[:500], field[:500], 0.3)[0])
