@@ -16,15 +16,16 @@ and 5 against 0.26, 0.24 and 0.28 s found with the motion-capture truth
 exploratory search with other windows: 0.26-0.28 s on all five, 0.18-0.28 s with truth).
 A lag left in the data limits the estimate to about speed x lag (0.06-0.07 m here):
 sequences 3 and 5 (0.5 m of drift, seeds 3 and 5, sigma_m 2 uT) reached 0.056 m on
-sequence 5 with the lag in the data and 0.013 / 0.019 m (sequences 5 / 3) with the
-estimated lag removed. With the windowed marginal likelihood's sigma_m (0.4-0.8 uT) removing
+sequence 5 with the lag in the data and 0.013 / 0.019 m (sequences 5 / 3) with 0.28 /
+0.24 s removed. With the windowed marginal likelihood's sigma_m (0.4-0.8 uT) removing
 it alone changed little (0.069 -> 0.080 m, 0.059 -> 0.041 m): that noise level also has
 to come from where the path returns (casmag.recslam.refit_sigma_m).
 
-``casmag slam`` records the estimate in ``info["magnetometer_lag"]`` and, on a
-translational recording, removes a significant one before the problem is made;
-``--mag-lag SECONDS`` (``casmag.slam(..., mag_lag=...)``) removes a given lag instead, and 0
-keeps the recorded timing.
+``casmag slam`` records the estimate in ``info["magnetometer_lag"]`` and warns when it is a
+sample or more; ``--mag-lag SECONDS`` (``casmag.slam(..., mag_lag=...)``) removes a given
+lag, ``--mag-lag auto`` the estimated one when it is significant (translational
+recordings; with ``--refit-noise``, see casmag.recslam.refit_sigma_m, for the reasons it
+is not the default).
 """
 
 from __future__ import annotations
