@@ -412,7 +412,7 @@ def slam(
     lag = estimate_lag(rec.t, data.dead_reckoning(), rec.Y, _assumed(prob))
     removed = None if auto else mag_lag
     if auto and lag is not None and lag.significant:
-        # A clear lag is removed (AUTO_LAG), the problem made again on the shifted data.
+        # --mag-lag auto: a clear lag is removed, the problem made again on the shifted data.
         removed = lag.lag_seconds
         rec = with_lag_removed(raw, removed, "estimated from the dead reckoning")
         data = rec.to_dataset(anchor)
@@ -455,7 +455,7 @@ def revisit_noise(
     P: np.ndarray, Y: np.ndarray, M: np.ndarray, lengthscale: float
 ) -> tuple[float, int]:
     """(noise per magnetometer component that does not repeat where the path returns, pairs):
-    RMS over revisit pairs (casmag.verdict.revisit_fraction's) of the difference of their
+    RMS over revisit pairs (casmag.verdict.revisit_pairs) of the difference of their
     residuals y - m(p), over sqrt(2). The map's own variation between the two samples
     cancels in the difference; what remains is what the same place does not give twice
     (sensor noise, and the errors a white-noise model cannot hold: a tilt, a height, a
