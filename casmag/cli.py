@@ -251,17 +251,15 @@ def slam(
     shows them.
     """
     from casmag.imucli import is_planar_recording, planar_slam
+    from casmag.recslam import refuse_translational_options, slam_sessions
     from casmag.recslam import slam as run_slam
-    from casmag.recslam import slam_sessions
 
     recording = recordings[0]
     if len(recordings) == 1 and is_planar_recording(recording):  # the planar heading model
-        if mag_lag == "auto" or refit_noise:
-            fail(
-                f"{recording}: --mag-lag auto and --refit-noise are for translational "
-                "recordings; this one is planar",
-                EXIT_BAD_INPUT,
-            )
+        try:
+            refuse_translational_options(recording, mag_lag, refit_noise)
+        except CasmagError as exc:
+            fail(str(exc), EXIT_BAD_INPUT)
         planar_slam(
             recording,
             out_dir,

@@ -399,11 +399,7 @@ def slam(
     raw = read_recording(recording)
     rec = with_lag_removed(raw, None if auto else mag_lag)
     if rec.motion == "planar":
-        if auto or refit_noise:
-            raise DataError(
-                f"{recording}: --mag-lag auto and --refit-noise are for translational "
-                "recordings; this one is planar"
-            )
+        refuse_translational_options(recording, mag_lag, refit_noise)
         return slam_planar(
             rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag
         )
@@ -434,6 +430,18 @@ def slam(
     result.info["magnetometer_lag"] = _lag_record(lag, removed)
     result.warnings = found
     return result
+
+
+def refuse_translational_options(
+    recording: str | Path, mag_lag: float | str | None, refit_noise: bool
+) -> None:
+    """DataError for ``mag_lag="auto"`` or ``refit_noise`` on a planar recording (they are
+    made for translational ones)."""
+    if mag_lag == "auto" or refit_noise:
+        raise DataError(
+            f"{recording}: --mag-lag auto and --refit-noise are for translational "
+            "recordings; this one is planar"
+        )
 
 
 def _assumed(prob: Problem) -> SimpleNamespace:

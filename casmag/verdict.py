@@ -96,14 +96,13 @@ def revisit_pairs(P: np.ndarray, lengthscale: float) -> np.ndarray:
 
 
 def revisit_fraction(P: np.ndarray, lengthscale: float) -> tuple[float, int]:
-    """(share of the samples of path P (N, d) that have a revisit, number of revisit pairs):
-    pairs within REVISIT_RADIUS lengthscales of each other with at least REVISIT_SEPARATION
-    lengthscales of path between them."""
-    P = np.asarray(P, dtype=float)
-    if P.shape[0] < 2:
+    """(share of the samples of path P (N, d) that have a revisit, number of revisit pairs,
+    :func:`revisit_pairs`)."""
+    n = np.shape(P)[0]
+    if n < 2:
         return 0.0, 0
     pairs = revisit_pairs(P, lengthscale)
-    hit = np.zeros(P.shape[0], dtype=bool)
+    hit = np.zeros(n, dtype=bool)
     hit[pairs.ravel()] = True
     return float(hit.mean()), int(pairs.shape[0])
 
