@@ -16,10 +16,9 @@ from casmag.evaluation import anchor_info
 from casmag.fieldmap import grid_over
 from casmag.imuconfig import ImuProblem, load_imu_problem
 from casmag.imusim import ImuData
-from casmag.imuslam import ImuResult, solve_imu
+from casmag.imuslam import solve_imu
 from casmag.metrics import rmse_and_max
-from casmag.planar import PlanarResult
-from casmag.result import Result, read_result_json, result_kind
+from casmag.result import Result
 from casmag.simulate import Dataset, simulate_problem
 from casmag.sliding import solve_coarse_to_fine, solve_sliding
 from casmag.translational import (
@@ -45,13 +44,14 @@ def solve(
     data: Dataset | ImuData | None = None,
     progress: Callable[[int, float, float, float], None] | None = None,
     initial_positions: np.ndarray | None = None,
-) -> Result | ImuResult:
+) -> Result:
     """Solve a GP-SLAM problem and return its result.
 
     problem: a Problem, a YAML path or a dictionary (validated with :func:`load_problem`).
     A problem of the IMU model (an ImuProblem, or a file or dictionary whose keys say so,
-    casmag.config.document_kind) is solved by :func:`casmag.imuslam.solve_imu` (an
-    ImuResult); a table file or a real-data problem file is refused naming its entry point.
+    casmag.config.document_kind) is solved by :func:`casmag.imuslam.solve_imu` (a Result
+    with ``motion`` imu); a table file or a real-data problem file is refused naming its
+    entry point.
     data: the data set to use; simulated from the problem (with its seed) when omitted.
     Data not simulated (no ``M_true``, e.g. a recording) need the model's noise and GP
     settings given (or estimated): a null there means "the simulation's value" and is
@@ -156,10 +156,7 @@ def solve(
         odometry_bias_true=None
         if data.bias_true is None
         else [float(v) for v in np.ravel(data.bias_true)],
-        cost_blocks={
-            n: {"before": sol.blocks_before[n], "after": sol.blocks_after[n]}
-            for n in sol.blocks_before
-        },
+        cost_blocks=sol.cost_blocks(),
         cost_per_iteration=sol.cost_per_iteration,
         constraint_violation_per_iteration=sol.inf_pr_per_iteration,
         uncertainty=uncertainty,
@@ -181,13 +178,10 @@ def solve(
     )
 
 
-def load_result(folder: str | Path) -> Result | PlanarResult | ImuResult:
-    """Any saved result folder (result.json, arrays.npz): a translational ``Result``, a
-    planar ``PlanarResult`` or an IMU ``ImuResult``, by what its result.json holds."""
-    path = Path(folder) / "result.json"
-    kind = result_kind(read_result_json(path))
-    cls = {"imu": ImuResult, "planar": PlanarResult}.get(kind, Result)
-    return cls.load(folder)
+def load_result(folder: str | Path) -> Result:
+    """Any saved result folder (result.json, arrays.npz) of any motion model
+    (:meth:`casmag.result.Result.load`)."""
+    return Result.load(folder)
 
 
 def _kind(problem: Any) -> str:

@@ -41,8 +41,9 @@ HOMOGENEOUS_TOLERANCE = 0.05
 
 def _solves(r: Any) -> list[dict[str, Any]]:
     """Every IPOPT solve of a result: the IMU-only adjustment, each pass (each prefix)."""
-    out = [{"stage": "imu_only", "status": r.status_imu_only, "iterations": r.iterations_imu_only}]
-    for i, p in enumerate(r.gp_slam_passes):
+    imu_only = r.stage("imu_only")
+    out = [{"stage": "imu_only", **{k: imu_only[k] for k in ("status", "iterations")}}]
+    for i, p in enumerate(r.stages_named("gp_slam")):
         for g in p.get("grow") or [p]:
             out.append(
                 {"stage": f"gp_slam_{i}", "status": g["status"], "iterations": g["iterations"]}
@@ -80,8 +81,8 @@ def run_one(path: Path, seed: int) -> dict[str, Any]:
         )
         return record
     solves = _solves(r)
-    e = r.errors
-    gyro, acc = r.biases["gyro"], r.biases["acc"]
+    e = r.details["errors"]
+    gyro, acc = r.details["biases"]["gyro"], r.details["biases"]["acc"]
 
     def bias_error(b: dict[str, Any]) -> list[float] | None:
         if b["truth"] is None or b["gp_slam"] is None:
@@ -91,12 +92,12 @@ def run_one(path: Path, seed: int) -> dict[str, Any]:
     record.update(
         status=r.status,
         success=r.success,
-        map_decision=r.map_decision,
+        map_decision=r.details["map_decision"],
         flags=[f["name"] for f in r.flags],
         solves=solves,
         # The GP-SLAM schedules run (model.gp.coarse_to_fine): the kept one's solves are
         # ``solves``; every one's iterations, final status, MAP cost and misfit are here.
-        schedules=r.schedules,
+        schedules=r.details["schedules"],
         max_iterations=max(s["iterations"] for s in solves),
         total_iterations=sum(s["iterations"] for s in solves),
         all_succeeded=all(s["status"] == "Solve_Succeeded" for s in solves),
@@ -106,7 +107,7 @@ def run_one(path: Path, seed: int) -> dict[str, Any]:
         gyro_bias_error_deg_s=bias_error(gyro),
         gyro_bias_truth_deg_s=gyro["truth"],
         acc_bias_error=bias_error(acc),
-        solve_seconds=r.solve_seconds_imu_only + r.solve_seconds,
+        solve_seconds=r.stage("imu_only")["solve_seconds"] + r.solve_seconds,
         build_seconds=r.build_seconds,
         wall_seconds=time.perf_counter() - t0,
     )

@@ -30,6 +30,7 @@ from casmag.clitools import (
     with_evaluation,
 )
 from casmag.errors import CasmagError
+from casmag.result import bias_table
 
 if TYPE_CHECKING:
     pass
@@ -65,9 +66,11 @@ def imu_command(
     except INPUT_ERRORS as exc:
         fail_bad_input(problem, exc)
     if not result.success:
-        stage = "IMU-only adjustment" if result.failed_stage == "imu_only" else "GP-SLAM"
-        grow = result.gp_slam_passes[-1].get("grow") if result.gp_slam_passes else None
-        if result.failed_stage == "gp_slam" and grow:
+        failed = result.details["failed_stage"]
+        stage = "IMU-only adjustment" if failed == "imu_only" else "GP-SLAM"
+        passes = result.stages_named("gp_slam")
+        grow = passes[-1].get("grow") if passes else None
+        if failed == "gp_slam" and grow:
             stage += f" (prefix of {grow[-1]['keyframes']} of {result.info['keyframes']} keyframes)"
         fail(
             f"{problem}: IPOPT failed in the {stage}: status {result.status} after "
@@ -75,11 +78,13 @@ def imu_command(
             EXIT_SOLVER_FAILED,
         )
     if not quiet:
-        e = result.errors
-        its = " + ".join(_pass_iterations(p) for p in result.gp_slam_passes) or "0"
+        e = result.details["errors"]
+        imu_only = result.stage("imu_only") or {}
+        passes = result.stages_named("gp_slam")
+        its = " + ".join(_pass_iterations(p) for p in passes) or "0"
         line = (
-            f"{result.info['name']}: {result.status}, {result.iterations_imu_only} (IMU only) + "
-            f"{its} (GP-SLAM) iterations, {result.solve_seconds_imu_only:.1f} + "
+            f"{result.info['name']}: {result.status}, {imu_only['iterations']} (IMU only) + "
+            f"{its} (GP-SLAM) iterations, {imu_only['solve_seconds']:.1f} + "
             f"{result.solve_seconds:.1f} s solve ({result.build_seconds:.1f} s build)"
         )
         if e["gp_slam"]["rmse"] is not None:
@@ -88,13 +93,14 @@ def imu_command(
                 f"{e['imu_only']['rmse']:.4g} m, GP-SLAM {e['gp_slam']['rmse']:.4g} m; "
                 f"orientation RMS {e['gp_slam']['orientation_rms_deg']:.3f} deg"
             )
-        if result.map_decision.startswith("homogeneous"):
+        if result.details["map_decision"].startswith("homogeneous"):
+            evidence = result.details["field_evidence"]
             line += (
                 f"; field homogeneous (log Bayes factor "
-                f"{result.field_evidence['log_bayes_factor']:.2f}): IMU-only adjustment kept"
+                f"{evidence['log_bayes_factor']:.2f}): IMU-only adjustment kept"
             )
         click.echo(line)
-        click.echo(result.bias_table(), nl=False)
+        click.echo(bias_table(result.details, result.stages), nl=False)
         click.echo(f"wrote {out_dir}/")
     exit_untrusted(result, problem)
 
@@ -163,8 +169,9 @@ def planar_slam(
         )
         if result.rmse_before is not None:
             line += f"; RMSE {result.rmse_before:.4f} -> {result.rmse_after:.4f} m"
-        if result.bias is not None and len(result.bias) == 1:
-            line += f"; heading-rate bias {np.degrees(result.bias[0]):.4f} deg/s"
+        bias = result.odometry_bias
+        if bias is not None and len(bias) == 1:
+            line += f"; heading-rate bias {np.degrees(bias[0]):.4f} deg/s"
         click.echo(line)
         click.echo(f"wrote {out_dir}/")
     exit_untrusted(result, recording)

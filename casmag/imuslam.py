@@ -70,9 +70,8 @@ from casmag.kernels import FIELD_DIM, field_covariance, get_kernel
 from casmag.knots import Knots
 from casmag.metrics import rmse_and_max
 from casmag.nlp import NLP, STALLED, NLPBuilder, Solution
-from casmag.outdir import save_atomic
 from casmag.reduced_rank import HilbertBasis, cached_basis
-from casmag.result import Judged, evaluation_of, finite_json, write_arrays
+from casmag.result import Result
 from casmag.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
 from casmag.versions import __version__, versions
 from casmag.windowing import continues, grow
@@ -1545,148 +1544,6 @@ def _grown_pass(
 
 
 # --------------------------------------------------------------------------- result
-@dataclass
-class ImuResult(Judged):
-    """Outcome of an IMU problem: both stages, errors against the truth and biases.
-
-    Position errors [m] and orientation errors [deg] are at keyframes, against the truth,
-    without alignment (the frame is fixed by the initial-state priors). ``biases``: per axis
-    (x, y, z) gyroscope [deg/s] and accelerometer [m/s^2] biases averaged over the run: the
-    truth's, the IMU-only adjustment's and GP-SLAM's (the layout of the paper's Table 6).
-    A failed stage (``failed_stage``: "imu_only" or "gp_slam") leaves its errors and those
-    of the stages after it None; ``status`` and ``iterations`` are the last solve's (each
-    stage's iterations summed over its re-centred IPOPT runs, ``rounds``: see
-    ``_solve_recentred``),
-    ``solve_seconds`` sums the GP-SLAM passes (each listed in ``gp_slam_passes``; a pass
-    grown on prefixes, ``model.gp.grow``, lists each solve under ``grow`` with
-    ``iterations_total`` and ``solve_seconds_total`` over them, its ``iterations`` being
-    the last solve's, and ``solve_seconds`` counts all of them).
-
-    ``map_decision``: ``map`` (the GP-SLAM estimate), ``homogeneous: IMU only`` (the field
-    check found no position information in the field, ``model.gp.homogeneous``: the
-    ``gp_slam`` errors and biases are then the IMU-only adjustment's, and the GP-SLAM
-    pass's are under ``gp_slam_map``) or ``none`` (no map). ``field_evidence``: the check's
-    numbers (:class:`FieldEvidence`).
-
-    ``flags``: what speaks against a successful estimate, each ``{"name", "reason",
-    "evidence"}``: ``wrong_basin`` (simulations) when the map was solved, GP-SLAM's position
-    RMSE is above :data:`WRONG_BASIN_RATIO` of the IMU-only adjustment's and the last solve
-    started from the truth reaches a lower MAP cost; the evidence also gives the
-    magnetometer's residual mean square per component in units of sigma_m^2 (about 1 at a
-    right optimum) and the field check's log Bayes factor. ``warnings``: casmag.checks on
-    the map's lengthscale against the IMU-only path (on stderr too). ``evaluation``
-    (casmag.evaluation) and ``verdict`` (casmag.verdict, from ``flags`` and the solver) as
-    for every result.
-
-    Arrays (K keyframes, a G x G map grid): ``t`` (K,) [s]; ``P_strapdown``,
-    ``P_imu_only``, ``P_estimate``, ``P_true`` (K, 3) [m] (``P_gp_slam_map``: the rejected
-    map pass when the field was found homogeneous); ``att_err_imu_only_deg``,
-    ``att_err_est_deg`` (K,) [deg], orientation error against the truth; with a
-    reduced-rank map, ``map_x``, ``map_y`` (G, G) [m], ``map_z`` (the grid's height [m]),
-    ``map_field``, ``map_std``, ``map_prior_std`` (G, G, 3) [field units]
-    (casmag.fieldmap)."""
-
-    KIND = "imu"
-    #: Its flags compare GP-SLAM with the IMU-only adjustment (strapdown is no reference).
-    FLAGS_JUDGE_TRUTH = True
-
-    info: dict[str, Any]
-    status: str
-    success: bool
-    iterations: int
-    status_imu_only: str
-    iterations_imu_only: int
-    rounds_imu_only: int
-    failed_stage: str | None
-    build_seconds: float
-    solve_seconds: float
-    solve_seconds_imu_only: float
-    gp_slam_passes: list[dict[str, Any]]
-    errors: dict[str, dict[str, float | None]]
-    biases: dict[str, dict[str, list[float] | None]]
-    hyperparameters: dict[str, float]
-    hyperparameters_source: str
-    cost_blocks: dict[str, dict[str, dict[str, float]]]
-    cost_per_iteration: list[float]
-    cost_per_iteration_imu_only: list[float]
-    field_evidence: dict[str, Any] | None = None
-    schedules: list[dict[str, Any]] = field(default_factory=list)
-    map_decision: str = "map"
-    flags: list[dict[str, Any]] = field(default_factory=list)
-    warnings: list[dict[str, Any]] = field(default_factory=list)
-    convergence: list[dict[str, Any]] = field(default_factory=list)
-    evaluation: dict[str, Any] | None = None
-    verdict: dict[str, Any] | None = None
-    arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
-
-    @property
-    def rmse_after(self) -> float | None:
-        return self.errors["gp_slam"]["rmse"]
-
-    def to_dict(self) -> dict[str, Any]:
-
-        d = {k: v for k, v in self.__dict__.items() if k != "arrays"}
-        d["evaluation"] = evaluation_of(self)
-        d["units"] = {
-            "errors": "position m, orientation deg, at keyframes, no alignment",
-            "gyro_bias": "deg/s",
-            "acc_bias": "m/s^2",
-            "seconds": "wall-clock s",
-        }
-        return finite_json(d)
-
-    def bias_table(self) -> str:
-        """Markdown table of true and recovered biases (the paper's Table 6 layout)."""
-        b = self.biases
-        cols = [("true", "truth"), ("IMU only", "imu_only"), ("GP-SLAM", "gp_slam")]
-        head = (
-            "| axis | "
-            + " | ".join(f"gyro bias {c} [deg/s]" for c, _ in cols)
-            + " | "
-            + " | ".join(f"acc bias {c} [m/s^2]" for c, _ in cols)
-            + " |"
-        )
-        lines = [head, "|" + "---|" * (1 + 2 * len(cols))]
-        for i, ax in enumerate("XYZ"):
-            g = [_fmt(b["gyro"][k], i) for _, k in cols]
-            a = [_fmt(b["acc"][k], i) for _, k in cols]
-            lines.append(f"| {ax} | " + " | ".join(g + a) + " |")
-        if self.map_decision.startswith("homogeneous"):
-            lines.append("")
-            rest = (
-                "the GP-SLAM pass's own biases are under gp_slam_map in result.json."
-                if self.gp_slam_passes
-                else "no map was solved (homogeneous already on the IMU-only path)."
-            )
-            lines.append(
-                "The field carries no position information (field_evidence in result.json): "
-                f"the GP-SLAM columns are the IMU-only adjustment; {rest}"
-            )
-        return "\n".join(lines) + "\n"
-
-    def save(self, out_dir: Any, figures: bool = True) -> Any:
-        """Write result.json, biases.md, trajectory.csv and figures into out_dir atomically."""
-        import json
-
-        def write(tmp: Any) -> None:
-            (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
-            (tmp / "biases.md").write_text(self.bias_table())
-            if self.arrays:
-                _write_csv(self, tmp / "trajectory.csv")
-                write_arrays(tmp, self.arrays)
-            if figures and self.arrays:
-                from casmag.plotting import cost_figure, imu_trajectory_figure, map_figure
-
-                imu_trajectory_figure(self, tmp / "trajectory.png")
-
-                if self.cost_per_iteration:
-                    cost_figure(self, tmp / "cost.png")
-                if self.arrays.get("map_field") is not None:
-                    map_figure(self, tmp / "map.png")
-
-        return save_atomic(out_dir, write)
-
-
 def _map_warnings(problem: ImuProblem, res: ImuSolution) -> list[dict[str, Any]]:
     """casmag.checks on the map's lengthscale against the IMU-only path (the keyframes'
     extent and step), when a map was solved."""
@@ -1706,33 +1563,6 @@ def _map_arrays(st: ImuSolveStage) -> dict[str, np.ndarray]:
     return map_arrays(basis, fm["kernel"], W, st.solution.x["c"], fm["hyper"], st.P)
 
 
-def _fmt(v: list[float] | None, i: int) -> str:
-    return "-" if v is None else f"{v[i]:.4f}"
-
-
-def _write_csv(r: ImuResult, path: Any) -> None:
-    a = r.arrays
-    cols, names = [np.arange(a["t"].size), a["t"]], ["k", "t"]
-    for key, tag in (
-        ("P_strapdown", "strapdown"),
-        ("P_imu_only", "imu_only"),
-        ("P_estimate", "est"),
-        ("P_gp_slam_map", "gp_slam_map"),
-        ("P_true", "true"),
-    ):
-        if a.get(key) is not None:
-            cols.extend(a[key].T)
-            names.extend(f"{c}_{tag}" for c in "xyz")
-    for key in ("att_err_imu_only_deg", "att_err_est_deg"):
-        if a.get(key) is not None:
-            cols.append(a[key])
-            names.append(key)
-    fmt = ["%d"] + ["%.9g"] * (len(names) - 1)
-    np.savetxt(
-        path, np.column_stack(cols), delimiter=",", header=",".join(names), comments="", fmt=fmt
-    )
-
-
 def _errors(P: np.ndarray | None, Q: np.ndarray | None, Pt: Any, Qt: Any) -> dict[str, Any]:
 
     if P is None or Pt is None:
@@ -1749,7 +1579,7 @@ def _errors(P: np.ndarray | None, Q: np.ndarray | None, Pt: Any, Qt: Any) -> dic
 
 def solve_imu(
     problem: ImuProblem | Any, data: ImuData | None = None, progress: Progress | None = None
-) -> ImuResult:
+) -> Result:
     """Solve an IMU problem (an ImuProblem, a YAML path or a dictionary): simulate its data
     (unless given), run the stages, compare with the truth. A failed stage is reported with
     ``success = False`` and IPOPT's status, never as a result: the errors of the failed stage
@@ -1844,17 +1674,7 @@ def solve_imu(
         "casadi": ca.__version__,
         "versions": versions(),
     }
-    blocks = {
-        "imu_only": {
-            n: {"before": s1.solution.blocks_before[n], "after": s1.solution.blocks_after[n]}
-            for n in s1.solution.blocks_before
-        }
-    }
-    if s2 is not None:
-        blocks["gp_slam"] = {
-            n: {"before": s2.solution.blocks_before[n], "after": s2.solution.blocks_after[n]}
-            for n in s2.solution.blocks_before
-        }
+
     t = idx * data.T
     arrays: dict[str, Any] = {
         "t": t,
@@ -1874,15 +1694,43 @@ def solve_imu(
         arrays.update(_map_arrays(slam_map))
     if arrays["P_estimate"] is None:
         arrays["P_estimate"] = arrays["P_imu_only"] if spec.model.gp.form == "none" else None
-    return ImuResult(
+    passes = [
+        {
+            "name": "gp_slam",
+            "status": p.solution.status,
+            "iterations": p.solution.iterations,
+            "rounds": p.solution.rounds,
+            "solve_seconds": p.solution.solve_seconds,
+            "build_seconds": p.nlp.build_seconds,
+            **(
+                {
+                    "grow": p.grow,
+                    "iterations_total": sum(g["iterations"] for g in p.grow),
+                    "solve_seconds_total": sum(g["solve_seconds"] for g in p.grow),
+                }
+                if p.grow
+                else {}
+            ),
+        }
+        for p in res.slam_passes
+    ]
+    if passes and s2 is not None:
+        passes[-1]["cost_blocks"] = s2.solution.cost_blocks()
+    imu_only_stage = {
+        "name": "imu_only",
+        "status": s1.solution.status,
+        "iterations": s1.solution.iterations,
+        "rounds": s1.solution.rounds,
+        "solve_seconds": s1.solution.solve_seconds,
+        "cost_per_iteration": s1.solution.cost_per_iteration,
+        "cost_blocks": s1.solution.cost_blocks(),
+    }
+    return Result(
+        motion="imu",
         info=info,
         status=final.solution.status if ok1 else s1.solution.status,
         success=bool(ok),
         iterations=final.solution.iterations,
-        status_imu_only=s1.solution.status,
-        iterations_imu_only=s1.solution.iterations,
-        rounds_imu_only=s1.solution.rounds,
-        failed_stage=None if ok else ("imu_only" if not ok1 else "gp_slam"),
         # Passes with the same structure share one (cached) build: count each build once.
         build_seconds=s1.nlp.build_seconds
         + sum({id(p.nlp): p.nlp.build_seconds for p in res.slam_passes}.values())
@@ -1891,36 +1739,23 @@ def solve_imu(
         ),
         # Every schedule's solves (a grown pass: each prefix's), kept or not.
         solve_seconds=_slam_seconds(res) if res.schedules else s1.solution.solve_seconds,
-        solve_seconds_imu_only=s1.solution.solve_seconds,
-        gp_slam_passes=[
-            {
-                "status": p.solution.status,
-                "iterations": p.solution.iterations,
-                "rounds": p.solution.rounds,
-                "solve_seconds": p.solution.solve_seconds,
-                "build_seconds": p.nlp.build_seconds,
-                **(
-                    {
-                        "grow": p.grow,
-                        "iterations_total": sum(g["iterations"] for g in p.grow),
-                        "solve_seconds_total": sum(g["solve_seconds"] for g in p.grow),
-                    }
-                    if p.grow
-                    else {}
-                ),
-            }
-            for p in res.slam_passes
-        ],
-        errors=errors,
-        biases=biases,
+        rmse_before=errors["imu_only"]["rmse"],
+        max_before=errors["imu_only"]["max"],
+        rmse_after=errors["gp_slam"]["rmse"],
+        max_after=errors["gp_slam"]["max"],
         hyperparameters=res.hyperparameters,
-        hyperparameters_source=res.hyperparameters_source,
-        cost_blocks=blocks,
+        cost_blocks=final.solution.cost_blocks(),
         cost_per_iteration=final.solution.cost_per_iteration,
-        cost_per_iteration_imu_only=s1.solution.cost_per_iteration,
-        field_evidence=None if res.evidence is None else res.evidence.to_dict(),
-        schedules=res.schedules,
-        map_decision=decision,
+        stages=[imu_only_stage, *passes],
+        details={
+            "errors": errors,
+            "biases": biases,
+            "failed_stage": None if ok else ("imu_only" if not ok1 else "gp_slam"),
+            "map_decision": decision,
+            "field_evidence": None if res.evidence is None else res.evidence.to_dict(),
+            "hyperparameters_source": res.hyperparameters_source,
+            "schedules": res.schedules,
+        },
         flags=flags,
         warnings=_map_warnings(problem, res),
         convergence=[s1.solution.trace("IMU only")]

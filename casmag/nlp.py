@@ -286,6 +286,14 @@ class Solution:
     rounds: int = 1  # IPOPT runs summed in this solution (re-centred solves)
     inf_du_per_iteration: list[float] = field(default_factory=list)
 
+    def cost_blocks(self) -> dict[str, dict[str, float]]:
+        """Each named cost block at the initial guess and at the solution, as a result's
+        ``cost_blocks``: ``{name: {"before": ..., "after": ...}}``."""
+        return {
+            n: {"before": self.blocks_before[n], "after": self.blocks_after[n]}
+            for n in self.blocks_before
+        }
+
     def trace(self, stage: str) -> dict[str, Any]:
         """This solve's convergence record for a result's ``convergence`` list: the stage's
         name, IPOPT's status and iterations, and per iteration (iteration 0 first) the

@@ -7,7 +7,7 @@ rotation about z."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -32,10 +32,9 @@ from casmag.imuslam import (
 )
 from casmag.metrics import rmse_and_max
 from casmag.nlp import NLP, lowest_cost
-from casmag.outdir import save_atomic
 from casmag.recording import Recording, read_recording
 from casmag.reduced_rank import HilbertBasis, cached_basis
-from casmag.result import Judged, evaluation_of, finite_json, write_arrays
+from casmag.result import Result
 from casmag.rrmap import make_basis
 from casmag.versions import versions
 from casmag.windowing import grow, stage_lengths
@@ -134,106 +133,6 @@ def cached_planar_nlp(s: PlanarStructure) -> NLP:
     return build_planar(s)
 
 
-@dataclass
-class PlanarResult(Judged):
-    """Outcome of a planar solve. Errors [m] and heading errors [deg] against the truth,
-    no alignment (None without truth or when IPOPT failed); bias in rad/s (per step when no
-    times were given).
-
-    Fields: ``status`` (IPOPT's, or ``Odometry_Only``), ``success``, ``iterations``,
-    ``build_seconds``, ``solve_seconds`` [s]; ``rmse_before``, ``max_before``,
-    ``rmse_after``, ``max_after`` [m]; ``heading_rms_deg_before``/``_after`` [deg];
-    ``bias`` (heading-rate bias: one value, or one per step for ``random_walk``);
-    ``hyperparameters`` (sigma_f, sigma_m [field units], lengthscale [m]); ``num_basis``;
-    ``cost_blocks`` (before/after); ``cost_per_iteration``; ``info`` (name, samples,
-    anchor, settings, ``starts``: each heading-bias start or growing stage with its cost and
-    whether it was kept); ``convergence`` (casmag.nlp.Solution.trace); ``warnings``
-    (casmag.checks); ``flags`` (``wrong_basin`` with its evidence: :data:`TRUTH_START_RATIO`);
-    ``evaluation`` (casmag.evaluation); ``verdict`` (casmag.verdict).
-
-    Arrays (N samples, a G x G map grid): ``t`` (N,) [s]; ``P_odometry``, ``P_estimate``,
-    ``P_true`` (N, 2) [m]; ``psi_odometry``, ``psi_estimate``, ``psi_true`` (N,) [rad];
-    ``map_x``, ``map_y`` (G, G) [m], ``map_field``, ``map_std``, ``map_prior_std``
-    (G, G, 3) [field units] (casmag.fieldmap; after a successful solve)."""
-
-    KIND = "planar"
-
-    status: str
-    success: bool
-    iterations: int
-    build_seconds: float
-    solve_seconds: float
-    rmse_before: float | None
-    max_before: float | None
-    rmse_after: float | None
-    max_after: float | None
-    heading_rms_deg_before: float | None
-    heading_rms_deg_after: float | None
-    bias: list[float] | None
-    hyperparameters: dict[str, float]
-    num_basis: int
-    cost_blocks: dict[str, dict[str, float]]
-    cost_per_iteration: list[float]
-    info: dict[str, Any] = field(default_factory=dict)
-    convergence: list[dict[str, Any]] = field(default_factory=list)
-    warnings: list[dict[str, Any]] = field(default_factory=list)
-    flags: list[dict[str, Any]] = field(default_factory=list)
-    evaluation: dict[str, Any] | None = None
-    verdict: dict[str, Any] | None = None
-    arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""
-        d = {k: v for k, v in self.__dict__.items() if k != "arrays"}
-        d["evaluation"] = evaluation_of(self)
-        d["units"] = {
-            "errors": "position m, heading deg, no alignment",
-            "bias": "rad/s (rad per step without times)",
-            "seconds": "wall-clock s",
-        }
-        return finite_json(d)
-
-    def save(self, out_dir: Any, figures: bool = True) -> Any:
-        """Write result.json, trajectory.csv and (if figures) trajectory.png and cost.png
-        into out_dir atomically."""
-        import json
-
-        def write(tmp: Any) -> None:
-            (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
-            _write_planar_csv(self, tmp / "trajectory.csv")
-            write_arrays(tmp, self.arrays)
-            if figures:
-                from casmag.plotting import cost_figure, map_figure, trajectory_figure
-
-                trajectory_figure(self, tmp / "trajectory.png")
-                if self.cost_per_iteration:
-                    cost_figure(self, tmp / "cost.png")
-                if self.arrays.get("map_field") is not None:
-                    map_figure(self, tmp / "map.png")
-
-        return save_atomic(out_dir, write)
-
-
-def _write_planar_csv(r: PlanarResult, path: Any) -> None:
-    """One row per sample: index, time, dead-reckoned, estimated and (if known) true x, y
-    [m] and heading psi [rad]."""
-    a = r.arrays
-    n = a["P_odometry"].shape[0]
-    cols, names = [np.arange(n), a.get("t", np.arange(n, dtype=float))], ["k", "t"]
-    for P, psi, tag in (
-        ("P_odometry", "psi_odometry", "odo"),
-        ("P_estimate", "psi_estimate", "est"),
-        ("P_true", "psi_true", "true"),
-    ):
-        if a.get(P) is not None:
-            cols.extend([*a[P].T, a[psi]])
-            names.extend(f"{c}_{tag}" for c in ("x", "y", "psi"))
-    fmt = ["%d"] + ["%.9g"] * (len(names) - 1)
-    np.savetxt(
-        path, np.column_stack(cols), delimiter=",", header=",".join(names), comments="", fmt=fmt
-    )
-
-
 def dead_reckon_planar(U: np.ndarray, p0: np.ndarray, psi0: float, bias_dt: Any = 0.0) -> tuple:
     """(N, 2) positions and (N,) headings from (N-1, 3) increments (dfwd, dleft, dyaw), with
     an optional heading increment correction bias_dt ((N-1,) or scalar) removed."""
@@ -259,7 +158,7 @@ def solve_planar(
     psi0: float = 0.0,
     progress: Progress | None = None,
     name: str = "planar",
-) -> PlanarResult:
+) -> Result:
     """Planar odometry with heading plus magnetometer GP-SLAM from arrays.
 
     dfwd, dleft (N-1,) [m], dyaw (N-1,) [rad]: increments between samples; mag (N, 3):
@@ -448,7 +347,8 @@ def solve_planar(
             ha_deg = float(
                 np.degrees(np.sqrt(np.mean(wrap(sol.x["psi"].ravel() - truth["psi"]) ** 2)))
             )
-    return PlanarResult(
+    return Result(
+        motion="planar",
         flags=flags,
         status=sol.status,
         success=sol.success,
@@ -459,19 +359,15 @@ def solve_planar(
         max_before=before[1],
         rmse_after=after[0],
         max_after=after[1],
-        heading_rms_deg_before=hb_deg,
-        heading_rms_deg_after=ha_deg,
-        bias=[float(v) for v in sol.x["bias"].ravel()] if sol.success else None,
+        details={"heading_rms_deg_before": hb_deg, "heading_rms_deg_after": ha_deg},
+        odometry_bias=[float(v) for v in sol.x["bias"].ravel()] if sol.success else None,
         hyperparameters=hyper,
-        num_basis=basis.num_basis,
-        cost_blocks={
-            k: {"before": sol.blocks_before[k], "after": sol.blocks_after[k]}
-            for k in sol.blocks_before
-        },
+        cost_blocks=sol.cost_blocks(),
         cost_per_iteration=sol.cost_per_iteration,
         info={
             "name": name,
             "samples": int(n),
+            "num_basis": basis.num_basis,
             "anchor": {
                 "kind": anchor_kind,
                 "position": [float(v) for v in p0],
@@ -551,7 +447,7 @@ def solve_planar_recording(
     options: PlanarOptions | None = None,
     progress: Progress | None = None,
     anchor: str = "truth",
-) -> PlanarResult:
+) -> Result:
     """Solve a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.recording``: a path,
     or a Recording already read); truth columns, when present, are used for evaluation
     only, and (``anchor`` ``truth``, the default) for the first pose; ``origin``: the

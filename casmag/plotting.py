@@ -1,8 +1,8 @@
 """Figures (PNG, matplotlib's Agg canvas; no global pyplot state).
 
 The figures read a result and never the other way round: they take any object with the
-attributes of :class:`Drawable` or :class:`DrawableErrors` (casmag.result.Result and the
-IMU and planar results), so this module imports nothing of casmag's. Each figure function
+attributes of :class:`Drawable` or :class:`DrawableErrors` (casmag.result.Result of every
+motion model), so this module imports nothing of casmag's. Each figure function
 writes its PNG and returns the matplotlib Figure (the tests read its titles and artists).
 """
 
@@ -38,6 +38,23 @@ class DrawableErrors(Drawable, Protocol):
     max_before: float | None
     rmse_after: float | None
     max_after: float | None
+
+
+def result_figures(result: Any, folder: Path) -> None:
+    """Every figure a result has the data for, into folder: trajectory.png (the IMU
+    layout for ``motion`` imu), sessions.png (several sessions), cost.png (a cost per
+    iteration), map.png (a map grid)."""
+    folder = Path(folder)
+    if getattr(result, "motion", "translational") == "imu":
+        imu_trajectory_figure(result, folder / "trajectory.png")
+    else:
+        trajectory_figure(result, folder / "trajectory.png")
+    if result.info.get("sessions"):
+        sessions_figure(result, folder / "sessions.png")
+    if result.cost_per_iteration:
+        cost_figure(result, folder / "cost.png")
+    if result.arrays.get("map_field") is not None:
+        map_figure(result, folder / "map.png")
 
 
 def _save(fig: Figure, path: Path) -> None:
@@ -406,8 +423,8 @@ def imu_trajectory_figure(r: Any, path: Path) -> Figure:
     ax3.set_xlabel("x [m]")
     ax3.set_ylabel("y [m]")
     ax3.set_zlabel("z [m]")
-    e = r.errors
-    status = r.status if r.success else f"FAILED ({r.status}, {r.failed_stage})"
+    e = r.details["errors"]
+    status = r.status if r.success else f"FAILED ({r.status}, {r.details['failed_stage']})"
     lines = [f"{r.info.get('name', '')}: {status}"]
     parts = []
     for key, label in (

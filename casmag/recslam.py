@@ -42,7 +42,7 @@ from casmag.multisession import (
     solve_two_starts,
     stack,
 )
-from casmag.planar import PlanarResult, dead_reckon_planar, solve_planar_recording
+from casmag.planar import dead_reckon_planar, solve_planar_recording
 from casmag.recording import Recording, read_recording
 from casmag.result import Result
 from casmag.simulate import Dataset
@@ -353,7 +353,7 @@ def slam(
     mag_lag: float | str | None = None,
     refit_noise: bool = False,
     **sections: Mapping[str, Any],
-) -> Result | PlanarResult:
+) -> Result:
     """GP-SLAM on a recording (CSV, see casmag.recording) with the defaults of
     :func:`recording_problem`. Without truth in the recording the RMSE fields are None.
 
@@ -370,7 +370,7 @@ def slam(
     line to ``on_warning`` before the solve.
 
     A planar recording (``dfwd,dleft,dyaw``) is solved with the planar heading model
-    (:func:`slam_planar`, a :class:`casmag.planar.PlanarResult`). ``sections``: settings as
+    (:func:`slam_planar`, a planar :class:`casmag.result.Result`). ``sections``: settings as
     keyword arguments, e.g. ``model={"gp": {"lengthscale": 0.3}}``, applied after
     ``overrides`` (:func:`casmag.config.section_overrides`).
 
@@ -639,7 +639,7 @@ def slam_planar(
     on_warning: Callable[[str], None] | None = None,
     anchor: str = "truth",
     mag_lag: float | None = None,
-) -> PlanarResult:
+) -> Result:
     """A planar recording (``dfwd,dleft,dyaw``) with the planar model and a heading-rate
     bias (:func:`casmag.planar.solve_planar_recording`). Settings from the problem file's
     ``model``/``solver`` sections and ``model.KEY=...`` overrides
@@ -676,7 +676,7 @@ def slam_planar(
     return result
 
 
-def planar_odometry_only(rec: Recording, anchor: str = "truth") -> PlanarResult:
+def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
     """The planar dead reckoning as the result of a recording whose magnetometer is constant
     (status ``Odometry_Only``, the reason in ``info.fallback``), started where
     :func:`casmag.planar.solve_planar` starts: the first true pose, else (or with
@@ -692,7 +692,8 @@ def planar_odometry_only(rec: Recording, anchor: str = "truth") -> PlanarResult:
         wrapped = np.angle(np.exp(1j * (psi - rec.yaw_true)))
         heading = float(np.degrees(np.sqrt(np.mean(wrapped**2))))
     name = Path(rec.path).stem
-    return PlanarResult(
+    return Result(
+        motion="planar",
         status="Odometry_Only",
         success=True,
         iterations=0,
@@ -702,16 +703,14 @@ def planar_odometry_only(rec: Recording, anchor: str = "truth") -> PlanarResult:
         max_before=errors[1],
         rmse_after=errors[0],
         max_after=errors[1],
-        heading_rms_deg_before=heading,
-        heading_rms_deg_after=heading,
-        bias=None,
+        details={"heading_rms_deg_before": heading, "heading_rms_deg_after": heading},
         hyperparameters={},
-        num_basis=0,
         cost_blocks={},
         cost_per_iteration=[],
         info={
             "name": name,
             "samples": int(rec.n_samples),
+            "num_basis": 0,
             "anchor": {
                 "kind": "first true position"
                 if known

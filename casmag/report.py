@@ -39,7 +39,7 @@ from casmag.errors import DataError
 from casmag.evaluation import evaluate
 from casmag.outdir import record_written
 from casmag.paper import TABLES, PaperRow, PaperTable
-from casmag.result import ARRAYS_FILE
+from casmag.result import ARRAYS_FILE, bias_table, upgrade_layout
 from casmag.sweep import read_manifest
 
 # Where the paper's GP-SLAM made the trajectory worse, ours must stay within this factor of
@@ -75,15 +75,13 @@ def find_results(paths: list[Path]) -> list[Path]:
 
 
 def load_result(path: Path, data: Any = None) -> dict[str, Any]:
-    """A result.json (read from path unless given parsed), checked for the fields the
-    tables need."""
+    """A result.json (read from path unless given parsed) in today's layout
+    (casmag.result.upgrade_layout), checked for the fields the tables need."""
     if data is None:
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise DataError(f"{path}: cannot read result ({exc})") from None
+        data = _read_json(path)
     if not isinstance(data, dict):
         raise DataError(f"{path}: a result must be a JSON object")
+    data = upgrade_layout(data)
     for key in _REQUIRED:
         if key not in data:
             raise DataError(f"{path}: field {key!r} is missing")
@@ -98,38 +96,42 @@ def load_result(path: Path, data: Any = None) -> dict[str, Any]:
     return data
 
 
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"{path}: cannot read result ({exc})") from None
+
+
 def is_imu_result(data: Any) -> bool:
-    """A result.json of ``casmag imu``: errors per stage (``errors.imu_only``,
-    ``errors.gp_slam``) instead of the odometry-only and SLAM errors."""
-    return (
-        isinstance(data, dict)
-        and "rmse_before" not in data
-        and isinstance(data.get("errors"), dict)
-        and "gp_slam" in data["errors"]
-    )
+    """A result.json of the IMU model (``motion`` imu, or the layout before the one
+    Result: errors per stage at the top level)."""
+    return isinstance(data, dict) and upgrade_layout(data).get("motion") == "imu"
 
 
-_IMU_REQUIRED = ("status", "success", "info", "errors")
+_IMU_REQUIRED = ("status", "success", "info", "details")
 
 
 def load_imu_result(path: Path, data: dict[str, Any]) -> dict[str, Any]:
-    """An IMU result.json (already parsed), checked for the fields its table needs."""
+    """An IMU result.json (already parsed), in today's layout, checked for the fields its
+    table needs (``details.errors`` per estimate)."""
+    data = upgrade_layout(data)
     for key in _IMU_REQUIRED:
         if key not in data:
             raise DataError(f"{path}: field {key!r} is missing")
     if not isinstance(data["info"], dict):
         raise DataError(f"{path}: field 'info': expected an object")
     for stage in ("imu_only", "gp_slam"):
-        errors = data["errors"].get(stage)
+        errors = (data["details"].get("errors") or {}).get(stage)
         if not isinstance(errors, dict):
-            raise DataError(f"{path}: field 'errors.{stage}': expected an object")
+            raise DataError(f"{path}: field 'details.errors.{stage}': expected an object")
         for key in ("rmse", "max"):
             value = errors.get(key)
             if value is not None and (
                 not isinstance(value, (int, float)) or isinstance(value, bool)
             ):
                 raise DataError(
-                    f"{path}: field 'errors.{stage}.{key}': expected a number or null, "
+                    f"{path}: field 'details.errors.{stage}.{key}': expected a number or null, "
                     f"got {value!r}"
                 )
     return data
@@ -138,10 +140,7 @@ def load_imu_result(path: Path, data: dict[str, Any]) -> dict[str, Any]:
 def read_result(path: Path) -> tuple[str, dict[str, Any]]:
     """("slam", data) or ("imu", data) for a result.json; DataError naming the file when
     it cannot be read or lacks what its table needs."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"{path}: cannot read result ({exc})") from None
+    data = _read_json(path)
     if is_imu_result(data):
         return "imu", load_imu_result(path, data)
     return "slam", load_result(path, data)
@@ -227,14 +226,17 @@ def realigned(path: Path, kind: str, data: dict[str, Any], align: str) -> dict[s
         arrays.pop("P_estimate", None)
     e = evaluate(arrays, align, data["info"].get("anchor"))
     out = {**data, "evaluation": e}
-    if kind == "imu":
-        out["errors"] = {
-            **data["errors"],
-            "imu_only": {**data["errors"]["imu_only"], **_pair(e["before"])},
-            "gp_slam": {**data["errors"]["gp_slam"], **_pair(e["after"])},
-        }
-        return out
     b, a = _pair(e["before"]), _pair(e["after"])
+    if kind == "imu":
+        errors = data["details"]["errors"]
+        out["details"] = {
+            **data["details"],
+            "errors": {
+                **errors,
+                "imu_only": {**errors["imu_only"], **b},
+                "gp_slam": {**errors["gp_slam"], **a},
+            },
+        }
     out.update(rmse_before=b["rmse"], max_before=b["max"], rmse_after=a["rmse"], max_after=a["max"])
     return out
 
@@ -572,7 +574,7 @@ class ImuSummary:
         def values(ds: list[dict[str, Any]], stage: str, key: str) -> list[float]:
             out = []
             for d in ds:
-                v = d["errors"][stage].get(key)
+                v = d["details"]["errors"][stage].get(key)
                 if v is not None:
                     out.append(float(v))
             return out
@@ -580,6 +582,14 @@ class ImuSummary:
         def mean(key: str) -> float | None:
             v = [float(d[key]) for d in runs if isinstance(d.get(key), (int, float))]
             return statistics.fmean(v) if v else None
+
+        def imu_only_iterations(d: dict[str, Any]) -> Any:
+            return next((s for s in d.get("stages", []) if s.get("name") == "imu_only"), {}).get(
+                "iterations"
+            )
+
+        its = [imu_only_iterations(d) for d in runs]
+        its = [float(v) for v in its if isinstance(v, (int, float))]
 
         return cls(
             row=row,
@@ -590,7 +600,7 @@ class ImuSummary:
             solved=len(solved),
             statuses=Counter(str(d["status"]) for d in runs),
             flagged=sum(bool(d.get("flags")) for d in runs),
-            iterations_imu_only=mean("iterations_imu_only"),
+            iterations_imu_only=statistics.fmean(its) if its else None,
             iterations=mean("iterations"),
         )
 
@@ -638,7 +648,61 @@ def imu_markdown_table(table: Table) -> str:
         "'iterations' are the mean IPOPT iteration counts of the two stages.",
         "",
     ]
+    return "\n".join(out) + imu_bias_tables(table)
+
+
+def imu_bias_tables(table: Table) -> str:
+    """The recovered IMU biases in markdown: per problem name, the error of the IMU-only
+    adjustment's and GP-SLAM's mean biases against the truth's (RMS over the three axes,
+    mean over the solved runs); and for a name with one run, its true and recovered biases
+    per axis (the paper's Table 6 layout, as biases.md). Empty when no run has biases."""
+    head = [
+        "",
+        "runs",
+        "gyro IMU only [deg/s]",
+        "gyro GP-SLAM",
+        "acc IMU only [m/s^2]",
+        "acc GP-SLAM",
+    ]
+    rows, single = [], []
+    for row in table.rows:
+        runs = [r.data for r in row.runs if r.data is not None and r.data["success"]]
+        runs = [d for d in runs if (d.get("details") or {}).get("biases")]
+        if not runs:
+            continue
+        cells = [row.label, str(len(runs))]
+        for which in ("gyro", "acc"):
+            for est in ("imu_only", "gp_slam"):
+                errs = [_bias_error(d["details"]["biases"][which], est) for d in runs]
+                errs = [e for e in errs if e is not None]
+                cells.append(_m(statistics.fmean(errs) if errs else None, 4))
+        rows.append("| " + " | ".join(cells) + " |")
+        if len(runs) == 1:
+            single.append((row.label, runs[0]))
+    if not rows:
+        return ""
+    out = [
+        "#### Recovered IMU biases",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+        *rows,
+        "",
+        "Error of the run's mean bias against the true mean bias, RMS over the three axes, "
+        "mean over the solved runs.",
+        "",
+    ]
+    for label, d in single:
+        out += [f"{label}:", "", bias_table(d["details"], d.get("stages") or []).rstrip(), ""]
     return "\n".join(out)
+
+
+def _bias_error(b: dict[str, Any], est: str) -> float | None:
+    """RMS over the axes of an estimate's mean bias minus the truth's (None when either is
+    unknown)."""
+    if b.get("truth") is None or b.get(est) is None:
+        return None
+    return float(np.sqrt(np.mean(np.subtract(b[est], b["truth"]) ** 2)))
 
 
 def imu_latex_table(table: Table) -> str:

@@ -53,6 +53,10 @@ from casmag.evaluation import evaluate_result
 #: started from is not trusted (the IMU scenarios' criterion of equal quality).
 WORSE_RATIO = 1.05
 
+#: The motion models whose own flags compare the estimate with the truth (the IMU model's
+#: ``wrong_basin`` and ``worse_than_imu_only``), so ``against_truth`` is not made again.
+FLAGS_JUDGE_TRUTH = ("imu",)
+
 #: Magnetometer residual mean square per component, in units of sigma_m^2, from which the
 #: estimate is not trusted.
 MISFIT_LIMIT = 4.0
@@ -75,8 +79,7 @@ def magnetometer_misfit(result: Any) -> tuple[float, int] | None:
     final solution, from the ``magnetometer`` cost block 0.5 sum (e / sigma_m)^2; None when
     the result has no such block (no map, or no solve)."""
     blocks = result.cost_blocks or {}
-    if "gp_slam" in blocks:  # IMU results: per stage, at keyframes
-        blocks = blocks["gp_slam"]
+    if getattr(result, "motion", None) == "imu":  # the magnetometer at keyframes
         samples = result.info.get("keyframes")
     else:
         samples = result.info.get("n_samples") or result.info.get("samples")
@@ -110,7 +113,7 @@ def revisit_fraction(P: np.ndarray, lengthscale: float) -> tuple[float, int]:
 def _revisits(result: Any) -> dict[str, Any] | None:
     """The ``revisits`` check, or None where it is not made (no map solved, no estimated
     path or lengthscale)."""
-    if getattr(result, "KIND", None) != "translational":
+    if getattr(result, "motion", None) != "translational":
         return None
     if not result.success or result.status == "Odometry_Only":
         return None
@@ -133,9 +136,6 @@ def _errors(result: Any) -> tuple[float | None, float | None]:
     """(RMSE of the starting trajectory, RMSE of the estimate) against the truth, in the
     anchored frame; after a rigid alignment of each (casmag.evaluation) when the frame was
     not anchored at the truth (``anchor: origin`` on a recording with truth)."""
-    errors = getattr(result, "errors", None)
-    if isinstance(errors, dict) and "gp_slam" in errors:
-        return errors["imu_only"]["rmse"], errors["gp_slam"]["rmse"]
     kind = str(((result.info or {}).get("anchor") or {}).get("kind", ""))
     if kind.startswith("origin") and getattr(result, "arrays", None):
         e = evaluate_result(result, "se")
@@ -180,7 +180,7 @@ def verdict(result: Any) -> dict[str, Any]:
     if flags is not None:
         checks["flags"] = {"passed": not flags, "names": [f["name"] for f in flags]}
         reasons.extend(f"{f['name']}: {f['reason']}" for f in flags)
-    if flags is None or not getattr(result, "FLAGS_JUDGE_TRUTH", False):
+    if flags is None or getattr(result, "motion", None) not in FLAGS_JUDGE_TRUTH:
         before, after = _errors(result)
         if result.success and before is not None and after is not None:
             ok = after <= WORSE_RATIO * before

@@ -21,8 +21,8 @@ problem = {
     "solver": {"max_iter": 100, "tol": 1e-5},
 }
 result = solve_imu(problem)
-print(f"{result.status} (IMU-only stage: {result.status_imu_only})")
-for stage, e in result.errors.items():
+print(f"{result.status} (IMU-only stage: {result.stage('imu_only')['status']})")
+for stage, e in result.details["errors"].items():
     if e["rmse"] is not None:
         print(f"  {stage} position RMSE {e['rmse']:.4f} m")
 print(f"  trusted: {result.trusted}")  # casmag.verdict: solver, misfit, flags

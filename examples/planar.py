@@ -29,5 +29,7 @@ options = load_planar_options(
 )
 r = solve_planar(*d.U.T, d.Y, options, truth={"P": d.P, "psi": d.psi}, t=d.t)
 print(f"{r.status}: RMSE {r.rmse_before:.3f} m -> {r.rmse_after:.3f} m")
-print(f"heading RMS {r.heading_rms_deg_before:.2f} -> {r.heading_rms_deg_after:.2f} deg")
-print(f"heading-rate bias {np.degrees(r.bias[0]):.3f} deg/s (true {np.degrees(d.bias):.3f})")
+h = r.details
+print(f"heading RMS {h['heading_rms_deg_before']:.2f} -> {h['heading_rms_deg_after']:.2f} deg")
+bias = np.degrees(r.odometry_bias[0])
+print(f"heading-rate bias {bias:.3f} deg/s (true {np.degrees(d.bias):.3f})")

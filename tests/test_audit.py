@@ -164,7 +164,8 @@ def _slam_result(folder: Path, name: str = "base") -> None:
 
 
 def _imu_result(folder: Path, name: str = "square_table", success: bool = True) -> None:
-    """A result.json as ``casmag imu`` writes it (no rmse_before: errors per stage)."""
+    """A result.json as ``casmag imu`` wrote it before the one Result (no rmse_before:
+    errors per stage at the top level; casmag.result.upgrade_layout reads it)."""
     folder.mkdir(parents=True)
     data = {
         "info": {"name": name, "seed": 1},
@@ -202,6 +203,47 @@ def test_report_tabulates_imu_results_in_their_own_table(tmp_path):
     assert "After SLAM, base" in text  # the translational result is still reported
     assert sorted(p.name for p in out.parent.iterdir()) == ["table.csv", "table.md", "table.tex"]
     assert "imu,square_table,gp_slam" in (out.parent / "table.csv").read_text()
+
+
+def test_report_gives_the_recovered_imu_biases_in_the_papers_table_6_layout(tmp_path):
+    biases = {
+        "gyro": {"truth": [0.05, -0.08, 0.12], "imu_only": [0.08, -0.08, 0.06],
+                 "gp_slam": [0.05, -0.08, 0.11]},
+        "acc": {"truth": [0.02, -0.015, 0.03], "imu_only": [0.0, 0.0, 0.03],
+                "gp_slam": [0.02, -0.015, 0.03]},
+    }  # fmt: skip
+    for seed in (1, 2):
+        folder = tmp_path / "runs" / f"s{seed}"
+        folder.mkdir(parents=True)
+        data = {
+            "motion": "imu",
+            "info": {"name": "table" if seed == 1 else "desk", "seed": seed},
+            "status": "Solve_Succeeded",
+            "success": True,
+            "iterations": 10,
+            "rmse_before": 0.1,
+            "max_before": 0.2,
+            "rmse_after": 0.01,
+            "max_after": 0.02,
+            "stages": [{"name": "imu_only", "status": "Solve_Succeeded", "iterations": 7}],
+            "details": {
+                "errors": {"imu_only": {"rmse": 0.1, "max": 0.2}, "gp_slam": {"rmse": 0.01}},
+                "biases": biases,
+                "map_decision": "map",
+            },
+        }
+        (folder / "result.json").write_text(json.dumps(data))
+    res = _run(["report", tmp_path / "runs"])
+    assert res.exit_code == 0, res.output
+    text = res.stdout
+    assert "#### Recovered IMU biases" in text
+    row = next(line for line in text.splitlines() if line.startswith("| table | 1 |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    gyro_imu_only = np.sqrt(np.mean(np.subtract([0.08, -0.08, 0.06], [0.05, -0.08, 0.12]) ** 2))
+    assert cells[2] == f"{gyro_imu_only:.4f}" and cells[3] == "0.0058"  # 0.01 / sqrt(3)
+    assert cells[5] == "0.0000"
+    assert "| Z | 0.1200 | 0.0600 | 0.1100 | 0.0300 | 0.0300 | 0.0300 |" in text
+    assert "| 7.0 + 10.0 |" in text  # the IMU-only stage's iterations, from ``stages``
 
 
 def test_report_of_a_real_imu_result_folder(tmp_path):

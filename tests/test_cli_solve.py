@@ -75,7 +75,7 @@ def test_solve_an_imu_file_as_imu(tmp_path):
     res = _invoke(["solve", str(path), "--out", str(out), "-q", "--no-figures"])
     assert res.exit_code == 0, res.output
     r = json.loads((out / "result.json").read_text())
-    assert r["success"] is True and r["status_imu_only"] == "Solve_Succeeded"
+    assert r["success"] is True and r["stages"][0]["status"] == "Solve_Succeeded"
     assert (out / "biases.md").is_file()
 
 
@@ -137,8 +137,8 @@ def test_every_imu_file_is_solved_at_tiny_size(tmp_path, path):
     res = _invoke([*args, *(x for s in sets for x in ("--set", s))])
     assert res.exit_code == 0, res.output
     r = json.loads((out / "result.json").read_text())
-    assert r["status_imu_only"] == "Solve_Succeeded"
-    assert r["errors"]["imu_only"]["rmse"] < r["errors"]["strapdown"]["rmse"]
+    assert r["stages"][0]["status"] == "Solve_Succeeded"
+    assert r["details"]["errors"]["imu_only"]["rmse"] < r["details"]["errors"]["strapdown"]["rmse"]
 
 
 def test_an_imu_map_lengthscale_longer_than_the_path_is_named(tmp_path):

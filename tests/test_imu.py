@@ -283,7 +283,9 @@ def test_noise_free_imu_only_returns_the_truth():
     a = r.arrays
     np.testing.assert_allclose(a["P_estimate"], a["P_true"], atol=1e-6)
     assert a["att_err_imu_only_deg"].max() < 1e-4
-    assert r.errors["strapdown"]["rmse"] < 1e-9  # exact increments integrate to the truth
+    assert (
+        r.details["errors"]["strapdown"]["rmse"] < 1e-9
+    )  # exact increments integrate to the truth
 
 
 def _noise_free_rectangle(gp: dict):
@@ -298,9 +300,9 @@ def _noise_free_rectangle(gp: dict):
     # Noise-free: few iterations per solve (measured 9 for the IMU-only adjustment from
     # strapdown over three re-centred solves; reduced rank 13 + 13 for the two GP-SLAM
     # passes with the hybrid Hessian, the exact GP 34 + 6).
-    assert r.iterations_imu_only <= 15
+    assert r.stage("imu_only")["iterations"] <= 15
     caps = [40, 10] if gp.get("form") == "exact" else [20, 20]
-    its = [p["iterations"] for p in r.gp_slam_passes]
+    its = [p["iterations"] for p in r.stages_named("gp_slam")]
     assert len(its) == 2 and all(i <= c for i, c in zip(its, caps, strict=True)), its
     return r
 
@@ -314,12 +316,21 @@ def test_noise_free_gp_slam_with_biases_returns_the_truth():
     the IMU-only adjustment, which cannot see the heading drift."""
     r = _noise_free_rectangle({"num_basis": 400})
     a = r.arrays
-    assert r.errors["strapdown"]["rmse"] > 0.5 and r.errors["imu_only"]["rmse"] > 0.02
+    assert (
+        r.details["errors"]["strapdown"]["rmse"] > 0.5
+        and r.details["errors"]["imu_only"]["rmse"] > 0.02
+    )
     assert np.abs(a["P_estimate"] - a["P_true"]).max() < 1e-3
-    assert r.errors["gp_slam"]["orientation_max_deg"] < 0.05
-    true, est = np.array(r.biases["gyro"]["truth"]), np.array(r.biases["gyro"]["gp_slam"])
+    assert r.details["errors"]["gp_slam"]["orientation_max_deg"] < 0.05
+    true, est = (
+        np.array(r.details["biases"]["gyro"]["truth"]),
+        np.array(r.details["biases"]["gyro"]["gp_slam"]),
+    )
     np.testing.assert_allclose(est, true, rtol=0.05)
-    acc_true, acc_est = np.array(r.biases["acc"]["truth"]), np.array(r.biases["acc"]["gp_slam"])
+    acc_true, acc_est = (
+        np.array(r.details["biases"]["acc"]["truth"]),
+        np.array(r.details["biases"]["acc"]["gp_slam"]),
+    )
     assert abs(acc_est[2] - acc_true[2]) < 1e-4  # vertical: separated from tilt by gravity
 
 
@@ -330,10 +341,13 @@ def test_noise_free_gp_slam_with_the_exact_gp_at_keyframes():
     (z: 0.129 against 0.12 deg/s), 4 iterations of the map pass."""
     r = _noise_free_rectangle({"form": "exact"})
     a = r.arrays
-    assert r.errors["imu_only"]["rmse"] > 0.02
+    assert r.details["errors"]["imu_only"]["rmse"] > 0.02
     assert np.abs(a["P_estimate"] - a["P_true"]).max() < 1e-3
-    assert r.errors["gp_slam"]["orientation_max_deg"] < 0.1
-    true, est = np.array(r.biases["gyro"]["truth"]), np.array(r.biases["gyro"]["gp_slam"])
+    assert r.details["errors"]["gp_slam"]["orientation_max_deg"] < 0.1
+    true, est = (
+        np.array(r.details["biases"]["gyro"]["truth"]),
+        np.array(r.details["biases"]["gyro"]["gp_slam"]),
+    )
     np.testing.assert_allclose(est, true, rtol=0.1)
 
 
@@ -380,19 +394,19 @@ def test_homogeneous_field_keeps_the_imu_only_adjustment(tmp_path):
     data["simulation"]["field"] = {"dipoles": []}
     r = solve_imu(load_imu_problem(data))
     assert r.success, r.status
-    assert r.map_decision == "homogeneous: IMU only" and r.gp_slam_passes == []
-    ev = r.field_evidence
+    assert r.details["map_decision"] == "homogeneous: IMU only" and r.stages_named("gp_slam") == []
+    ev = r.details["field_evidence"]
     assert ev["homogeneous"] is True and ev["log_bayes_factor"] < 0
     # the field's estimated deviation from a constant: far below the keyframe magnetometer's
     # noise (0.004 per sample, 5 samples averaged)
     assert ev["sigma_f"] < 0.1 * 0.004 / np.sqrt(5)
-    e = r.errors
+    e = r.details["errors"]
     assert e["strapdown"]["rmse"] > 0.5
     assert e["gp_slam"]["rmse"] == e["imu_only"]["rmse"] and e["gp_slam_map"]["rmse"] is None
     np.testing.assert_array_equal(r.arrays["P_estimate"], r.arrays["P_imu_only"])
     out = r.save(tmp_path / "out", figures=False)
     saved = json.loads((out / "result.json").read_text())
-    assert saved["map_decision"] == "homogeneous: IMU only"
+    assert saved["details"]["map_decision"] == "homogeneous: IMU only"
     assert "no position information" in (out / "biases.md").read_text()
 
 
@@ -421,19 +435,22 @@ def test_both_schedules_run_and_the_kept_one_is_the_result():
     data["model"]["gp"]["refit_misfit"] = 0.0
     r = solve_imu(load_imu_problem(data))
     assert r.success, r.status
-    names = [s["schedule"] for s in r.schedules]
+    names = [s["schedule"] for s in r.details["schedules"]]
     assert names == ["anneal", "coarse_to_fine"]
-    kept = [s for s in r.schedules if s["kept"]]
-    anneal, c2f = r.schedules
+    kept = [s for s in r.details["schedules"] if s["kept"]]
+    anneal, c2f = r.details["schedules"]
     # Kept: coarse-to-fine only when its cost is lower by more than SCHEDULE_MARGIN.
     assert len(kept) == 1
     assert c2f["kept"] == (c2f["cost"] < (1 - SCHEDULE_MARGIN) * anneal["cost"])
-    assert [len(s["iterations"]) for s in r.schedules] == [2, 3]
-    assert len(r.gp_slam_passes) == kept[0]["passes"]
+    assert [len(s["iterations"]) for s in r.details["schedules"]] == [2, 3]
+    assert len(r.stages_named("gp_slam")) == kept[0]["passes"]
     # Measured: anneal 12 + 13, coarse-to-fine 39 + 43 + 35 (its first passes fit a map
     # four and two times smoother than the field).
-    assert all(s["success"] for s in r.schedules), r.schedules
-    assert max(r.schedules[0]["iterations"]) <= 20 and max(r.schedules[1]["iterations"]) <= 60
+    assert all(s["success"] for s in r.details["schedules"]), r.details["schedules"]
+    assert (
+        max(r.details["schedules"][0]["iterations"]) <= 20
+        and max(r.details["schedules"][1]["iterations"]) <= 60
+    )
     assert np.abs(r.arrays["P_estimate"] - r.arrays["P_true"]).max() < 1e-3
 
 
@@ -450,11 +467,14 @@ def test_rectangle_meets_the_done_criteria():
     0.01 deg/s), at most 150 IPOPT iterations per GP-SLAM pass."""
     r = solve_imu(load_imu_problem(ROOT / "problems/imu/rectangle.yaml"))
     assert r.success, r.status
-    e = r.errors
+    e = r.details["errors"]
     assert e["gp_slam"]["rmse"] <= 0.2 * e["strapdown"]["rmse"]
     assert e["gp_slam"]["rmse"] <= 0.2 * e["imu_only"]["rmse"]
-    assert all(p["iterations"] <= 150 for p in r.gp_slam_passes)
-    true, est = np.array(r.biases["gyro"]["truth"]), np.array(r.biases["gyro"]["gp_slam"])
+    assert all(p["iterations"] <= 150 for p in r.stages_named("gp_slam"))
+    true, est = (
+        np.array(r.details["biases"]["gyro"]["truth"]),
+        np.array(r.details["biases"]["gyro"]["gp_slam"]),
+    )
     assert np.all(np.abs(est - true) <= np.maximum(0.2 * np.abs(true), 0.01))
 
 
@@ -476,7 +496,7 @@ def test_command_writes_outputs(tmp_path):
     assert r["success"] is True and r["info"]["num_basis"] == 60
     for name in ("trajectory.csv", "trajectory.png", "cost.png", "biases.md"):
         assert (out / name).stat().st_size > 0
-    assert r["errors"]["gp_slam"]["rmse"] < r["errors"]["strapdown"]["rmse"]
+    assert r["details"]["errors"]["gp_slam"]["rmse"] < r["details"]["errors"]["strapdown"]["rmse"]
     assert "| Z |" in (out / "biases.md").read_text()
 
 
@@ -500,7 +520,7 @@ def test_command_solver_failure_exit_1_recorded(tmp_path):
     assert res.exit_code == 1
     assert "Maximum_Iterations_Exceeded" in res.output
     r = json.loads((out / "result.json").read_text())
-    assert r["success"] is False and r["errors"]["gp_slam"]["rmse"] is None
+    assert r["success"] is False and r["details"]["errors"]["gp_slam"]["rmse"] is None
 
 
 # --------------------------------------------------------------------------- planar model
@@ -519,8 +539,8 @@ def test_planar_recording_with_heading_rate_bias(tmp_path):
     r = solve_planar_recording(path, opts)
     assert r.success, r.status
     assert r.rmse_after <= 0.35 * r.rmse_before
-    assert r.heading_rms_deg_after <= 0.2 * r.heading_rms_deg_before
-    assert r.bias[0] == pytest.approx(d.bias, rel=0.1)
+    assert r.details["heading_rms_deg_after"] <= 0.2 * r.details["heading_rms_deg_before"]
+    assert r.odometry_bias[0] == pytest.approx(d.bias, rel=0.1)
 
 
 def test_planar_starts_keep_the_lowest_cost():
@@ -580,7 +600,7 @@ def test_wrong_basin_is_flagged_only_when_the_truth_start_costs_less(
         (flag,) = r["flags"]
         assert flag["name"] == "wrong_basin"
         assert flag["evidence"]["map_cost_from_truth"] == pytest.approx(seen["cost"] - 10.0)
-        assert flag["evidence"]["rmse_gp_slam"] == r["errors"]["gp_slam"]["rmse"]
+        assert flag["evidence"]["rmse_gp_slam"] == r["details"]["errors"]["gp_slam"]["rmse"]
     else:
         assert res.exit_code == 0, res.output
         assert r["flags"] == []

@@ -107,20 +107,23 @@ def test_noise_free_gp_slam_grown_from_a_prefix_returns_the_truth(grow_anneal, f
     assert r.success, r.status
     a = r.arrays
     assert np.abs(a["P_estimate"] - a["P_true"]).max() < 1e-3
-    true, est = np.array(r.biases["gyro"]["truth"]), np.array(r.biases["gyro"]["gp_slam"])
+    true, est = (
+        np.array(r.details["biases"]["gyro"]["truth"]),
+        np.array(r.details["biases"]["gyro"]["gp_slam"]),
+    )
     # The exact GP's z gyroscope bias: 0.129 against 0.12 deg/s, as in the batch pass.
     np.testing.assert_allclose(est, true, rtol=0.05 if form == "reduced_rank" else 0.1)
-    first = r.gp_slam_passes[0]
+    first = r.stages_named("gp_slam")[0]
     K = r.info["keyframes"]
     sizes = [round(0.75 * K), K]
     if grow_anneal:  # one pass: sigma_m x4, x1 on each prefix
-        assert len(r.gp_slam_passes) == 1
+        assert len(r.stages_named("gp_slam")) == 1
         assert [(g["keyframes"], g["sigma_m_factor"]) for g in first["grow"]] == [
             (k, f) for k in sizes for f in (4.0, 1.0)
         ]
     else:
         assert [g["keyframes"] for g in first["grow"]] == sizes
-        assert "grow" not in r.gp_slam_passes[1]
+        assert "grow" not in r.stages_named("gp_slam")[1]
     assert first["iterations"] == first["grow"][-1]["iterations"]
     assert first["iterations_total"] == sum(g["iterations"] for g in first["grow"])
 
@@ -131,7 +134,7 @@ def test_prefix_at_the_iteration_limit_starts_the_next():
     the full problem, which returns the truth."""
     r = _noise_free_rectangle([0.5, 1.0])
     assert r.success, r.status
-    first = r.gp_slam_passes[0]  # grown (sigma_m x4), then the x1 pass
+    first = r.stages_named("gp_slam")[0]  # grown (sigma_m x4), then the x1 pass
     K = r.info["keyframes"]
     assert [g["keyframes"] for g in first["grow"]] == [round(K / 2), K]
     assert first["grow"][0]["status"] == "Maximum_Iterations_Exceeded"
@@ -158,11 +161,11 @@ def test_failed_prefix_is_reported_with_its_status(monkeypatch):
     the result, with IPOPT's status."""
     _failing_first_solve(monkeypatch)
     r = _noise_free_rectangle([0.5, 1.0], coarse_to_fine=None, fallback_grow=None)
-    assert r.status_imu_only == "Solve_Succeeded"
+    assert r.stage("imu_only")["status"] == "Solve_Succeeded"
     assert not r.success and r.status == "Restoration_Failed"
-    assert r.failed_stage == "gp_slam" and r.errors["gp_slam"]["rmse"] is None
-    assert r.biases["gyro"]["gp_slam"] is None
-    (only,) = r.gp_slam_passes
+    assert r.details["failed_stage"] == "gp_slam" and r.details["errors"]["gp_slam"]["rmse"] is None
+    assert r.details["biases"]["gyro"]["gp_slam"] is None
+    (only,) = r.stages_named("gp_slam")
     assert only["status"] == "Restoration_Failed"
     assert [g["keyframes"] for g in only["grow"]] == [round(r.info["keyframes"] / 2)]
     assert only["grow"][0]["success"] is False
@@ -174,9 +177,9 @@ def test_a_failed_schedule_is_recorded_and_the_coarse_to_fine_one_kept(monkeypat
     _failing_first_solve(monkeypatch)
     r = _noise_free_rectangle([0.5, 1.0])
     assert r.success, r.status
-    anneal, c2f = r.schedules
+    anneal, c2f = r.details["schedules"]
     assert anneal["status"] == "Restoration_Failed" and not anneal["kept"]
-    assert c2f["success"] and c2f["kept"] and len(r.gp_slam_passes) == 3
+    assert c2f["success"] and c2f["kept"] and len(r.stages_named("gp_slam")) == 3
     assert np.abs(r.arrays["P_estimate"] - r.arrays["P_true"]).max() < 1e-3
 
 
@@ -196,10 +199,10 @@ def test_the_grown_schedule_follows_two_failed_ones(monkeypatch):
     monkeypatch.setattr(imuslam, "_slam_solve", fake)
     r = _noise_free_rectangle(None, fallback_grow=[0.75, 1.0])
     assert r.success, r.status
-    assert [s["schedule"] for s in r.schedules] == ["anneal", "coarse_to_fine", "grown"]
-    assert [s["kept"] for s in r.schedules] == [False, False, True]
-    assert [s["status"] for s in r.schedules[:2]] == ["Restoration_Failed"] * 2
-    assert len(r.schedules[2]["iterations"]) == 4  # two prefixes, sigma_m x4 then x1
+    assert [s["schedule"] for s in r.details["schedules"]] == ["anneal", "coarse_to_fine", "grown"]
+    assert [s["kept"] for s in r.details["schedules"]] == [False, False, True]
+    assert [s["status"] for s in r.details["schedules"][:2]] == ["Restoration_Failed"] * 2
+    assert len(r.details["schedules"][2]["iterations"]) == 4  # two prefixes, sigma_m x4 then x1
     assert np.abs(r.arrays["P_estimate"] - r.arrays["P_true"]).max() < 1e-3
 
 
@@ -224,4 +227,4 @@ def test_command_names_the_failed_prefix(tmp_path, monkeypatch):
     assert "GP-SLAM (prefix of 24 of 47 keyframes)" in res.output
     assert "Restoration_Failed" in res.output
     r = json.loads((out / "result.json").read_text())
-    assert r["success"] is False and r["gp_slam_passes"][0]["grow"][0]["keyframes"] == 24
+    assert r["success"] is False and r["stages"][1]["grow"][0]["keyframes"] == 24

@@ -146,7 +146,7 @@ def test_imu_results_draw_their_map_at_the_path_height(tmp_path):
 
     problem = load_imu_problem("problems/imu/spiral.yaml", ["simulation.scenario.turns=1"])
     r = solve_imu(problem)
-    assert r.success and r.map_decision == "map"
+    assert r.success and r.details["map_decision"] == "map"
     fig = _map_checks(r, tmp_path)
     z = float(r.arrays["map_z"])
     assert z == pytest.approx(float(np.median(r.arrays["P_estimate"][:, 2])))

@@ -39,13 +39,13 @@ def test_the_package_exports_the_recording_entry_points():
     assert {"solve", "slam", "slam_sessions", "load_problem", "Result"} <= set(casmag.__all__)
 
 
-def test_every_result_class_is_loaded_back_and_load_result_tells_them_apart(tmp_path):
+def test_every_motion_model_gives_one_result_class_loaded_back_by_one_reader(tmp_path):
     from small_problems import planar_room_field
 
     from casmag.imuconfig import load_imu_problem
     from casmag.imusim import simulate_planar
-    from casmag.imuslam import ImuResult, solve_imu
-    from casmag.planar import PlanarResult, solve_planar
+    from casmag.imuslam import solve_imu
+    from casmag.planar import solve_planar
 
     d = simulate_planar(4, planar_room_field(), size=(2.0, 1.5), loops=1, disp_noise=0.002)
     planar = solve_planar(*d.U.T, d.Y, t=d.t, truth={"P": d.P, "psi": d.psi})
@@ -53,11 +53,80 @@ def test_every_result_class_is_loaded_back_and_load_result_tells_them_apart(tmp_
     tiny = ["simulation.scenario.loops=1", "model.gp.form=none"]
     imu = solve_imu(load_imu_problem("problems/imu/rectangle.yaml", tiny))
     imu.save(tmp_path / "imu", figures=False)
-    for folder, cls, original in (("planar", PlanarResult, planar), ("imu", ImuResult, imu)):
-        back = casmag.load_result(tmp_path / folder)
-        assert type(back) is cls and back.status == original.status
-        assert back.verdict == original.verdict
+    for motion, original in (("planar", planar), ("imu", imu)):
+        assert type(original) is Result and original.motion == motion
+        back = casmag.load_result(tmp_path / motion)
+        assert type(back) is Result and back.motion == motion
+        assert back.status == original.status and back.verdict == original.verdict
+        assert back.details.keys() == original.details.keys()
+        assert back.stages == json.loads(json.dumps(original.stages))
         np.testing.assert_array_equal(back.arrays["P_estimate"], original.arrays["P_estimate"])
-        assert type(cls.load(tmp_path / folder)) is cls
-        with pytest.raises(DataError, match=f"a {folder} result; read it with"):
-            Result.load(tmp_path / folder)
+    assert imu.stage("imu_only")["status"] == imu.status  # no map: the IMU-only adjustment
+    assert imu.rmse_before == imu.details["errors"]["imu_only"]["rmse"]
+    header = (tmp_path / "planar" / "trajectory.csv").read_text().splitlines()[0]
+    assert header.startswith("k,t,x_odo,y_odo,psi_odo,x_est,y_est,psi_est,x_true")
+    assert (tmp_path / "imu" / "biases.md").is_file()
+
+
+def test_a_result_saved_in_the_layout_before_the_one_result_still_loads(tmp_path):
+    """IMU and planar result.json files written before the one Result (errors per stage at
+    the top level; heading errors, ``bias`` and ``num_basis`` at the top level)."""
+    imu = {
+        "info": {"name": "old", "keyframes": 10},
+        "status": "Solve_Succeeded",
+        "success": True,
+        "iterations": 12,
+        "status_imu_only": "Solve_Succeeded",
+        "iterations_imu_only": 7,
+        "rounds_imu_only": 1,
+        "failed_stage": None,
+        "build_seconds": 1.0,
+        "solve_seconds": 2.0,
+        "solve_seconds_imu_only": 0.5,
+        "gp_slam_passes": [{"status": "Solve_Succeeded", "iterations": 12}],
+        "errors": {
+            "strapdown": {"rmse": 1.0, "max": 2.0},
+            "imu_only": {"rmse": 0.1, "max": 0.2},
+            "gp_slam": {"rmse": 0.01, "max": 0.02},
+        },
+        "biases": {"gyro": {}, "acc": {}},
+        "hyperparameters": {"sigma_f": 1.0},
+        "hyperparameters_source": "given",
+        "cost_blocks": {"imu_only": {"imu": {"before": 3.0, "after": 1.0}}, "gp_slam": {}},
+        "cost_per_iteration": [1.0],
+        "cost_per_iteration_imu_only": [3.0, 1.0],
+        "map_decision": "map",
+        "flags": [],
+    }
+    planar = {
+        "status": "Solve_Succeeded",
+        "success": True,
+        "iterations": 9,
+        "build_seconds": 1.0,
+        "solve_seconds": 1.0,
+        "rmse_before": 0.5,
+        "max_before": 1.0,
+        "rmse_after": 0.05,
+        "max_after": 0.1,
+        "heading_rms_deg_before": 5.0,
+        "heading_rms_deg_after": 0.5,
+        "bias": [0.001],
+        "hyperparameters": {},
+        "num_basis": 120,
+        "cost_blocks": {},
+        "cost_per_iteration": [],
+        "info": {"name": "old planar"},
+    }
+    for name, data in (("imu", imu), ("planar", planar)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "result.json").write_text(json.dumps(data))
+    r = Result.load(tmp_path / "imu")
+    assert r.motion == "imu" and (r.rmse_before, r.rmse_after) == (0.1, 0.01)
+    assert (
+        r.stage("imu_only")["iterations"] == 7 and r.stages_named("gp_slam")[0]["iterations"] == 12
+    )
+    assert r.stage("imu_only")["cost_blocks"] == {"imu": {"before": 3.0, "after": 1.0}}
+    assert r.details["map_decision"] == "map" and r.details["errors"]["strapdown"]["rmse"] == 1.0
+    p = Result.load(tmp_path / "planar")
+    assert p.motion == "planar" and p.odometry_bias == [0.001] and p.info["num_basis"] == 120
+    assert p.details == {"heading_rms_deg_before": 5.0, "heading_rms_deg_after": 0.5}

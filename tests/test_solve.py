@@ -148,13 +148,11 @@ def test_progress_callback_sees_every_iteration():
 def test_the_library_solve_takes_an_imu_problem_and_names_the_entry_point_of_other_files():
     import yaml
 
-    from casmag.imuslam import ImuResult
-
     imu = yaml.safe_load(Path("problems/imu/rectangle.yaml").read_text())
     imu["simulation"]["scenario"]["loops"] = 1
     imu["model"]["gp"] = {"form": "none"}  # the IMU-only adjustment: a second
     r = casmag.solve(imu)
-    assert isinstance(r, ImuResult) and r.status_imu_only == "Solve_Succeeded"
+    assert r.motion == "imu" and r.stage("imu_only")["status"] == "Solve_Succeeded"
     with pytest.raises(casmag.ProblemError, match=r"use casmag\.sweep"):
         casmag.solve("problems/paper/table1.yaml")
     with pytest.raises(casmag.ProblemError, match="use casmag solve FILE"):

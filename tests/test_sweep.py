@@ -349,7 +349,9 @@ def test_an_imu_problem_is_swept_and_reported_in_the_imu_table(tmp_path):
     assert len(runs) == 2
     for path in runs:
         r = json.loads(path.read_text())
-        assert r["success"] and r["errors"]["imu_only"]["rmse"] > 0  # casmag imu's layout
+        assert (
+            r["success"] and r["details"]["errors"]["imu_only"]["rmse"] > 0
+        )  # casmag imu's layout
     res = _invoke(["report", out, "--out", tmp_path / "report.md", "--no-figures"])
     assert res.exit_code == 0, res.output
     text = (tmp_path / "report.md").read_text()

@@ -55,7 +55,7 @@ def test_a_failed_solve_and_a_models_own_flags_are_reasons():
     v = verdict(_result(success=False, status="Maximum_Iterations_Exceeded"))
     assert not v["trusted"] and "Maximum_Iterations_Exceeded" in v["reasons"][0]
     flag = {"name": "wrong_basin", "reason": "the truth costs less", "evidence": {}}
-    v = verdict(_result(flags=[flag], FLAGS_JUDGE_TRUTH=True))
+    v = verdict(_result(flags=[flag], motion="imu"))
     assert v["reasons"] == ["wrong_basin: the truth costs less"]
     assert "against_truth" not in v["checks"]  # the IMU model's flags judge it against the truth
     v = verdict(_result(flags=[flag]))  # the planar model's: the truth is checked too
@@ -69,8 +69,10 @@ def test_the_base_case_is_trusted_and_says_so_in_result_json(tmp_path):
         "solver",
         "magnetometer_misfit",
         "revisits",
+        "flags",
         "against_truth",
     }
+    assert r.verdict["checks"]["flags"] == {"passed": True, "names": []}  # one Result, any model
     assert r.verdict["checks"]["revisits"]["fraction"] > 0.5  # the paper's path loops
     r.save(tmp_path / "out", figures=False)
     saved = json.loads((tmp_path / "out" / "result.json").read_text())
@@ -132,22 +134,22 @@ def test_revisits_are_counted_after_two_lengthscales_of_path():
 def test_a_translational_path_that_never_returns_is_not_trusted():
     line = np.column_stack([np.linspace(0.0, 10.0, 100), np.zeros(100)])
     hyper = {"lengthscale": 0.3}
-    v = verdict(_result(KIND="translational", arrays={"P_estimate": line}, hyperparameters=hyper))
+    v = verdict(_result(motion="translational", arrays={"P_estimate": line}, hyperparameters=hyper))
     assert not v["trusted"] and v["checks"]["revisits"]["fraction"] == 0.0
     assert "no loop closure" in v["reasons"][0]
     loop = _loop(2.0, 100)
-    v = verdict(_result(KIND="translational", arrays={"P_estimate": loop}, hyperparameters=hyper))
+    v = verdict(_result(motion="translational", arrays={"P_estimate": loop}, hyperparameters=hyper))
     assert v["trusted"] and v["checks"]["revisits"]["passed"]
     # The heading models' magnetometer is also a compass; the dead reckoning has no map.
     assert (
         "revisits"
-        not in verdict(_result(KIND="planar", arrays={"P_estimate": line}, hyperparameters=hyper))[
-            "checks"
-        ]
+        not in verdict(
+            _result(motion="planar", arrays={"P_estimate": line}, hyperparameters=hyper)
+        )["checks"]
     )
     v = verdict(
         _result(
-            KIND="translational",
+            motion="translational",
             status="Odometry_Only",
             arrays={"P_estimate": line},
             hyperparameters=hyper,
