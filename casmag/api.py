@@ -123,7 +123,7 @@ def solve(
         "estimate_bias": problem.spec.model.odometry.estimate_bias,
         "hessian": problem.spec.solver.hessian,
         "knot_every": problem.spec.model.trajectory.knot_every,
-        "warm_start": [st.to_dict() for st in stages],
+        "warm_start": ws.strategy if stages else "none",
         "linear_solver": problem.spec.solver.linear_solver,
         "anchor": anchor_info(data, problem.spec.model.anchor.sigma),
         "casmag": __version__,
@@ -157,6 +157,7 @@ def solve(
         if data.bias_true is None
         else [float(v) for v in np.ravel(data.bias_true)],
         cost_blocks=sol.cost_blocks(),
+        stages=[st.to_dict() for st in stages],
         cost_per_iteration=sol.cost_per_iteration,
         constraint_violation_per_iteration=sol.inf_pr_per_iteration,
         uncertainty=uncertainty,

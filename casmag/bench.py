@@ -63,7 +63,7 @@ def run_one(
     t0 = time.perf_counter()
     result = casmag.solve(problem, data)
     wall = time.perf_counter() - t0
-    stages = result.info.get("warm_start") or []
+    stages = result.stages  # the growing warm start's prefixes, the last the final solve
     iters = sum(s["iterations"] for s in stages[:-1]) + result.iterations
     solve_s = sum(s["solve_seconds"] for s in stages[:-1]) + result.solve_seconds
     err = None

@@ -109,7 +109,7 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     result = casmag.solve(problem)
     wall = time.perf_counter() - t0
-    stages = result.info.get("warm_start") or []
+    stages = result.stages
     iterations = sum(s["iterations"] for s in stages) if stages else result.iterations
     rmse = result.rmse_after if result.success else None
     return {

@@ -232,7 +232,7 @@ class ImuGPSpec(Strict):
     (positions and velocities shifted to join it, orientations turned by its orientation
     correction, biases its last ones); the map basis is that of the full problem, so the map
     weights carry over. Each stage's keyframes, iterations, status and seconds are recorded
-    under ``grow`` in the pass's entry of ``gp_slam_passes``; a stage before the last that
+    under ``grow`` in the pass's record in the result's ``stages``; a stage before the last that
     stops at the iteration limit still starts the next, any other failure stops the
     pipeline with its IPOPT status. grow_anneal: with grow, run the whole anneal schedule on
     every prefix before growing it (one GP-SLAM pass, whose ``grow`` lists every solve).
@@ -244,7 +244,7 @@ class ImuGPSpec(Strict):
     hyperparameters and sigma_m. It runs when the anneal schedule's final solve failed or
     its MAP cost per magnetometer component (``misfit``) is above ``refit_misfit`` (0: run
     both always), and is kept when its final MAP cost is lower by more than
-    ``casmag.imuslam.SCHEDULE_MARGIN``; both are recorded under ``schedules``.
+    ``casmag.imuslam.SCHEDULE_MARGIN``; both are recorded under ``details.schedules``.
 
     fallback_grow: prefix fractions of a third schedule (null: none), run when the
     schedule kept so far failed or fits clearly badly (misfit above

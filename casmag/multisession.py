@@ -103,7 +103,7 @@ def solve_sessions(
 ) -> tuple[Result, Dataset, list[int]]:
     """Solve sessions with one shared map, adding them one at a time in ``order`` (default
     :func:`session_order`). Returns the final result, the stacked data in that order and
-    the order; ``result.info["session_stages"]`` records every stage."""
+    the order; the first records of ``result.stages`` (name ``start``) are every stage."""
     order = (
         list(order) if order is not None else session_order(sessions, problem.assumed_lengthscale)
     )
@@ -124,7 +124,7 @@ def solve_sessions(
         stages.extend(added)
     result = solve(problem, data, progress, initial_positions=P0)
     result.info["session_order"] = order
-    result.info["session_stages"] = stages
+    result.stages = stages + result.stages
     result.iterations += sum(st["iterations"] for st in stages)
     return result, data, order
 
@@ -144,6 +144,7 @@ def _stage(data: Dataset, sol: Any, nlp: Any, start: str) -> dict[str, Any]:
             solve_seconds=sol.solve_seconds,
             build_seconds=nlp.build_seconds,
             bias=None if bias is None else [float(v) for v in np.ravel(bias)],
+            name="start",
         ).to_dict(),
         "start": start,
         "cost": float(sum(sol.blocks_after.values())) if sol.success else None,

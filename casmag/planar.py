@@ -363,6 +363,8 @@ def solve_planar(
         odometry_bias=[float(v) for v in sol.x["bias"].ravel()] if sol.success else None,
         hyperparameters=hyper,
         cost_blocks=sol.cost_blocks(),
+        # growing prefixes, or the heading-bias starts (one kept)
+        stages=[{"name": "prefix" if stages_grown else "start", **st} for st in starts],
         cost_per_iteration=sol.cost_per_iteration,
         info={
             "name": name,
@@ -385,7 +387,6 @@ def solve_planar(
             },
             "casadi": ca.__version__,
             "versions": versions(),
-            "starts": starts,
             "warm_start": "growing" if stages_grown else "none",
         },
         convergence=[sol.trace("GP-SLAM")],

@@ -287,7 +287,7 @@ def row(
         "truth_start": result.info.get("truth_start"),
         "two_starts": [
             {k: st.get(k) for k in ("start", "cost", "kept", "iterations", "solve_seconds")}
-            for st in result.info.get("two_starts", [])
+            for st in result.stages_named("start")
         ],
     }
 

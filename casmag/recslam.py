@@ -318,9 +318,10 @@ def solve_from_two_starts(
     Neither start is right every time on the real field (sequence 5: the batch reached
     0.012 m at 0.5 m drift where growing stopped at 0.418 m, growing 0.011 m at 1.5 m drift
     where the batch stopped at 0.944 m), and the lower cost picked the right one in both.
-    ``info["two_starts"]`` records both starts (``start``, ``cost``, ``kept``); their
-    iterations are added to ``iterations``. Other strategies, longer recordings and
-    recordings of at most 2 x FIRST_PREFIX samples are solved by :func:`solve` as they are.
+    Both starts are the first records of ``stages`` (name ``start``, with ``start``,
+    ``cost``, ``kept``); their iterations are added to ``iterations``. Other strategies,
+    longer recordings and recordings of at most 2 x FIRST_PREFIX samples are solved by
+    :func:`solve` as they are.
     """
     ws = problem.spec.solver.warm_start
     if (
@@ -333,7 +334,7 @@ def solve_from_two_starts(
     P0, starts = solve_two_starts(problem, data)
     batch = problem.with_overrides(["solver.warm_start.strategy=none"])
     result = solve(batch, data, progress, initial_positions=P0)
-    result.info["two_starts"] = starts
+    result.stages = starts + result.stages
     result.iterations += sum(st["iterations"] for st in starts)
     return result
 
@@ -524,7 +525,7 @@ def refit_sigma_m(
         first.info["sigma_m_refit"] = {**rec, "kept": "first"}
         return first
     second.iterations += first.iterations
-    second.info["two_starts"] = first.info.get("two_starts")
+    second.stages = first.stages_named("start") + second.stages
     second.info["sigma_m_refit"] = {**rec, "kept": "refit"}
     return second
 

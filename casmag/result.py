@@ -49,9 +49,14 @@ class Result:
     heading-rate bias in rad/s, rad per step without times, one value per step for a
     random walk); ``cost_per_iteration``, ``constraint_violation_per_iteration`` (the final
     solve's; ``convergence`` has every solve's objective, primal and dual infeasibility:
-    casmag.nlp.Solution.trace); ``stages``: one record per solve stage where a model runs
-    several (IMU: ``imu_only`` then each ``gp_slam`` pass, with status, iterations, seconds
-    and cost blocks; :meth:`stage`); ``details``: the figures only this motion model reports
+    casmag.nlp.Solution.trace); ``stages``: one record per partial or earlier solve, in
+    order, each with its ``name``, status, iterations and seconds: ``start`` (one of
+    several starts, with ``start``, ``cost`` and ``kept``: the two starts of a recording,
+    the sessions' starts, the planar heading-bias starts), ``prefix`` (a growing prefix,
+    with ``samples``), ``window``, ``lengthscale`` and ``batch`` (the sliding and
+    coarse-to-fine warm starts), ``imu_only`` and ``gp_slam`` (the IMU model's stages, with
+    cost blocks; a grown pass lists its prefixes under ``grow``); :meth:`stage`,
+    :meth:`stages_named`; ``details``: the figures only this motion model reports
     (planar: heading errors; IMU: errors and biases per estimate, the map decision and the
     field evidence; see :data:`DETAILS`); ``uncertainty`` (sigma_mean, sigma_max [m], NEES
     against the truth, or ``error``); ``warnings`` (casmag.checks: ``check``, ``column``,
@@ -270,8 +275,9 @@ def read_result_json(path: Path) -> dict[str, Any]:
 def upgrade_layout(data: dict[str, Any]) -> dict[str, Any]:
     """A result.json mapping in today's layout. Results saved before the one Result had an
     IMU layout (errors per stage at the top level, ``status_imu_only``, ``gp_slam_passes``,
-    cost blocks per stage) and a planar one (``heading_rms_deg_*``, ``bias``,
-    ``num_basis``); they are moved to where :class:`Result` keeps them. Anything else is
+    cost blocks per stage), a planar one (``heading_rms_deg_*``, ``bias``, ``num_basis``,
+    ``info.starts``) and stage records in ``info`` (``warm_start``, ``two_starts``,
+    ``session_stages``); they are moved to where :class:`Result` keeps them. Anything else is
     returned as it is."""
     if "motion" in data:
         return data
@@ -308,9 +314,25 @@ def upgrade_layout(data: dict[str, Any]) -> dict[str, Any]:
         d = dict(data)
         details = {k: d.pop(k) for k in DETAILS["planar"] if k in d}
         info = {**(d.get("info") or {}), "num_basis": d.pop("num_basis", None)}
+        name = "prefix" if info.get("warm_start") == "growing" else "start"
+        stages = [{"name": name, **s} for s in info.pop("starts", None) or []]
         bias = d.pop("bias", None)
-        return {**d, "info": info, "motion": "planar", "odometry_bias": bias, "details": details}
-    return {**data, "motion": "translational"}
+        return {
+            **d,
+            "info": info,
+            "motion": "planar",
+            "odometry_bias": bias,
+            "stages": stages,
+            "details": details,
+        }
+    info = dict(data.get("info") or {})
+    stages = [{"name": "start", **s} for s in info.pop("two_starts", None) or []]
+    stages += [{"name": "start", **s} for s in info.pop("session_stages", None) or []]
+    if isinstance(info.get("warm_start"), list):
+        records = info.pop("warm_start")
+        stages += [{"name": s.pop("kind", "prefix"), **s} for s in map(dict, records)]
+        info["warm_start"] = "recorded in stages"
+    return {**data, "info": info, "motion": "translational", "stages": stages}
 
 
 def result_kind(data: dict[str, Any]) -> str:

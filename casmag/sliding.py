@@ -111,12 +111,12 @@ def inside(P: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
 class WindowStage:
     """One window or stage: where it sits, IPOPT's outcome, the bias estimate it left.
 
-    kind: ``window``, ``lengthscale`` (a coarse-to-fine stage) or ``batch``; start, samples:
+    name: ``window``, ``lengthscale`` (a coarse-to-fine stage) or ``batch``; start, samples:
     first sample and number of samples; lengthscale [m] used; bias: total per-step bias [m]
     estimated so far (None when not estimated); bias_sigma: its standard deviation per axis
     [m] that the next window takes as prior (window_bias_prior laplace; else None)."""
 
-    kind: str
+    name: str
     start: int
     samples: int
     status: str
@@ -474,7 +474,7 @@ def fixed_lag_smoother(
                 previous = P[nxt - start :]
         windows.append(
             WindowStage(
-                kind="window",
+                name="window",
                 start=start,
                 samples=n,
                 status=status,
@@ -504,11 +504,11 @@ def fixed_lag_smoother(
 
 
 def _batch_stage(
-    sol: Solution, nlp: NLP, n: int, lengthscale: float, bias: Any, kind: str = "batch"
+    sol: Solution, nlp: NLP, n: int, lengthscale: float, bias: Any, name: str = "batch"
 ) -> WindowStage:
     """A solve over all n samples (the batch, or a coarse-to-fine stage) as a stage."""
     return WindowStage(
-        kind=kind,
+        name=name,
         start=0,
         samples=n,
         status=sol.status,

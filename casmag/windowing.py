@@ -34,7 +34,9 @@ from casmag.translational import Structure, solve_translational
 
 @dataclass(frozen=True)
 class Stage:
-    """One partial solve: samples used, IPOPT's outcome, the bias estimate it left."""
+    """One partial solve: samples used, IPOPT's outcome, the bias estimate it left; a
+    result's ``stages`` record (``name`` prefix: a growing prefix, the last the full
+    problem)."""
 
     samples: int
     status: str
@@ -43,9 +45,10 @@ class Stage:
     solve_seconds: float
     build_seconds: float
     bias: list[float] | None
+    name: str = "prefix"
 
     def to_dict(self) -> dict[str, Any]:
-        return dict(self.__dict__)
+        return {"name": self.name, **{k: v for k, v in self.__dict__.items() if k != "name"}}
 
 
 def stage_lengths(n: int, first: int, growth: float) -> list[int]:

@@ -558,7 +558,7 @@ def test_planar_starts_keep_the_lowest_cost():
     opts = load_planar_options(None, [*sets, "model.num_basis=120", "model.starts=3"])
     truth = {"P": d.P, "psi": d.psi}
     r = solve_planar(d.U[:, 0], d.U[:, 1], d.U[:, 2], d.Y, opts, truth=truth, t=d.t)
-    starts = r.info["starts"]
+    starts = r.stages_named("start")
     assert len(starts) == 3 and starts[0]["bias"] == 0.0
     assert starts[1]["bias"] == pytest.approx(-starts[2]["bias"])
     assert starts[1]["bias"] == pytest.approx(np.radians(10.0) / (d.t[-1] - d.t[0]))

@@ -111,7 +111,7 @@ def test_a_line_is_localised_against_the_map_of_a_spiral():
     base, A, B = _pair()
     result, data, order = solve_sessions(base, [B, A])
     assert order == [1, 0] and result.success
-    assert len(result.info["session_stages"]) == 1
+    assert len(result.stages_named("start")) == 1
     for P_odo, P_est, P_true in zip(
         split(data, result.arrays["P_odometry"]),
         split(data, result.arrays["P_estimate"]),

@@ -155,7 +155,8 @@ def test_growing_prefixes_on_a_planar_recording(tmp_path):
     assert res.exit_code == 0, res.output
     r = json.loads((out / "result.json").read_text())
     assert r["info"]["warm_start"] == "growing"
-    stages = r["info"]["starts"]
+    stages = r["stages"]
+    assert {st["name"] for st in stages} == {"prefix"}
     assert [st["samples"] for st in stages] == [50, 100, d.t.size]
     assert [st["kept"] for st in stages] == [False, False, True]
     assert all(st["iterations"] <= 25 for st in stages[:-1])  # stage_max_iter

@@ -260,7 +260,8 @@ def test_slam_keeps_the_lower_cost_of_two_starts(tmp_path):
     write_recording(path, **dataset_to_recording_arrays(data, dt=0.1))
     res = slam(path)
     assert res.success
-    starts = res.info["two_starts"]
+    starts = res.stages_named("start")
+    assert res.stages[: len(starts)] == starts  # the starts come first
     assert [st["start"] for st in starts] == ["dead reckoning", "growing prefixes"]
     assert sum(st["kept"] for st in starts) == 1
     kept = min(starts, key=lambda st: st["cost"])

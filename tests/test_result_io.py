@@ -127,6 +127,18 @@ def test_a_result_saved_in_the_layout_before_the_one_result_still_loads(tmp_path
     )
     assert r.stage("imu_only")["cost_blocks"] == {"imu": {"before": 3.0, "after": 1.0}}
     assert r.details["map_decision"] == "map" and r.details["errors"]["strapdown"]["rmse"] == 1.0
+    old = {k: planar[k] for k in ("status", "success", "iterations", "build_seconds")}
+    old |= {k: planar[k] for k in ("solve_seconds", "rmse_before", "max_before", "rmse_after")}
+    old |= {"max_after": 0.1, "hyperparameters": {}, "cost_blocks": {}, "cost_per_iteration": []}
+    old["info"] = {
+        "two_starts": [{"start": "dead reckoning", "cost": 5.0, "kept": True}],
+        "warm_start": [{"samples": 400, "iterations": 9}, {"samples": 800, "iterations": 4}],
+    }
+    (tmp_path / "translational").mkdir()
+    (tmp_path / "translational" / "result.json").write_text(json.dumps(old))
+    t = Result.load(tmp_path / "translational")
+    assert [s["name"] for s in t.stages] == ["start", "prefix", "prefix"]
+    assert t.stages[2] == {"name": "prefix", "samples": 800, "iterations": 4}
     p = Result.load(tmp_path / "planar")
     assert p.motion == "planar" and p.odometry_bias == [0.001] and p.info["num_basis"] == 120
     assert p.details == {"heading_rms_deg_before": 5.0, "heading_rms_deg_after": 0.5}

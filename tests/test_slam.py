@@ -105,7 +105,8 @@ def test_growing_warm_start_recovers_drift_a_batch_does_not():
         data,
     )
     assert grown.success, grown.status
-    assert [s["samples"] for s in grown.info["warm_start"]] == [400, 1600]
+    assert [s["samples"] for s in grown.stages_named("prefix")] == [400, 1600]
+    assert grown.info["warm_start"] == "growing" and len(grown.stages) == 2
     assert grown.rmse_after <= 0.1 * grown.rmse_before
     assert grown.rmse_after < 0.5 * (batch.rmse_after if batch.success else np.inf)
 

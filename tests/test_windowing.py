@@ -106,8 +106,8 @@ def test_sliding_start_reaches_the_basin_from_a_drifting_start(drifting):
     slide = casmag.solve(problem.with_overrides(["solver.warm_start.strategy=sliding"]), data)
     assert slide.success, slide.status
     assert slide.rmse_before > 0.7 and slide.rmse_after < 0.01, slide.rmse_after
-    stages = slide.info["warm_start"]
-    assert [s["kind"] for s in stages] == ["window"] * 16 + ["batch"]
+    stages = slide.stages
+    assert [s["name"] for s in stages] == ["window"] * 16 + ["batch"]
     assert stages[-1]["iterations"] == slide.iterations
     assert sum(s["iterations"] for s in stages) < 200
     np.testing.assert_allclose(slide.odometry_bias, data.bias_true, atol=2e-4)
@@ -131,8 +131,8 @@ def test_coarse_to_fine_schedule_and_solve():
     res = casmag.solve(problem, data)
     assert res.success, res.status
     assert res.rmse_after < 0.01, res.rmse_after
-    stages = res.info["warm_start"]
-    assert [s["kind"] for s in stages] == ["lengthscale", "lengthscale", "batch"]
+    stages = res.stages
+    assert [s["name"] for s in stages] == ["lengthscale", "lengthscale", "batch"]
     np.testing.assert_allclose([s["lengthscale"] for s in stages], [1.2, 0.4 * 3**0.5, 0.4])
     assert res.hyperparameters["lengthscale"] == pytest.approx(0.4)
 
