@@ -9,7 +9,7 @@ casmag.verdict); 130 / 143 interrupted by Ctrl-C / SIGTERM (the previous output 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import click
 
@@ -19,9 +19,9 @@ from casmag.clitools import (
     INPUT_ERRORS,
     CasmagGroup,
     align_option,
-    exit_untrusted,
     fail,
     fail_bad_input,
+    finish,
     output_options,
     print_progress,
     problem_kind,
@@ -29,11 +29,7 @@ from casmag.clitools import (
     with_evaluation,
 )
 from casmag.errors import CasmagError
-from casmag.imucli import imu_command
 from casmag.sweep import sweep_command
-
-if TYPE_CHECKING:
-    from casmag.result import Result
 
 
 @click.group(cls=CasmagGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -59,9 +55,7 @@ class LagParam(click.ParamType):
 @main.command()
 @click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
 @output_options
-@click.pass_context
 def solve(
-    ctx: click.Context,
     problem: Path,
     out_dir: Path,
     overrides: tuple[str, ...],
@@ -78,16 +72,8 @@ def solve(
     it is run over seeds by ``casmag sweep``.
     """
     kind = problem_kind(problem)
-    options = {
-        "out_dir": out_dir,
-        "overrides": overrides,
-        "no_figures": no_figures,
-        "align": align,
-    }
-    if kind == "translational":
-        ctx.invoke(run, problem=problem, quiet=quiet, **options)
-    elif kind == "imu":
-        ctx.invoke(imu_command, problem=problem, quiet=quiet, **options)
+    if kind in ("translational", "imu"):
+        _solve_problem_file(problem, kind, out_dir, overrides, no_figures, quiet, align)
     elif kind == "recording":
         if overrides:
             fail(
@@ -130,59 +116,78 @@ def _solve_real(problem: Path, out_dir: Path, quiet: bool, align: str) -> None:
         click.echo(f"wrote {out_dir}/")
 
 
-@main.command()
-@click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
-@output_options
-def run(
+def _problem_command(name: str, kind: str, help_text: str) -> click.Command:
+    """``casmag NAME PROBLEM --out DIR``: solve a problem file of one kind
+    (:func:`_solve_problem_file`); other kinds are refused naming their command."""
+
+    @main.command(name, help=help_text)
+    @click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
+    @output_options
+    def command(
+        problem: Path,
+        out_dir: Path,
+        overrides: tuple[str, ...],
+        no_figures: bool,
+        quiet: bool,
+        align: str,
+    ) -> None:
+        refuse_other_kind(problem, problem_kind(problem), kind)
+        _solve_problem_file(problem, kind, out_dir, overrides, no_figures, quiet, align)
+
+    return command
+
+
+run = _problem_command(
+    "run",
+    "translational",
+    "Solve PROBLEM (a translational problem file) and write result.json, trajectory.csv "
+    "and figures (casmag solve takes every kind of problem file).",
+)
+imu = _problem_command(
+    "imu",
+    "imu",
+    "Solve an IMU PROBLEM (problems/imu/*.yaml): strapdown, IMU-only adjustment, GP-SLAM. "
+    "Writes result.json, biases.md, trajectory.csv, trajectory.png, cost.png and map.png "
+    "(casmag solve takes every kind of problem file).",
+)
+
+
+def _solve_problem_file(
     problem: Path,
+    kind: str,
     out_dir: Path,
     overrides: tuple[str, ...],
     no_figures: bool,
     quiet: bool,
     align: str,
 ) -> None:
-    """Solve PROBLEM (a translational problem file) and write result.json, trajectory.csv
-    and figures (``casmag solve`` takes every kind of problem file)."""
+    """Load a translational or IMU problem file, solve it (:func:`casmag.api.solve`), print
+    its plausibility warnings on stderr, save it, and end as every command does
+    (:func:`casmag.clitools.finish`)."""
     from casmag.api import solve
+    from casmag.checks import warning_lines
     from casmag.config import load_problem
+    from casmag.imuconfig import load_imu_problem, refuse_unused_solver_keys
 
-    refuse_other_kind(problem, problem_kind(problem), "translational")
     try:
-        prob = load_problem(problem, overrides)
+        if kind == "imu":
+            refuse_unused_solver_keys(overrides, "casmag imu")
+            prob: Any = load_imu_problem(problem, overrides)
+        else:
+            prob = load_problem(problem, overrides)
         result = solve(prob, progress=None if quiet else print_progress)
+        for line in warning_lines(problem, result.warnings):
+            click.echo(line, err=True)
         with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail(str(exc), EXIT_BAD_INPUT)
     except INPUT_ERRORS as exc:
         fail_bad_input(problem, exc)
-    _finish(result, problem, out_dir, quiet)
-    exit_untrusted(result, problem)
+    finish(result, problem, out_dir, quiet)
 
 
 def _warn(line: str) -> None:
     click.echo(line, err=True)
-
-
-def _finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
-    """Exit 1 with IPOPT's status when the solve failed, else print the summary."""
-    if not result.success:
-        fail(
-            f"{source}: IPOPT failed: status {result.status} after {result.iterations} iterations "
-            f"(recorded in {out_dir / 'result.json'})",
-            EXIT_SOLVER_FAILED,
-        )
-    if not quiet:
-        line = (
-            f"{result.info['name']}: {result.status}, {result.iterations} iterations, "
-            f"{result.solve_seconds:.2f} s solve ({result.build_seconds:.1f} s build)"
-        )
-        if result.rmse_before is not None:
-            line += (
-                f"; RMSE {result.rmse_before:.4f} -> {result.rmse_after:.4f} m, "
-                f"max {result.max_before:.4f} -> {result.max_after:.4f} m"
-            )
-        click.echo(line)
-        click.echo(f"wrote {out_dir}/")
 
 
 @main.command()
@@ -250,35 +255,14 @@ def slam(
     bias (casmag.multisession); result.json lists each session's errors and sessions.png
     shows them.
     """
-    from casmag.imucli import is_planar_recording, planar_slam
-    from casmag.recslam import refuse_translational_options, slam_sessions
+    from casmag.recording import is_planar_recording
     from casmag.recslam import slam as run_slam
+    from casmag.recslam import slam_sessions
 
     recording = recordings[0]
-    if len(recordings) == 1 and is_planar_recording(recording):  # the planar heading model
-        try:
-            refuse_translational_options(recording, mag_lag, refit_noise)
-        except CasmagError as exc:
-            fail(str(exc), EXIT_BAD_INPUT)
-        planar_slam(
-            recording,
-            out_dir,
-            problem,
-            overrides,
-            no_figures,
-            quiet,
-            field_check=not no_field_check,
-            align=align,
-            anchor=anchor,
-            mag_lag=mag_lag,
-        )
-        return
     progress = None if quiet else print_progress
     try:
-        for r in recordings[1:]:
-            if is_planar_recording(r):
-                raise CasmagError(f"{r}: planar recordings cannot be solved as several sessions")
-        if len(recordings) == 1:
+        if len(recordings) == 1:  # translational or planar (casmag.recslam.slam)
             result = run_slam(
                 recording,
                 problem,
@@ -291,6 +275,11 @@ def slam(
                 refit_noise=refit_noise,
             )
         else:
+            for r in recordings:
+                if is_planar_recording(r):
+                    raise CasmagError(
+                        f"{r}: planar recordings cannot be solved as several sessions"
+                    )
             if mag_lag or refit_noise:
                 raise CasmagError("--mag-lag, --refit-noise: one recording at a time")
             if anchor != "truth":
@@ -311,14 +300,7 @@ def slam(
         fail(str(exc), EXIT_BAD_INPUT)
     except INPUT_ERRORS as exc:
         fail_bad_input(recording, exc)
-    _finish(result, recording, out_dir, quiet)
-    if not quiet:
-        for row in result.info.get("sessions", []):
-            if row.get("rmse_after") is not None:
-                click.echo(
-                    f"  {row['name']}: RMSE {row['rmse_before']:.4f} -> {row['rmse_after']:.4f} m"
-                )
-    exit_untrusted(result, recording)
+    finish(result, recording, out_dir, quiet)
 
 
 @main.command()
@@ -433,7 +415,6 @@ def convert(
 
 
 main.add_command(sweep_command)
-main.add_command(imu_command)
 
 if __name__ == "__main__":  # pragma: no cover
     main(prog_name="casmag")

@@ -4,6 +4,7 @@ the output options every solving command takes."""
 from __future__ import annotations
 
 import functools
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -17,6 +18,7 @@ from casmag.errors import CasmagError
 from casmag.evaluation import ALIGNMENTS, evaluate_result
 from casmag.interrupt import Interrupted
 from casmag.outdir import OutputError, check_output_dir
+from casmag.result import Result, bias_table
 
 EXIT_SOLVER_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -178,6 +180,99 @@ def with_evaluation(result: Any, align: str) -> Any:
     """The result with its ``evaluation`` after ``--align`` (casmag.evaluation)."""
     result.evaluation = evaluate_result(result, align)
     return result
+
+
+def finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
+    """How every solving command ends, for a result of any motion model: exit 1 with
+    IPOPT's status (and, for IMU problems, the stage that failed) when the solve failed;
+    else the summary (:func:`summary_lines`) unless ``quiet``; then exit 3 when the verdict
+    does not trust the estimate (:func:`exit_untrusted`), else return (exit 0)."""
+    if not result.success:
+        fail(
+            f"{source}: IPOPT failed{_failed_where(result)}: status {result.status} after "
+            f"{result.iterations} iterations (recorded in {out_dir / 'result.json'})",
+            EXIT_SOLVER_FAILED,
+        )
+    if not quiet:
+        for line in summary_lines(result):
+            click.echo(line)
+        click.echo(f"wrote {out_dir}/")
+    exit_untrusted(result, source)
+
+
+def _failed_where(result: Result) -> str:
+    """`` in the STAGE`` for an IMU result (the IMU-only adjustment, GP-SLAM, a grown
+    prefix), else nothing."""
+    if result.motion != "imu":
+        return ""
+    failed = result.details.get("failed_stage")
+    stage = "IMU-only adjustment" if failed == "imu_only" else "GP-SLAM"
+    passes = result.stages_named("gp_slam")
+    grow = passes[-1].get("grow") if passes else None
+    if failed == "gp_slam" and grow:
+        stage += f" (prefix of {grow[-1]['keyframes']} of {result.info['keyframes']} keyframes)"
+    return f" in the {stage}"
+
+
+def summary_lines(result: Result) -> list[str]:
+    """What a command prints after a successful solve: one line with the status, iterations,
+    seconds and errors (for IMU problems per stage, for planar ones the heading-rate bias),
+    then the IMU biases table or each session's errors."""
+    name = result.info.get("name", "")
+    if result.motion == "imu":
+        return _imu_summary(result)
+    model = "planar model, " if result.motion == "planar" else ""
+    line = (
+        f"{name}: {model}{result.status}, {result.iterations} iterations, "
+        f"{result.solve_seconds:.2f} s solve ({result.build_seconds:.1f} s build)"
+    )
+    if result.rmse_before is not None and result.rmse_after is not None:
+        line += f"; RMSE {result.rmse_before:.4f} -> {result.rmse_after:.4f} m"
+        if result.motion == "translational":
+            line += f", max {result.max_before:.4f} -> {result.max_after:.4f} m"
+    bias = result.odometry_bias
+    if result.motion == "planar" and bias is not None and len(bias) == 1:
+        line += f"; heading-rate bias {math.degrees(bias[0]):.4f} deg/s"
+    lines = [line]
+    for row in result.info.get("sessions", []):
+        if row.get("rmse_after") is not None:
+            lines.append(
+                f"  {row['name']}: RMSE {row['rmse_before']:.4f} -> {row['rmse_after']:.4f} m"
+            )
+    return lines
+
+
+def _imu_summary(result: Result) -> list[str]:
+    e = result.details["errors"]
+    imu_only = result.stage("imu_only") or {}
+    its = " + ".join(_pass_iterations(p) for p in result.stages_named("gp_slam")) or "0"
+    line = (
+        f"{result.info['name']}: {result.status}, {imu_only['iterations']} (IMU only) + "
+        f"{its} (GP-SLAM) iterations, {imu_only['solve_seconds']:.1f} + "
+        f"{result.solve_seconds:.1f} s solve ({result.build_seconds:.1f} s build)"
+    )
+    if e["gp_slam"]["rmse"] is not None:
+        line += (
+            f"; position RMSE strapdown {e['strapdown']['rmse']:.4g} m, IMU only "
+            f"{e['imu_only']['rmse']:.4g} m, GP-SLAM {e['gp_slam']['rmse']:.4g} m; "
+            f"orientation RMS {e['gp_slam']['orientation_rms_deg']:.3f} deg"
+        )
+    if result.details["map_decision"].startswith("homogeneous"):
+        evidence = result.details["field_evidence"]
+        line += (
+            f"; field homogeneous (log Bayes factor "
+            f"{evidence['log_bayes_factor']:.2f}): IMU-only adjustment kept"
+        )
+    return [line, bias_table(result.details, result.stages).rstrip("\n")]
+
+
+def _pass_iterations(p: dict[str, Any]) -> str:
+    """A GP-SLAM pass's iterations; a grown pass (model.gp.grow): its last solve's and the
+    total over its solves."""
+    grow = p.get("grow")
+    if not grow:
+        return str(p["iterations"])
+    return f"{p['iterations']} (grown: {p['iterations_total']} over {len(grow)} solves)"
 
 
 def exit_untrusted(result: Any, source: Any) -> None:

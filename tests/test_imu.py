@@ -11,9 +11,9 @@ from click.testing import CliRunner
 from small_problems import planar_room_field
 
 from casmag import strapdown as sd
+from casmag.cli import imu as imu_command
 from casmag.dipoles import Dipole, DipoleField, earth_field, moment_for
 from casmag.errors import ProblemError
-from casmag.imucli import imu_command
 from casmag.imuconfig import load_imu_problem
 from casmag.imusim import exact_increments, simulate_imu
 from casmag.imuslam import (

@@ -212,7 +212,7 @@ def test_command_names_the_failed_prefix(tmp_path, monkeypatch):
     import yaml
     from click.testing import CliRunner
 
-    from casmag.imucli import imu_command
+    from casmag.cli import imu as imu_command
 
     _failing_first_solve(monkeypatch)
     path = tmp_path / "p.yaml"
