@@ -52,40 +52,6 @@ class LagParam(click.ParamType):
             self.fail(f"expected seconds or 'auto', got {value!r}", param, ctx)
 
 
-@main.command()
-@click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
-@output_options
-def solve(
-    problem: Path,
-    out_dir: Path,
-    overrides: tuple[str, ...],
-    no_figures: bool,
-    quiet: bool,
-    align: str,
-) -> None:
-    """Solve PROBLEM, a problem file of any kind, and write its results to --out.
-
-    The kind comes from the file's keys (casmag.config.document_kind): a translational
-    problem (problems/paper, problems/bench) as ``casmag run``, an IMU problem
-    (problems/imu) as ``casmag imu``, a real-data problem (problems/real: ``recording`` or
-    ``sessions``) as ``make bench-real`` solves one file. A table file (``rows``) is refused:
-    it is run over seeds by ``casmag sweep``.
-    """
-    kind = problem_kind(problem)
-    if kind in ("translational", "imu"):
-        _solve_problem_file(problem, kind, out_dir, overrides, no_figures, quiet, align)
-    elif kind == "recording":
-        if overrides:
-            fail(
-                f"--set: not taken by a real-data problem file ({problem}); edit its model "
-                "or solver section instead",
-                EXIT_BAD_INPUT,
-            )
-        _solve_real(problem, out_dir, quiet, align)
-    else:
-        refuse_other_kind(problem, kind, "translational")
-
-
 def _solve_real(problem: Path, out_dir: Path, quiet: bool, align: str) -> None:
     """A real-data problem file (casmag.realbench): converted from ../shared/data, solved
     with ``casmag slam``'s defaults and the file's settings; exit 1 when IPOPT failed."""
@@ -116,9 +82,10 @@ def _solve_real(problem: Path, out_dir: Path, quiet: bool, align: str) -> None:
         click.echo(f"wrote {out_dir}/")
 
 
-def _problem_command(name: str, kind: str, help_text: str) -> click.Command:
-    """``casmag NAME PROBLEM --out DIR``: solve a problem file of one kind
-    (:func:`_solve_problem_file`); other kinds are refused naming their command."""
+def _problem_command(name: str, kind: str | None, help_text: str) -> click.Command:
+    """``casmag NAME PROBLEM --out DIR``: solve a problem file of one ``kind`` (None: of any
+    kind, as its keys say: casmag.config.document_kind); other kinds are refused naming
+    their command."""
 
     @main.command(name, help=help_text)
     @click.argument("problem", type=click.Path(dir_okay=False, path_type=Path))
@@ -131,12 +98,35 @@ def _problem_command(name: str, kind: str, help_text: str) -> click.Command:
         quiet: bool,
         align: str,
     ) -> None:
-        refuse_other_kind(problem, problem_kind(problem), kind)
-        _solve_problem_file(problem, kind, out_dir, overrides, no_figures, quiet, align)
+        found = problem_kind(problem)
+        if kind is not None:
+            refuse_other_kind(problem, found, kind)
+        if found in ("translational", "imu"):
+            _solve_problem_file(problem, found, out_dir, overrides, no_figures, quiet, align)
+        elif found == "recording":
+            if overrides:
+                fail(
+                    f"--set: not taken by a real-data problem file ({problem}); edit its "
+                    "model or solver section instead",
+                    EXIT_BAD_INPUT,
+                )
+            _solve_real(problem, out_dir, quiet, align)
+        else:
+            refuse_other_kind(problem, found, "translational")
 
     return command
 
 
+solve = _problem_command(
+    "solve",
+    None,
+    "Solve PROBLEM, a problem file of any kind, and write its results to --out.\n\n"
+    "The kind comes from the file's keys (casmag.config.document_kind): a translational "
+    "problem (problems/paper, problems/bench) as casmag run, an IMU problem (problems/imu) "
+    "as casmag imu, a real-data problem (problems/real: recording or sessions) as make "
+    "bench-real solves one file. A table file (rows) is refused: it is run over seeds by "
+    "casmag sweep.",
+)
 run = _problem_command(
     "run",
     "translational",
