@@ -37,3 +37,49 @@ def planar_room_field():
             ("rebar", [-1.0, -0.6, -0.5], [-0.06, 0.02, -0.1]),
         ],
     )
+
+
+def tiny_imu(**model):
+    """A 4-second rectangle on a desk with one dipole: a few dozen keyframes."""
+    data = {
+        "seed": 11,
+        "simulation": {
+            "scenario": {
+                "kind": "rectangle",
+                "size": [0.12, 0.08],
+                "loops": 1,
+                "static": 0.5,
+                "speed": 0.12,
+            },
+            "field": {"dipoles": [{"position": [0.25, 0.0, -0.1], "moment": [2e-3, 1e-3, -3e-3]}]},
+        },
+        "model": {"keyframe_rate": 5.0, **model},
+        "solver": {"max_iter": 100, "tol": 1e-5},
+    }
+    return data
+
+
+def imu_noise_free(data, biases=True):
+    """The IMU problem dictionary ``data`` made noise-free (sensors and magnetometer), with
+    small model noises; ``biases`` False also zeroes the simulated biases."""
+    imu = {
+        "gyro_noise_density": 0.0,
+        "acc_noise_density": 0.0,
+        "gyro_bias_walk": 0.0,
+        "acc_bias_walk": 0.0,
+    }
+    if not biases:
+        imu.update(gyro_bias=[0.0, 0.0, 0.0], acc_bias=[0.0, 0.0, 0.0])
+    data["simulation"]["imu"] = imu
+    data["simulation"]["magnetometer"] = {"noise": 0.0}
+    data["model"]["imu"] = {
+        "gyro_noise_density": 1e-3,
+        "acc_noise_density": 1e-4,
+        "gyro_bias_walk": 1e-5,
+        "acc_bias_walk": 1e-6,
+    }
+    # One sample per keyframe: averaging has an error of its own (the field's variation over
+    # the window, the gyro bias), so only the keyframe's own sample makes the truth the optimum.
+    data["model"]["magnetometer"] = {"sigma_m": 1e-3, "samples": 1}
+    data["model"]["zero_position"] = {"sigma": None}
+    return data

@@ -146,3 +146,20 @@ def test_cycles_through_type_checking_relative_and_subpackage_imports_are_found(
     (pkg / "plot.py").write_text("def draw(result):\n    return result\n")
     (pkg / "model/field.py").write_text("X = 1\n")
     assert find_cycle(import_graph(pkg)) is None
+
+
+def test_no_test_module_imports_another():
+    """Shared helpers live in conftest.py and the helper modules (small_problems,
+    problem_files), never in a test module another test file imports."""
+    tests = Path(__file__).resolve().parent
+    test_modules = {p.stem for p in tests.glob("test_*.py")}
+    offenders = []
+    for path in sorted(tests.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            offenders += [f"{path.name}: {n}" for n in names if n.split(".")[0] in test_modules]
+    assert offenders == []

@@ -2,7 +2,8 @@
 
 import numpy as np
 import pytest
-from test_imu import _noise_free, _tiny
+from small_problems import imu_noise_free as _noise_free
+from small_problems import tiny_imu as _tiny
 
 from casmag import imuslam
 from casmag import strapdown as sd

@@ -3,7 +3,7 @@
 
 import numpy as np
 import pytest
-from test_imu import _tiny
+from small_problems import tiny_imu as _tiny
 
 from casmag import strapdown as sd
 from casmag.dipoles import Dipole, DipoleField, earth_field
