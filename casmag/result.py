@@ -37,14 +37,16 @@ class Result:
     ``cost_blocks`` maps each named block of the final solve to its value at the initial
     guess ("before") and at the solution ("after").
 
-    Fields: ``info`` (name, source, seed, sample count, model settings, versions, warm-start
-    stages, for recordings ``defaults`` and ``recording``); ``status`` (IPOPT's return
+    Fields: ``info`` (name, source, seed, sample count, model settings, versions, the
+    ``warm_start`` strategy whose solves are in ``stages``, for recordings ``defaults`` and
+    ``recording``); ``status`` (IPOPT's return
     status, or ``Odometry_Only``) and ``success``; ``iterations`` (of the final solve plus
     any start solves); ``build_seconds``, ``solve_seconds`` [s]; ``hyperparameters``:
     sigma_f and sigma_m [field units], lengthscale [m]; ``hyperparameters_initial``: the
     values the MAP started from (the assumed ones, except estimated sigma_f and
     lengthscale, which start where ``info["estimate_start"]`` says: casmag.translational.
-    estimate_start); ``odometry_bias`` and ``odometry_bias_true``: the motion model's
+    estimate_start; with both of its starts ``solve_seconds`` is their sum);
+    ``odometry_bias`` and ``odometry_bias_true``: the motion model's
     constant bias (translational: m per step, per axis and session; planar: the
     heading-rate bias in rad/s, rad per step without times, one value per step for a
     random walk); ``cost_per_iteration``, ``constraint_violation_per_iteration`` (the final
@@ -333,12 +335,6 @@ def upgrade_layout(data: dict[str, Any]) -> dict[str, Any]:
         stages += [{"name": s.pop("kind", "prefix"), **s} for s in map(dict, records)]
         info["warm_start"] = "recorded in stages"
     return {**data, "info": info, "motion": "translational", "stages": stages}
-
-
-def result_kind(data: dict[str, Any]) -> str:
-    """The motion model a result.json was saved from (``translational``, ``planar`` or
-    ``imu``)."""
-    return str(upgrade_layout(data)["motion"])
 
 
 def evaluation_of(result: Any) -> dict[str, Any]:
