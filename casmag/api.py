@@ -130,11 +130,7 @@ def solve(
         "casadi": ca.__version__,
         "versions": versions(),
     }
-    initial = {
-        "sigma_f": problem.assumed_sigma_f,
-        "lengthscale": problem.assumed_lengthscale,
-        "sigma_m": problem.assumed_sigma_m,
-    }
+    initial = problem.assumed_hyperparameters
     start = sol.stats.get("estimate_start")
     if start is not None:  # the joint MAP's start of its estimated hyperparameters
         info["estimate_start"] = start

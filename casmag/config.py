@@ -489,6 +489,16 @@ class Problem:
         )
 
     @property
+    def assumed_hyperparameters(self) -> dict[str, float]:
+        """The GP hyperparameters the model assumes, by name (casmag.translational's
+        HYPERPARAMETERS): sigma_f, lengthscale, sigma_m."""
+        return {
+            "sigma_f": self.assumed_sigma_f,
+            "lengthscale": self.assumed_lengthscale,
+            "sigma_m": self.assumed_sigma_m,
+        }
+
+    @property
     def assumed_sigma_odometry(self) -> float:
         return self._resolve(
             self.spec.model.odometry.sigma,

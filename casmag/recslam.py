@@ -247,11 +247,7 @@ def odometry_only(problem: Problem, data: Dataset, reason: str) -> Result:
     before = after = (None, None)
     if data.P_true is not None:
         before = after = rmse_and_max(P, data.P_true)
-    hyper = {
-        "sigma_f": problem.assumed_sigma_f,
-        "lengthscale": problem.assumed_lengthscale,
-        "sigma_m": problem.assumed_sigma_m,
-    }
+    hyper = problem.assumed_hyperparameters
     return Result(
         info={
             "name": problem.name,
