@@ -111,7 +111,7 @@ tables: $(STAMP) ## Paper Tables 1-5 in one parallel sweep -> results/paper/tabl
 	$(VENV)/bin/casmag report $(PAPER)/runs --out $(PAPER)/tables.md
 
 truth-start: $(STAMP) ## Tables 2 and 4 from the dead reckoning and from the truth -> results/paper/truth_start.md
-	$(PY) -m casmag.truthstart problems/paper/table2.yaml problems/paper/table4.yaml --seeds $(SEEDS) --out $(PAPER)
+	$(PY) -m casmag.experiments.truthstart problems/paper/table2.yaml problems/paper/table4.yaml --seeds $(SEEDS) --out $(PAPER)
 
 lint: $(STAMP) ## ruff check and format check
 	$(VENV)/bin/ruff check casmag tests examples
@@ -124,24 +124,24 @@ clean: ## Remove the environment and caches
 	rm -rf $(VENV) $(LATEST) $(LOWEST) $(LOCKVENV) .pytest_cache .ruff_cache build *.egg-info
 
 bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences x 2 drifts + 2 homogeneous -> results/real/table.md
-	$(PY) -m casmag.realbench problems/real/*.yaml --out results/real
+	$(PY) -m casmag.experiments.realbench problems/real/*.yaml --out results/real
 
 bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
-	$(PY) -m casmag.bench scale --out results/bench
+	$(PY) -m casmag.experiments.bench scale --out results/bench
 
 bench-exact: $(STAMP) ## Exact GP against reduced rank, N = 100..500; replaces those rows of results/bench/scale.json
-	$(PY) -m casmag.bench exact --out results/bench
+	$(PY) -m casmag.experiments.bench exact --out results/bench
 
 bench-convergence: $(STAMP) ## Windowing convergence grid, 20 seeds per cell; results/bench/convergence.json, .png (resumable)
-	$(PY) -m casmag.convergence --out results/bench
+	$(PY) -m casmag.experiments.convergence --out results/bench
 
 imu: $(STAMP) ## Solve every IMU problem; writes results/imu/<name>/ (about 10 minutes)
 	@for f in problems/imu/*.yaml; do n=$$(basename $$f .yaml); \
 	  $(VENV)/bin/casmag imu $$f --out results/imu/$$n --quiet; echo "$$n: exit $$?"; done
 
 bench-imu: $(STAMP) ## Every IMU scenario over SEEDS seeds (resumable) -> results/bench/imu/imu.json, imu.md
-	$(PY) -m casmag.imubench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu
+	$(PY) -m casmag.experiments.imubench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu
 
 bench-imu-latest: ## The same on the newest versions (the environment of make test-latest) -> results/bench/imu-latest/
 	test -x $(LATEST)/bin/python || $(MAKE) test-latest
-	$(LATEST)/bin/python -m casmag.imubench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu-latest
+	$(LATEST)/bin/python -m casmag.experiments.imubench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu-latest

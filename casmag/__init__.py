@@ -14,12 +14,12 @@ by IPOPT.
                                             # (translational or planar)
 """
 
-from casmag.api import load_result, solve
-from casmag.config import Problem, ProblemSpec, load_problem
 from casmag.errors import CasmagError, DataError, ProblemError, SolverError
-from casmag.evaluation import evaluate_result as evaluate
-from casmag.recslam import slam, slam_sessions
+from casmag.problem.spec import Problem, ProblemSpec, load_problem
 from casmag.result import Result
+from casmag.result.evaluation import evaluate_result as evaluate
+from casmag.solver.api import load_result, solve
+from casmag.solver.recslam import slam, slam_sessions
 from casmag.versions import __version__
 
 __all__ = [

@@ -13,8 +13,9 @@ import casmag
 
 
 def modules() -> list[str]:
-    """casmag and each of its modules, by name (the package's ``__all__`` lists only the
-    top-level entry points, so pdoc is given every module)."""
+    """casmag and each of its top-level modules and subpackages, by name (the package's
+    ``__all__`` lists only the top-level entry points, so pdoc is given every module; it
+    documents a subpackage's modules with it)."""
     return ["casmag", *sorted(f"casmag.{m.name}" for m in pkgutil.iter_modules(casmag.__path__))]
 
 

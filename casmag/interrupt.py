@@ -8,7 +8,7 @@ iteration callback (casmag.nlp) stops IPOPT at its next iteration and :func:`sol
 raises Interrupted once IPOPT has returned. Library users who do not call :func:`install`
 keep Python's own handling.
 
-Worker processes (casmag.sweep) install it with ``defer``: the handler then only records
+Worker processes (casmag.experiments.sweep) install it with ``defer``: the handler then only records
 the signal, as it does during a solve, since raising inside a CasADi callback evaluated
 outside IPOPT would print a traceback and turn into an error; :func:`check` raises
 Interrupted at the next safe point, and IPOPT stops at its next iteration.

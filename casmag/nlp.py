@@ -18,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from casmag import interrupt
-from casmag.config import SolverSpec
+from casmag.problem.spec import SolverSpec
 
 #: IPOPT's status when :meth:`NLP.solve` with ``stop_when_stalled`` stopped it.
 STALLED = "User_Requested_Stop"
@@ -221,7 +221,7 @@ class NLPBuilder:
             "ipopt.hessian_approximation": hessian,
             "ipopt.sb": "yes",  # no IPOPT banner
             # No ipopt.opt from the working folder: every option comes from the problem
-            # file, where it is checked (casmag.ipoptcheck).
+            # file, where it is checked (casmag.problem.ipopt).
             "ipopt.option_file_name": "",
             "print_time": False,
         }

@@ -8,7 +8,7 @@ GP-SLAM), with the errors of every stage and the verdict on the estimate.
 import sys
 import tempfile
 
-from casmag.imuslam import solve_imu
+from casmag.model.imu import solve_imu
 
 problem = {
     "seed": 11,
@@ -25,7 +25,7 @@ print(f"{result.status} (IMU-only stage: {result.stage('imu_only')['status']})")
 for stage, e in result.details["errors"].items():
     if e["rmse"] is not None:
         print(f"  {stage} position RMSE {e['rmse']:.4f} m")
-print(f"  trusted: {result.trusted}")  # casmag.verdict: solver, misfit, flags
+print(f"  trusted: {result.trusted}")  # casmag.result.verdict: solver, misfit, flags
 for reason in result.verdict["reasons"]:  # e.g. wrong_basin, worse_than_imu_only
     print(f"  not trusted: {reason}")
 out = sys.argv[1] if len(sys.argv) > 1 else tempfile.mkdtemp(prefix="casmag-example-")

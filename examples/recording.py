@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 import casmag
-from casmag.recording import write_recording
-from casmag.simulate import simulate_problem
+from casmag.data.recording import write_recording
+from casmag.data.simulate import simulate_problem
 
 if len(sys.argv) > 1:
     path = Path(sys.argv[1])

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from casmag.config import document_kind, read_yaml
+from casmag.problem.spec import document_kind, read_yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEMS = ROOT / "problems"

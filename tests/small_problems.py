@@ -3,7 +3,7 @@
 from pathlib import Path
 
 import casmag
-from casmag.imusim import dipole_field
+from casmag.data.imusim import dipole_field
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""Handheld recordings with the device's pose (casmag.realdata.load_arkit, ``casmag convert
+"""Handheld recordings with the device's pose (casmag.data.realdata.load_arkit, ``casmag convert
 X.mat``): frame conventions checked where the path crosses itself, the publishing paper's
 odometry protocol, and errors that name the file and the field."""
 
@@ -11,9 +11,8 @@ import scipy.io
 from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
-from casmag.cli import main
-from casmag.errors import DataError
-from casmag.realdata import (
+from casmag.cli.main import main
+from casmag.data.realdata import (
     ARKIT_SENSOR_TO_BODY_DEG,
     arkit_protocol,
     convert,
@@ -21,7 +20,8 @@ from casmag.realdata import (
     load_arkit,
     planar_dead_reckoning,
 )
-from casmag.recording import read_recording
+from casmag.data.recording import read_recording
+from casmag.errors import DataError
 
 ROOT = Path(__file__).resolve().parents[1]
 ARKIT = ROOT.parent / "shared" / "data" / "arkit"

@@ -18,9 +18,9 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from casmag.cli import main
-from casmag.outdir import MARKER
-from casmag.recording import write_recording
+from casmag.cli.main import main
+from casmag.data.recording import write_recording
+from casmag.result.outdir import MARKER
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "problems/paper/base.yaml"
@@ -559,7 +559,15 @@ def _live_processes(pgid: int) -> list[int]:
 @pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_an_interrupted_sweep_stops_its_workers_at_once(tmp_path, sig, code):
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "casmag.cli", "sweep", str(_table(tmp_path)), "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "casmag.cli.main",
+        "sweep",
+        str(_table(tmp_path)),
+        "--out",
+        str(out),
+    ]
     cmd += ["--seeds", "2", "-j", "2", "--figures", "none", "-q"]
     proc = subprocess.Popen(
         cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
@@ -602,7 +610,7 @@ def test_an_interrupted_sweep_stops_its_workers_at_once(tmp_path, sig, code):
 # --------------------------------------------------------------------------- concurrent saves
 SAVER = """
 import json, random, sys, time
-from casmag.outdir import save_atomic
+from casmag.result.outdir import save_atomic
 from casmag.errors import CasmagError
 
 def write(folder):
@@ -642,7 +650,17 @@ def test_concurrent_saves_into_one_folder_take_turns(tmp_path):
 
 def test_two_runs_into_one_output_folder_leave_one_complete_result(tmp_path):
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "casmag.cli", "run", str(BASE), "--out", str(out), "-q", *TINY]
+    cmd = [
+        sys.executable,
+        "-m",
+        "casmag.cli.main",
+        "run",
+        str(BASE),
+        "--out",
+        str(out),
+        "-q",
+        *TINY,
+    ]
     procs = [
         subprocess.Popen(
             [*cmd, "--set", f"seed={seed}"],
@@ -675,7 +693,7 @@ def test_two_runs_into_one_output_folder_leave_one_complete_result(tmp_path):
     ids=["out-of-range", "missing-argument", "unknown-option", "unknown-command"],
 )
 def test_a_usage_error_is_one_line_naming_the_option_and_the_help(tmp_path, args, needles):
-    cmd = [sys.executable, "-m", "casmag.cli", *map(str, args)]
+    cmd = [sys.executable, "-m", "casmag.cli.main", *map(str, args)]
     res = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert res.returncode == 2
     lines = [line for line in res.stderr.splitlines() if line.strip()]

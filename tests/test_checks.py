@@ -1,4 +1,4 @@
-"""Plausibility checks on recordings (casmag.checks): wrong units and columns are named in a
+"""Plausibility checks on recordings (casmag.data.checks): wrong units and columns are named in a
 warning, on stderr and in result.json, and real recordings raise none."""
 
 import json
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from casmag.checks import model_warnings, recording_warnings
-from casmag.cli import main
-from casmag.recording import read_recording, write_recording
+from casmag.cli.main import main
+from casmag.data.checks import model_warnings, recording_warnings
+from casmag.data.recording import read_recording, write_recording
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "magnetic-data" / "invensense"
 
@@ -128,7 +128,7 @@ def test_the_real_recordings_raise_no_warning(tmp_path, seq, motion):
 def _recorded(n=60, seed=0):
     """A data set as a recording gives it: increments and a field in microtesla, no
     simulated field (M_true None)."""
-    from casmag.simulate import Dataset
+    from casmag.data.simulate import Dataset
 
     rng = np.random.default_rng(seed)
     return Dataset(
@@ -168,8 +168,8 @@ def test_null_settings_on_data_not_simulated_are_refused(key):
 
 def test_settings_given_or_estimated_or_simulated_data_pass_the_check():
     import casmag
-    from casmag.checks import refuse_simulation_truths
-    from casmag.simulate import simulate_problem
+    from casmag.data.checks import refuse_simulation_truths
+    from casmag.data.simulate import simulate_problem
 
     base = casmag.load_problem("problems/paper/base.yaml")
     refuse_simulation_truths(base, simulate_problem(base))  # its own simulation: the truth

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from casmag.cli import main
+from casmag.cli.main import main
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "problems/paper/base.yaml"

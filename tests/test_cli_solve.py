@@ -1,5 +1,5 @@
 """``casmag solve FILE``: one command for every kind of problem file, dispatched on the
-file's keys (casmag.config.document_kind)."""
+file's keys (casmag.problem.spec.document_kind)."""
 
 import json
 
@@ -8,11 +8,11 @@ import yaml
 from click.testing import CliRunner
 from problem_files import ALL, PROBLEMS
 
-from casmag.cli import main
-from casmag.config import DOCUMENT_KINDS, document_kind, load_problem, read_yaml
-from casmag.imuconfig import load_imu_problem
-from casmag.realbench import load_real_problem
-from casmag.sweep import TableSpec
+from casmag.cli.main import main
+from casmag.experiments.realbench import load_real_problem
+from casmag.experiments.sweep import TableSpec
+from casmag.problem.imu import load_imu_problem
+from casmag.problem.spec import DOCUMENT_KINDS, document_kind, load_problem, read_yaml
 
 # What each folder of problems/ holds (the tests' own list, independent of document_kind).
 FOLDER_KIND = {"paper": None, "bench": "translational", "imu": "imu", "real": "recording"}

@@ -1,4 +1,4 @@
-"""The magnetometer's lag behind the motion, estimated without truth (casmag.clock) and
+"""The magnetometer's lag behind the motion, estimated without truth (casmag.data.clock) and
 removed on request (casmag slam --mag-lag)."""
 
 import json
@@ -8,11 +8,11 @@ import pytest
 from click.testing import CliRunner
 from small_problems import tiny_walk
 
-from casmag.cli import main
-from casmag.clock import estimate_lag, shift_magnetometer
-from casmag.recording import dataset_to_recording_arrays, write_recording
-from casmag.recslam import slam
-from casmag.simulate import simulate_problem
+from casmag.cli.main import main
+from casmag.data.clock import estimate_lag, shift_magnetometer
+from casmag.data.recording import dataset_to_recording_arrays, write_recording
+from casmag.data.simulate import simulate_problem
+from casmag.solver.recslam import slam
 
 
 def _walk(lag_samples: int, drift: float = 0.3, seed: int = 0):

@@ -1,4 +1,4 @@
-"""Problem loading and validation (casmag.config): defaults, strictness, one-line errors."""
+"""Problem loading and validation (casmag.problem.spec): defaults, strictness, one-line errors."""
 
 from __future__ import annotations
 
@@ -361,9 +361,9 @@ def test_one_override_string_is_one_override(tmp_path):
 
 
 def test_one_override_string_in_the_other_entry_points(tmp_path):
-    from casmag.imuconfig import load_imu_problem
-    from casmag.recslam import slam
-    from casmag.sweep import load_sweep
+    from casmag.experiments.sweep import load_sweep
+    from casmag.problem.imu import load_imu_problem
+    from casmag.solver.recslam import slam
 
     imu = yaml.safe_load((REPO_ROOT / "problems/imu/rectangle.yaml").read_text())
     assert load_imu_problem(imu, "seed=5").spec.seed == 5
@@ -423,7 +423,7 @@ def test_an_unknown_key_with_no_likely_meaning_gets_no_guess():
 
 
 def test_a_key_of_another_schema_gets_this_schemas_name_for_it():
-    from casmag.imuconfig import load_planar_options
+    from casmag.problem.imu import load_planar_options
 
     with pytest.raises(ProblemError) as err:
         load_planar_options(None, ["model.gp.lengthscale=0.3"])
@@ -458,7 +458,7 @@ def _error_kw(**sections):
 
 def test_a_problem_built_from_typed_specs():
     from casmag import ProblemSpec
-    from casmag.config import GPSpec, ModelSpec
+    from casmag.problem.spec import GPSpec, ModelSpec
 
     spec = ProblemSpec(seed=4, model=ModelSpec(gp=GPSpec(form="reduced_rank", sigma_f=0.2)))
     problem = load_problem(spec, seed=5)

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 import casmag
-from casmag.config import load_problem
+from casmag.data.simulate import draw_field, simulate_problem
 from casmag.errors import ProblemError
-from casmag.hyper import estimate_conditional, negative_log_marginal, select_windows
-from casmag.simulate import draw_field, simulate_problem
-from casmag.sweep import _fingerprint
-from casmag.translational import Structure, estimate_start, parameters_and_guess
+from casmag.experiments.sweep import _fingerprint
+from casmag.gp.hyper import estimate_conditional, negative_log_marginal, select_windows
+from casmag.model.translational import Structure, estimate_start, parameters_and_guess
+from casmag.problem.spec import load_problem
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "problems" / "paper" / "base.yaml"

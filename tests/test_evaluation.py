@@ -1,4 +1,4 @@
-"""Errors after an optional alignment to the truth (casmag.evaluation): the closed-form rigid
+"""Errors after an optional alignment to the truth (casmag.result.evaluation): the closed-form rigid
 alignment against a numpy reference, its optimality, and ``--align`` through every motion
 model's command, result.json and ``casmag report``."""
 
@@ -10,11 +10,11 @@ from click.testing import CliRunner
 from small_problems import planar_room_field
 
 import casmag
-from casmag.cli import main
+from casmag.cli.main import main
+from casmag.data.imusim import simulate_planar
+from casmag.data.recording import write_recording
 from casmag.errors import DataError
-from casmag.evaluation import evaluate, rigid_alignment
-from casmag.imusim import simulate_planar
-from casmag.recording import write_recording
+from casmag.result.evaluation import evaluate, rigid_alignment
 
 
 def _rotation(d, rng):

@@ -1,5 +1,5 @@
-"""The numpy exact GP prior (casmag.exactgp) against CasADi's automatic derivatives of the
-symbolic prior (casmag.gp.ExactGPPrior), and inside the MAP problem."""
+"""The numpy exact GP prior (casmag.gp.exact) against CasADi's automatic derivatives of the
+symbolic prior (casmag.gp.reference.ExactGPPrior), and inside the MAP problem."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from casmag.exactgp import ExactLayout, ExactPriorHessian, ExactPriorModel
-from casmag.gp import ExactGPPrior
-from casmag.kernels import FIELD_DIM, get_kernel
-from casmag.knots import Knots
+from casmag.gp.exact import ExactLayout, ExactPriorHessian, ExactPriorModel
+from casmag.gp.kernels import FIELD_DIM, get_kernel
+from casmag.gp.reference import ExactGPPrior
+from casmag.model.knots import Knots
 
 
 def _reference(kernel: str, n: int, dim: int, every: int, estimate: bool, logdet: bool):

@@ -4,8 +4,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from casmag.gp import ExactGPPrior, block_log_det, logdet_block_size
-from casmag.kernels import get_kernel
+from casmag.gp.kernels import get_kernel
+from casmag.gp.reference import ExactGPPrior, block_log_det, logdet_block_size
 
 
 def _spiral(n=81, step=0.05, r0=0.05, pitch=0.03):

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from casmag.hyper import estimate_hyperparameters, negative_log_marginal, select_windows
-from casmag.simulate import draw_field
+from casmag.data.simulate import draw_field
+from casmag.gp.hyper import estimate_hyperparameters, negative_log_marginal, select_windows
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "magnetic-data" / "invensense"
 
@@ -72,7 +72,7 @@ def test_real_sequence_lengthscale_and_noise():
 def test_marginal_likelihood_gradient_is_exact(kernel):
     """The analytic gradient (complex step in the lengthscale) against central differences
     of the marginal likelihood itself, at a point away from the optimum."""
-    from casmag.hyper import negative_log_marginal_and_gradient
+    from casmag.gp.hyper import negative_log_marginal_and_gradient
 
     rng = np.random.default_rng(11)
     X = _walk(120, rng)
@@ -95,7 +95,7 @@ def test_marginal_likelihood_gradient_is_exact(kernel):
 def test_marginal_likelihood_is_infinite_not_an_error_where_it_overflows():
     """An extreme trial point of the search (rectangle seed 10 reached one) costs inf with
     a zero gradient, and no warning or exception."""
-    from casmag.hyper import negative_log_marginal_and_gradient
+    from casmag.gp.hyper import negative_log_marginal_and_gradient
 
     rng = np.random.default_rng(2)
     X = _walk(60, rng)

@@ -13,12 +13,12 @@ from small_problems import planar_room_field
 from small_problems import tiny_imu as _tiny
 
 from casmag import strapdown as sd
-from casmag.cli import imu as imu_command
-from casmag.dipoles import Dipole, DipoleField, earth_field, moment_for
+from casmag.cli.main import imu as imu_command
+from casmag.data.dipoles import Dipole, DipoleField, earth_field, moment_for
+from casmag.data.imusim import exact_increments, simulate_imu
 from casmag.errors import ProblemError
-from casmag.imuconfig import load_imu_problem
-from casmag.imusim import exact_increments, simulate_imu
-from casmag.imuslam import (
+from casmag.gp.reduced_rank import Domain, HilbertBasis
+from casmag.model.imu import (
     SCHEDULE_MARGIN,
     GaussNewtonBuilder,
     add_reduced_rank_map,
@@ -27,7 +27,7 @@ from casmag.imuslam import (
     imu_rotation_function,
     solve_imu,
 )
-from casmag.reduced_rank import Domain, HilbertBasis
+from casmag.problem.imu import load_imu_problem
 
 ROOT = Path(__file__).resolve().parents[1]
 IMU_FILES = sorted((ROOT / "problems/imu").glob("*.yaml"))
@@ -293,7 +293,7 @@ def test_noise_free_gp_slam_with_biases_returns_the_truth():
 
 
 def test_noise_free_gp_slam_with_the_exact_gp_at_keyframes():
-    """The same noise-free rectangle with the exact GP at the keyframes (casmag.exactgp, no
+    """The same noise-free rectangle with the exact GP at the keyframes (casmag.gp.exact, no
     basis truncation), started from the GP posterior mean of the field at the IMU-only path.
     Measured: 0.74 mm at most, orientation within 0.083 deg, gyroscope biases within 7.5 %
     (z: 0.129 against 0.12 deg/s), 4 iterations of the map pass."""
@@ -318,7 +318,7 @@ def test_field_evidence_tells_a_homogeneous_field(moment, homogeneous):
     """A rectangle traced twice at 10 Hz, magnetometer noise 0.004: Earth's field alone is
     homogeneous (no position information); a dipole 0.3 m away whose field varies by
     about 0.01 (2.5 sigma) over the path is not."""
-    from casmag.imuslam import field_evidence
+    from casmag.model.imu import field_evidence
 
     rng = np.random.default_rng(8)
     s = np.linspace(0, 2 * 1.6, 320) % 1.6  # rectangle 0.5 x 0.3 m, perimeter 1.6 m
@@ -370,8 +370,8 @@ def test_homogeneous_field_keeps_the_imu_only_adjustment(tmp_path):
 
 @pytest.mark.parametrize("kernel", ["curl_free", "se"])
 def test_coarser_hyperparameters_keep_the_field_variance(kernel):
-    from casmag.imuslam import _coarser
-    from casmag.kernels import get_kernel
+    from casmag.gp.kernels import get_kernel
+    from casmag.model.imu import _coarser
 
     hyper = {"sigma_f": 0.03, "lengthscale": 0.1, "sigma_m": 0.004}
     c = _coarser(kernel, hyper, 4.0)
@@ -485,9 +485,9 @@ def test_command_solver_failure_exit_1_recorded(tmp_path):
 def test_planar_recording_with_heading_rate_bias(tmp_path):
     """Planar odometry with a 0.5 deg/s heading-rate bias, written as a recording and read
     back: GP-SLAM recovers the bias and cuts the position and heading errors."""
-    from casmag.imusim import simulate_planar
-    from casmag.planar import PlanarOptions, solve_planar_recording
-    from casmag.recording import write_recording
+    from casmag.data.imusim import simulate_planar
+    from casmag.data.recording import write_recording
+    from casmag.model.planar import PlanarOptions, solve_planar_recording
 
     field = planar_room_field()
     d = simulate_planar(1, field, size=(2.0, 1.5), loops=2, heading_bias_deg=0.5, disp_noise=0.002)
@@ -506,9 +506,9 @@ def test_planar_starts_keep_the_lowest_cost():
     (10 deg over the 18.6 s walk); the lowest MAP cost is kept. Measured on this walk
     (three loops, seed 1): cost 262.4 and RMSE after / before 0.34 from the dead reckoning,
     254.1 and 0.18 from either biased start."""
-    from casmag.imuconfig import load_planar_options
-    from casmag.imusim import simulate_planar
-    from casmag.planar import solve_planar
+    from casmag.data.imusim import simulate_planar
+    from casmag.model.planar import solve_planar
+    from casmag.problem.imu import load_planar_options
 
     field = planar_room_field()
     d = simulate_planar(1, field, size=(2.0, 1.5), loops=3, heading_bias_deg=0.5, disp_noise=0.002)
@@ -537,7 +537,7 @@ def test_wrong_basin_is_flagged_only_when_the_truth_start_costs_less(
     reaches a lower MAP cost (stubbed here; the real re-solve is what solve_imu runs), with
     the evidence in result.json, the reason on stderr and exit code 3; with the same cost
     from the truth (no position information to find) it is not flagged."""
-    import casmag.imuslam as imuslam
+    import casmag.model.imu as imuslam
 
     monkeypatch.setattr(imuslam, "WRONG_BASIN_RATIO", 0.0)
     seen = {}
@@ -566,7 +566,7 @@ def test_wrong_basin_is_flagged_only_when_the_truth_start_costs_less(
 
 def _random_interval_states(rng, n=4, T=0.01):
     """Random keyframe states at both ends of two intervals and random increments."""
-    from casmag.imuslam import Keyframes
+    from casmag.model.imu import Keyframes
 
     K = 3
     P = rng.standard_normal((K, 3))
@@ -600,7 +600,7 @@ def _absolute_residual(kf, n, T, P, V, Q, bw, ba):
 def _error_state_residual(kf, n, T, nominal, delta, bw, ba):
     """The NLP's residual of interval 0 about ``nominal`` (P, V, Q, BW, BA) at corrections
     ``delta`` (dP, dV, D) and biases bw, ba."""
-    from casmag.imuslam import imu_nominal_terms, imu_residual_function
+    from casmag.model.imu import imu_nominal_terms, imu_residual_function
 
     t = imu_nominal_terms(kf, n, T, *nominal)
     f = imu_residual_function()

@@ -5,11 +5,11 @@ import pytest
 from small_problems import imu_noise_free as _noise_free
 from small_problems import tiny_imu as _tiny
 
-from casmag import imuslam
 from casmag import strapdown as sd
 from casmag.errors import ProblemError
-from casmag.imuconfig import load_imu_problem
-from casmag.imuslam import ImuSolveStage, continue_start, grow_sizes, solve_imu
+from casmag.model import imu as imuslam
+from casmag.model.imu import ImuSolveStage, continue_start, grow_sizes, solve_imu
+from casmag.problem.imu import load_imu_problem
 
 
 @pytest.mark.parametrize(
@@ -213,7 +213,7 @@ def test_command_names_the_failed_prefix(tmp_path, monkeypatch):
     import yaml
     from click.testing import CliRunner
 
-    from casmag.cli import imu as imu_command
+    from casmag.cli.main import imu as imu_command
 
     _failing_first_solve(monkeypatch)
     path = tmp_path / "p.yaml"

@@ -6,17 +6,17 @@ import pytest
 from small_problems import tiny_imu as _tiny
 
 from casmag import strapdown as sd
-from casmag.dipoles import Dipole, DipoleField, earth_field
+from casmag.data.dipoles import Dipole, DipoleField, earth_field
 from casmag.errors import ProblemError
-from casmag.hyper import estimate_hyperparameters
-from casmag.imuconfig import HYPER_WINDOW, HYPER_WINDOWS, load_imu_problem
-from casmag.imuslam import (
+from casmag.gp.hyper import estimate_hyperparameters
+from casmag.model.imu import (
     ImuSolveStage,
     Keyframes,
     _hyperparameters,
     hyper_windows,
     short_windows,
 )
+from casmag.problem.imu import HYPER_WINDOW, HYPER_WINDOWS, load_imu_problem
 
 
 def test_default_windows_and_the_short_ones():

@@ -1,7 +1,7 @@
 """make bench-imu: the per-run criterion and the per-scenario summary (solving is what
 make bench-imu runs; here records are built by hand)."""
 
-from casmag.imubench import MAX_ITERATIONS, meets, summarise, table
+from casmag.experiments.imubench import MAX_ITERATIONS, meets, summarise, table
 
 
 def _record(seed, **kw):

@@ -1,4 +1,4 @@
-"""Kernels (casmag.kernels) against plain numpy references of paper Eq. 7 and 8.
+"""Kernels (casmag.gp.kernels) against plain numpy references of paper Eq. 7 and 8.
 
 The references below are written from the formulas, independently of casmag:
 
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from casmag import kernels
-from casmag.kernels import KERNELS, field_covariance, get_kernel
+from casmag.gp import kernels
+from casmag.gp.kernels import KERNELS, field_covariance, get_kernel
 
 SF, ELL = 0.7, 0.35
 RTOL = 1e-12

@@ -1,4 +1,4 @@
-"""Multi-session GP-SLAM (casmag.multisession): one chain of knots, one bias and one anchor
+"""Multi-session GP-SLAM (casmag.solver.multisession): one chain of knots, one bias and one anchor
 per session, one shared map."""
 
 from __future__ import annotations
@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from casmag.cli import main
-from casmag.config import load_problem
-from casmag.kernels import field_covariance, get_kernel
-from casmag.knots import Knots
-from casmag.metrics import rmse_and_max
-from casmag.multisession import revisit_fraction, session_order, solve_sessions, split, stack
-from casmag.recording import write_recording
-from casmag.simulate import Dataset, simulate_problem
+from casmag.cli.main import main
+from casmag.data.recording import write_recording
+from casmag.data.simulate import Dataset, simulate_problem
+from casmag.gp.kernels import field_covariance, get_kernel
+from casmag.model.knots import Knots
+from casmag.problem.spec import load_problem
+from casmag.result.metrics import rmse_and_max
+from casmag.solver.multisession import revisit_fraction, session_order, solve_sessions, split, stack
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -158,7 +158,7 @@ def test_cli_refuses_a_planar_session(tmp_path):
 
 def test_real_problem_takes_one_recording_or_sessions(tmp_path):
     from casmag.errors import CasmagError
-    from casmag.realbench import load_real_problem
+    from casmag.experiments.realbench import load_real_problem
 
     rec = "{sequence: x/1, drift: 0.5}"
     both = tmp_path / "both.yaml"

@@ -3,8 +3,8 @@
 import casadi as ca
 import numpy as np
 
-from casmag.config import SolverSpec
 from casmag.nlp import STALLED, NLPBuilder
+from casmag.problem.spec import SolverSpec
 
 
 def _tiny_nlp(tol):

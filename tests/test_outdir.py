@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from casmag.cli import main
+from casmag.cli.main import main
 from casmag.interrupt import Interrupted
-from casmag.outdir import MARKER, OutputError, check_output_dir, save_atomic
+from casmag.result.outdir import MARKER, OutputError, check_output_dir, save_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "problems/paper/base.yaml"
@@ -133,7 +133,7 @@ def test_output_error_is_one_line():
 
 def _spawn(out, *extra):
     # A problem that iterates long enough to be interrupted inside IPOPT.
-    cmd = [sys.executable, "-m", "casmag.cli", "run", str(BASE), "--out", str(out)]
+    cmd = [sys.executable, "-m", "casmag.cli.main", "run", str(BASE), "--out", str(out)]
     cmd += ["--set", "simulation.trajectory.samples=400", "--set", "solver.tol=1e-14"]
     cmd += ["--set", "solver.max_iter=100000", *extra]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

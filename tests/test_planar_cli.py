@@ -9,9 +9,9 @@ import pytest
 from click.testing import CliRunner
 from small_problems import planar_room_field
 
-from casmag.cli import main
-from casmag.imusim import simulate_planar
-from casmag.recording import write_recording
+from casmag.cli.main import main
+from casmag.data.imusim import simulate_planar
+from casmag.data.recording import write_recording
 
 BIAS_DEG = 0.5  # heading-rate bias [deg/s]
 MAX_ITER_2 = ["--set", "solver.max_iter=2"]
@@ -133,7 +133,7 @@ def test_the_library_slam_takes_a_planar_recording(planar_recording):
 
 
 def test_growing_prefixes_on_a_planar_recording(tmp_path):
-    """solver.warm_start.strategy=growing (casmag.windowing.grow, as for translational
+    """solver.warm_start.strategy=growing (casmag.solver.windowing.grow, as for translational
     recordings): prefixes of 50, 100 and all 186 samples, each from the previous one
     continued by the odometry with its bias removed; the last is the full problem. Measured
     on this walk at 2 deg/s (seeds 1-5, RMSE after / before): batch 0.048, 0.060, 0.045,
@@ -173,8 +173,8 @@ def test_a_worse_local_optimum_is_flagged_by_the_solve_from_the_truth(loops, see
     MAP cost is 257.7 against 266.2 (RMSE 0.016 m): ``wrong_basin``, not trusted. Two loops,
     seed 2 (ratio 0.54): the truth start finds no lower cost, so the model's optimum itself
     is that far (one revisit is a weak loop closure) and no flag is raised."""
-    from casmag.imuconfig import load_planar_options
-    from casmag.planar import TRUTH_START_RATIO, solve_planar
+    from casmag.model.planar import TRUTH_START_RATIO, solve_planar
+    from casmag.problem.imu import load_planar_options
 
     d = simulate_planar(
         seed, planar_room_field(), size=(2.0, 1.5), loops=loops, heading_bias_deg=BIAS_DEG,

@@ -17,11 +17,11 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from casmag.config import load_problem
+from casmag.data.recording import read_recording
 from casmag.errors import DataError, ProblemError
-from casmag.imuconfig import load_imu_problem, load_planar_options
-from casmag.recording import read_recording
-from casmag.sweep import load_sweep
+from casmag.experiments.sweep import load_sweep
+from casmag.problem.imu import load_imu_problem, load_planar_options
+from casmag.problem.spec import load_problem
 
 ROOT = Path(__file__).resolve().parents[1]
 SETTINGS = settings(

@@ -1,5 +1,5 @@
-"""Real-data protocol (casmag.realdata, casmag convert), the Laplace position uncertainty
-(casmag.uncertainty) and the homogeneous-field fallback of `casmag slam`."""
+"""Real-data protocol (casmag.data.realdata, casmag convert), the Laplace position uncertainty
+(casmag.solver.uncertainty) and the homogeneous-field fallback of `casmag slam`."""
 
 import json
 from pathlib import Path
@@ -11,9 +11,8 @@ from click.testing import CliRunner
 from small_problems import tiny_walk
 
 import casmag
-from casmag.cli import main
-from casmag.errors import DataError
-from casmag.realdata import (
+from casmag.cli.main import main
+from casmag.data.realdata import (
     Protocol,
     Sequence,
     align,
@@ -24,9 +23,10 @@ from casmag.realdata import (
     planar_dead_reckoning,
     planar_increments,
 )
-from casmag.recording import dataset_to_recording_arrays, write_recording
-from casmag.recslam import slam
-from casmag.simulate import simulate_problem
+from casmag.data.recording import dataset_to_recording_arrays, write_recording
+from casmag.data.simulate import simulate_problem
+from casmag.errors import DataError
+from casmag.solver.recslam import slam
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data" / "magnetic-data" / "invensense"
@@ -127,7 +127,7 @@ def test_convert_cli_writes_recording_and_record(tmp_path):
         main, ["convert", str(tmp_path / "7"), "--out", str(out), "--drift", "0.3", "--no-align"]
     )
     assert r.exit_code == 0, r.output
-    rec = casmag.recording.read_recording(out)
+    rec = casmag.data.recording.read_recording(out)
     assert rec.n_samples == 600 and rec.has_truth
     assert json.loads(out.with_suffix(".json").read_text())["odometry"]["final_drift"] > 0.25
     bad = CliRunner().invoke(
@@ -142,9 +142,9 @@ def test_convert_cli_writes_recording_and_record(tmp_path):
 @needs_shared
 def test_real_sequence_magnetometer_lags_the_motion_capture():
     """Measured: the magnetometer of sequence 1 is 0.26 s late; aligning it gains hundreds
-    of nats of marginal likelihood. Without the truth (casmag.clock, on the dead reckoning
+    of nats of marginal likelihood. Without the truth (casmag.data.clock, on the dead reckoning
     of the recorded timing with 0.5 m of drift) the same lag is found to 0.05 s."""
-    from casmag.clock import estimate_lag
+    from casmag.data.clock import estimate_lag
 
     seq = load_sequence(SHARED / "1")
     _, record = clock_offset(seq)
@@ -159,7 +159,7 @@ def test_real_sequence_magnetometer_lags_the_motion_capture():
 
 @needs_shared
 def test_every_real_problem_file_loads(tmp_path):
-    from casmag.realbench import load_real_problem, sequence_path
+    from casmag.experiments.realbench import load_real_problem, sequence_path
 
     files = sorted((ROOT / "problems/real").glob("*.yaml"))
     assert len(files) == 14
@@ -236,10 +236,10 @@ def test_slam_keeps_the_map_when_the_field_varies(tmp_path):
 
 
 def test_truth_start_diagnostic_reaches_the_same_optimum_on_an_easy_recording(tmp_path):
-    """casmag.realbench.truth_start: the MAP solved again from the true trajectory. On a
+    """casmag.experiments.realbench.truth_start: the MAP solved again from the true trajectory. On a
     simulated walk whose field GP-SLAM resolves, both starts end at the same optimum: the
     same cost to IPOPT's tolerance and the same positions."""
-    from casmag.realbench import truth_start
+    from casmag.experiments.realbench import truth_start
 
     path = _recording(tmp_path, constant=False)
     res = slam(path)

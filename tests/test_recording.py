@@ -1,4 +1,4 @@
-"""Recordings (casmag.recording): CSV round trips, conversion to a Dataset, one-line errors."""
+"""Recordings (casmag.data.recording): CSV round trips, conversion to a Dataset, one-line errors."""
 
 from __future__ import annotations
 
@@ -8,15 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from casmag.errors import DataError
-from casmag.recording import (
+from casmag.data.recording import (
     MOTION_COLUMNS,
     Recording,
     dataset_to_recording_arrays,
     read_recording,
     write_recording,
 )
-from casmag.simulate import Dataset
+from casmag.data.simulate import Dataset
+from casmag.errors import DataError
 
 GOOD_HEADER = "t,dx,dy,mx,my,mz"
 GOOD_ROWS = ["0,,,1,2,3", "1,0.1,0.2,1.1,2.1,3.1", "2,0.1,0.2,1.2,2.2,3.2"]
@@ -526,7 +526,7 @@ def test_odometry_and_magnetometer_at_two_rates_are_brought_to_the_magnetometer_
         3 if motion == "planar" else 2,
     )
     if motion == "planar":
-        from casmag.planar import dead_reckon_planar
+        from casmag.model.planar import dead_reckon_planar
 
         P, _ = dead_reckon_planar(rec.increments, rec.P_true[0], 0.8 * tm[0])
     else:

@@ -1,4 +1,4 @@
-"""Hilbert-space reduced-rank basis (casmag.reduced_rank) against numpy references.
+"""Hilbert-space reduced-rank basis (casmag.gp.reduced_rank) against numpy references.
 
 The references below are written from the formulas, independently of casmag:
 
@@ -19,8 +19,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from casmag.kernels import get_kernel
-from casmag.reduced_rank import (
+from casmag.gp.kernels import get_kernel
+from casmag.gp.reduced_rank import (
     Domain,
     HilbertBasis,
     approx_kernel_matrix,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from casmag.cli import main
-from casmag.paper import TABLES
-from casmag.sweep import MANIFEST_FORMAT
+from casmag.cli.main import main
+from casmag.experiments.sweep import MANIFEST_FORMAT
+from casmag.problem.paper import TABLES
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -257,7 +257,7 @@ def test_report_never_solves(tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the report must not solve")
 
-    monkeypatch.setattr("casmag.api.solve", refuse)
+    monkeypatch.setattr("casmag.solver.api.solve", refuse)
     monkeypatch.setattr("casmag.solve", refuse)
     root = _sweep(tmp_path / "runs", {"sigma_f=0.100": {1: {}}}, seeds=[1])
     assert _invoke(["report", root, "--out", tmp_path / "t.md"]).exit_code == 0

@@ -33,7 +33,7 @@ def test_load_names_the_file_that_is_not_a_result(tmp_path):
 
 
 def test_the_package_exports_the_recording_entry_points():
-    from casmag.recslam import slam, slam_sessions
+    from casmag.solver.recslam import slam, slam_sessions
 
     assert casmag.slam is slam and casmag.slam_sessions is slam_sessions
     assert {"solve", "slam", "slam_sessions", "load_problem", "Result"} <= set(casmag.__all__)
@@ -42,10 +42,10 @@ def test_the_package_exports_the_recording_entry_points():
 def test_every_motion_model_gives_one_result_class_loaded_back_by_one_reader(tmp_path):
     from small_problems import planar_room_field
 
-    from casmag.imuconfig import load_imu_problem
-    from casmag.imusim import simulate_planar
-    from casmag.imuslam import solve_imu
-    from casmag.planar import solve_planar
+    from casmag.data.imusim import simulate_planar
+    from casmag.model.imu import solve_imu
+    from casmag.model.planar import solve_planar
+    from casmag.problem.imu import load_imu_problem
 
     d = simulate_planar(4, planar_room_field(), size=(2.0, 1.5), loops=1, disp_noise=0.002)
     planar = solve_planar(*d.U.T, d.Y, t=d.t, truth={"P": d.P, "psi": d.psi})

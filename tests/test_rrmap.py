@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import casmag
-from casmag.kernels import FIELD_DIM
-from casmag.simulate import simulate_problem
-from casmag.translational import Structure, cached_nlp, parameters_and_guess
+from casmag.data.simulate import simulate_problem
+from casmag.gp.kernels import FIELD_DIM
+from casmag.model.translational import Structure, cached_nlp, parameters_and_guess
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -78,7 +78,7 @@ def test_map_hessian_matches_casadi_reference(kernel, constant, knot_every, hess
     # The numpy magnetometer block and its gradient, as CasADi differentiates it in the NLP.
     xm, pm = ca.MX.sym("x", x.size), ca.MX.sym("p", p.size)
     block = gn.model
-    from casmag.rrmap import MagnetometerCost
+    from casmag.model.rrmap import MagnetometerCost
 
     mag = MagnetometerCost("mag_test", block)
     fg = ca.Function("fg", [xm, pm], [mag(xm, pm), ca.gradient(mag(xm, pm), xm)])

@@ -8,11 +8,11 @@ import pytest
 from click.testing import CliRunner
 
 import casmag
-from casmag.cli import main
-from casmag.knots import Knots
-from casmag.recording import dataset_to_recording_arrays, write_recording
-from casmag.simulate import simulate_problem
-from casmag.windowing import continued, stage_lengths
+from casmag.cli.main import main
+from casmag.data.recording import dataset_to_recording_arrays, write_recording
+from casmag.data.simulate import simulate_problem
+from casmag.model.knots import Knots
+from casmag.solver.windowing import continued, stage_lengths
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -7,8 +7,8 @@ import pytest
 from problem_files import TRANSLATIONAL
 
 import casmag
-from casmag.simulate import simulate_problem, spiral
-from casmag.translational import cached_nlp
+from casmag.data.simulate import simulate_problem, spiral
+from casmag.model.translational import cached_nlp
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEM_FILES = TRANSLATIONAL
@@ -20,7 +20,7 @@ def _problem(**sections):
 
 
 def test_spiral_spacing_and_length():
-    from casmag.config import TrajectorySpec
+    from casmag.problem.spec import TrajectorySpec
 
     P = spiral(TrajectorySpec(samples=50, step=0.05, start_radius=0.05, pitch=0.03))
     steps = np.linalg.norm(np.diff(P, axis=0), axis=1)
@@ -153,7 +153,7 @@ def test_the_library_solve_takes_an_imu_problem_and_names_the_entry_point_of_oth
     imu["model"]["gp"] = {"form": "none"}  # the IMU-only adjustment: a second
     r = casmag.solve(imu)
     assert r.motion == "imu" and r.stage("imu_only")["status"] == "Solve_Succeeded"
-    with pytest.raises(casmag.ProblemError, match=r"use casmag\.sweep"):
+    with pytest.raises(casmag.ProblemError, match=r"use casmag\.experiments\.sweep"):
         casmag.solve("problems/paper/table1.yaml")
     with pytest.raises(casmag.ProblemError, match="use casmag solve FILE"):
         casmag.solve("problems/real/seq1-drift0.5.yaml")

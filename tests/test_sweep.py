@@ -7,9 +7,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from casmag.cli import main
-from casmag.paper import TABLES
-from casmag.sweep import (
+from casmag.cli.main import main
+from casmag.experiments.sweep import (
     THREAD_VARIABLES,
     SweepAborted,
     load_sweep,
@@ -18,6 +17,7 @@ from casmag.sweep import (
     run_task,
     worker_environment,
 )
+from casmag.problem.paper import TABLES
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "problems/paper/base.yaml"
@@ -246,7 +246,7 @@ def test_solver_failures_are_saved_and_counted(tmp_path):
 
 
 def test_a_run_that_raises_leaves_error_json_and_is_retried(tmp_path):
-    from casmag.sweep import _record
+    from casmag.experiments.sweep import _record
 
     plan = load_sweep(
         BASE, tmp_path / "out", seeds=1, overrides=["simulation.trajectory.samples=12"]
@@ -307,7 +307,7 @@ def test_dask_local_cluster_on_loopback_matches_local_pool(tmp_path):
 
 
 def test_unreachable_scheduler_is_bad_input(tmp_path, monkeypatch):
-    monkeypatch.setattr("casmag.sweep.CONNECT_TIMEOUT", "1s")
+    monkeypatch.setattr("casmag.experiments.sweep.CONNECT_TIMEOUT", "1s")
     res = _invoke(
         ["sweep", BASE, "--out", tmp_path / "o", "--seeds", 1, "--scheduler", "tcp://127.0.0.1:9"]
     )

@@ -1,4 +1,4 @@
-"""casmag.truthstart: the two-start comparison of a table's runs."""
+"""casmag.experiments.truthstart: the two-start comparison of a table's runs."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from casmag.config import read_yaml
-from casmag.truthstart import main, markdown, solve_both, summarise
+from casmag.experiments.truthstart import main, markdown, solve_both, summarise
+from casmag.problem.spec import read_yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,5 +1,6 @@
 """The Laplace covariance's inflation for correlated magnetometer residuals
-(casmag.uncertainty: autocorrelation time, sandwich covariance with the long-run variance)."""
+(casmag.solver.uncertainty: autocorrelation time, sandwich covariance with the long-run
+variance)."""
 
 from __future__ import annotations
 
@@ -12,9 +13,9 @@ from scipy.stats import chi2
 from small_problems import tiny_walk
 
 import casmag
-from casmag.simulate import simulate_problem
-from casmag.translational import parameters_and_guess, solve_translational
-from casmag.uncertainty import (
+from casmag.data.simulate import simulate_problem
+from casmag.model.translational import parameters_and_guess, solve_translational
+from casmag.solver.uncertainty import (
     autocorrelation_time,
     magnetometer_correction,
     nees_consistency,

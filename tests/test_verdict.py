@@ -1,5 +1,5 @@
-"""One verdict for every motion model (casmag.verdict): the checks, their reasons, exit code 3
-and the figures' titles."""
+"""One verdict for every motion model (casmag.result.verdict): the checks, their reasons,
+exit code 3 and the figures' titles."""
 
 import json
 from types import SimpleNamespace
@@ -10,12 +10,12 @@ from click.testing import CliRunner
 from small_problems import planar_room_field
 
 import casmag
-from casmag import plotting
-from casmag.cli import main
-from casmag.imusim import simulate_planar
-from casmag.recording import write_recording
-from casmag.recslam import revisit_noise
-from casmag.verdict import MISFIT_LIMIT, WORSE_RATIO, revisit_fraction, verdict
+from casmag.cli.main import main
+from casmag.data.imusim import simulate_planar
+from casmag.data.recording import write_recording
+from casmag.result import plotting
+from casmag.result.verdict import MISFIT_LIMIT, WORSE_RATIO, revisit_fraction, verdict
+from casmag.solver.recslam import revisit_noise
 
 
 def _result(**kw):

@@ -1,5 +1,5 @@
 """Sliding windows, the fixed-lag smoother and the coarse-to-fine lengthscale schedule
-(casmag.sliding), and their problem-file settings."""
+(casmag.solver.sliding), and their problem-file settings."""
 
 import itertools
 from pathlib import Path
@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 import casmag
-from casmag import sliding
+from casmag.data.simulate import simulate_problem
 from casmag.errors import ProblemError
-from casmag.metrics import rmse_and_max
-from casmag.simulate import simulate_problem
+from casmag.result.metrics import rmse_and_max
+from casmag.solver import sliding
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "problems/paper/base.yaml"
 AUTO_SPIRAL = 12
-"""The automatic window on the Table 5 spiral (casmag.sliding.auto_window)."""
+"""The automatic window on the Table 5 spiral (casmag.solver.sliding.auto_window)."""
 
 
 def _spiral(bias=0.012, noise=1.0e-3, seed=2, *extra):
@@ -150,7 +150,7 @@ def test_warm_start_settings_are_validated():
         ],
     ).spec.solver.warm_start
     assert (timed.window_samples, timed.overlap_samples) == (20, 5)
-    # Defaults: window and overlap auto, resolved against the data (casmag.sliding).
+    # Defaults: window and overlap auto, resolved against the data (casmag.solver.sliding).
     default = casmag.load_problem(BASE, []).spec.solver.warm_start
     assert (default.window, default.overlap, default.window_bias_prior) == (
         "auto",
@@ -246,12 +246,12 @@ def test_without_the_bias_prior_short_windows_run_away():
 def test_grow_goes_on_past_an_early_iteration_limit_and_stops_at_any_other_failure(
     statuses, solved
 ):
-    """casmag.windowing.grow, the loop every motion model's growing prefixes run: each stage
+    """casmag.solver.windowing.grow, the loop every motion model's growing prefixes run: each stage
     gets the previous one's state; an earlier stage at the iteration limit still starts the
     next, any other failure ends the growth."""
     from types import SimpleNamespace
 
-    from casmag.windowing import grow
+    from casmag.solver.windowing import grow
 
     seen = []
 

@@ -1,0 +1,2 @@
+"""Experiments run by make targets: sweeps over seeds and grids, benchmarks and the truth-start
+tables."""

@@ -1,0 +1,1862 @@
+"""Tightly-coupled IMU and magnetometer GP-SLAM (paper Eq. 1-3 and 6), and planar odometry
+with heading, as CasADi NLPs built with :class:`casmag.nlp.NLPBuilder`.
+
+IMU model. States at keyframes k = 0..K-1 (every n-th IMU sample): position p_k, velocity
+v_k, orientation q_k = qbar_k (1, d_k / 2) / |.| with a nominal qbar_k (a parameter) and a
+Gibbs vector d_k (the unknown; smooth, no norm constraint needed), gyroscope and
+accelerometer biases b_w, b_a (per keyframe for the random walk of Eq. 2, or one constant
+pair). Named cost blocks (negative log-densities):
+
+- ``imu``: 0.5 sum_k |L_k^-1 e_k|^2, e_k = (rotation, velocity, position) residual of the
+  composed increments between keyframes (``casmag.strapdown``); L_k the Cholesky factor of
+  the composed increments' noise covariance. Error state: the unknowns are corrections
+  dP, dV, D to a nominal trajectory (positions PNOM + dP, velocities VNOM + dV,
+  orientations qnom (1, D / 2)), and the residual's large terms (gravity, the nominal's
+  own increments) are formed once per solve from the nominal
+  (:func:`imu_nominal_terms`), first order in the biases' change from the nominal ones.
+  Every solve re-centres (:func:`_solve_recentred`): once the biases have converged, so
+  the result is exact in them, and whenever IPOPT stops making measurable progress.
+- ``bias_walk``: 0.5 sum_k |(b_{k+1} - b_k) / (s sqrt(dt))|^2 for both biases (Eq. 2).
+- ``bias_prior``: zero-mean prior on the first biases (turn-on bias range).
+- ``initial_state``: known start position, at rest, levelled tilt, known heading.
+- ``zero_position``: optional weak prior |p_k - p_0|^2 / sigma^2 on every keyframe (the
+  paper's "within a one metre sphere").
+- ``magnetometer``: 0.5 sum_k |(y_k - R_k^T (m(p_k) + c)) / sigma_m|^2 (Eq. 3) with a 3-D
+  reduced-rank map (weights w, constant field c) or the exact GP (field values at keyframes).
+- ``gp_prior``, ``constant_field_prior``: the map's priors (Eq. 6); the reduced-rank
+  map's unknowns are whitened weights V (weights sqrt(S) V), so ``gp_prior`` is 0.5 |V|^2.
+
+The solve has stages: the IMU-only adjustment (no magnetometer) from plain strapdown
+integration, then GP-SLAM passes from its result (sigma_m annealed, ``model.gp.anneal``),
+each with the nominal orientations moved to the previous estimate. Hyperparameters marked
+``estimate`` come from the windowed GP marginal likelihood (Eq. 5, ``casmag.gp.hyper``) on the
+IMU-only trajectory; the joint MAP cannot estimate them with the reduced-rank map
+(unbounded, see ``casmag.problem.spec``). With estimated hyperparameters a field check
+(:func:`field_evidence`) on the IMU-only path and on the last pass's path decides whether the
+field carries position information at all; when it does not (a homogeneous field), the
+result is the IMU-only adjustment (``model.gp.homogeneous``).
+
+Hessian: Gauss-Newton for the imu and magnetometer residuals (the magnetometer's dense map
+blocks formed with numpy in :class:`RotatedFieldGaussNewton`, optionally with its
+second-order terms, which make it exact), CasADi's exact Hessian for all other blocks.
+
+Planar model (:func:`solve_planar`): states (x, y, psi) per sample, inputs (dfwd, dleft,
+dyaw), a heading-rate bias (constant or random walk) and y = Rz(psi)^T (m(x) + c).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+
+from casmag import strapdown as sd
+from casmag.data.checks import lengthscale_warnings
+from casmag.data.imusim import ImuData, simulate_imu
+from casmag.gp.exact import add_exact_prior
+from casmag.gp.fieldmap import map_arrays, unwhitened
+from casmag.gp.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
+from casmag.gp.hyper import field_evidence as _field_evidence
+from casmag.gp.kernels import FIELD_DIM, field_covariance, get_kernel
+from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.model.knots import Knots
+from casmag.model.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
+from casmag.nlp import NLP, STALLED, NLPBuilder, Solution
+from casmag.problem.imu import HYPER_SECONDS, ImuProblem, load_imu_problem
+from casmag.problem.spec import SolverSpec
+from casmag.result import Result
+from casmag.result.metrics import rmse_and_max
+from casmag.solver.windowing import continues, grow
+from casmag.versions import __version__, versions
+
+Progress = Callable[[int, float, float, float], None]
+
+#: Hessian of the imu block in the GP-SLAM stage (which starts near the optimum).
+IMU_HESSIAN_SLAM = "gauss-newton"
+
+#: A GP-SLAM estimate whose position RMSE against the truth is above this fraction of the
+#: IMU-only adjustment's, in a field the map was solved in, is flagged ``wrong_basin``: the
+#: magnetometer carried position information and the optimiser did not use it.
+WRONG_BASIN_RATIO = 0.5
+
+#: A GP-SLAM estimate more than this factor worse (position RMSE) than the IMU-only
+#: adjustment, where the solve from the truth does not find a lower MAP cost, is flagged
+#: ``worse_than_imu_only``: the MAP optimum itself is worse than no map, so the model
+#: (hyperparameters, noise) does not fit the field. 1.05: the homogeneous scenarios'
+#: criterion of equal quality.
+WORSE_RATIO = 1.05
+
+#: The coarse-to-fine schedule replaces the anneal one only when its final MAP cost is lower
+#: by more than this fraction. The two final problems differ in their map basis (built
+#: around each schedule's previous pass), which moves the cost a little between optima of
+#: the same quality: measured on the spiral (seeds 3/14/16), costs lower by 0.9/0.1/0.5 %
+#: at RMSE 10.1/6.5/10.0 mm against 4.2/6.5/6.0 mm; the right optimum costs 39-63 % less
+#: than a wrong one (rectangle seeds 9/14/17).
+SCHEDULE_MARGIN = 0.05
+
+#: The grown schedule also runs when the kept schedule succeeded with a MAP cost per
+#: magnetometer component above this. Measured over the IMU bench's runs (seeds 1-20 of
+#: rectangle, spiral, square table, outdoor; handwriting 1-9): kept successful schedules
+#: of estimates meeting the bench's criterion 0.37-0.90 and one at 3.16 (handwriting seed 8,
+#: 15.8 mm from 0.136 m), of the one wrong estimate 5.84 (handwriting seed 3, 0.070 m from
+#: 0.135 m, where the grown schedule was not tried before; with it 1.7 mm).
+GROW_MISFIT = 2.0
+
+#: ``curvature: auto`` adds the magnetometer's second-order terms when the field's standard
+#: deviation per component is below this many sigma_m (``casmag.problem.imu.ImuGPSpec``).
+CURVATURE_BELOW = 5.0
+
+
+# --------------------------------------------------------------------------- builder
+class GaussNewtonBuilder(NLPBuilder):
+    """An :class:`NLPBuilder` whose least-squares blocks can each get a Gauss-Newton Hessian.
+
+    ``residual(name, r)`` adds the block 0.5 |r|^2 and remembers r; at build time IPOPT's
+    ``hess_lag`` is the exact CasADi Hessian of the other blocks plus J^T J of each residual
+    block (sparse, symbolic) plus the numpy Gauss-Newton callbacks given. The IMU residuals
+    need it: their exact Hessian is indefinite in the weakly determined drift directions,
+    and IPOPT's inertia correction then stalls (measured: 90 iterations at a cost plateau).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.residuals: dict[str, ca.MX] = {}
+
+    def residual(self, name: str, r: ca.MX) -> None:
+        self.residuals[name] = ca.vec(r)
+        self.cost(name, 0.5 * ca.sumsqr(r))
+
+    def build_gauss_newton(
+        self, solver: SolverSpec, name: str, callbacks: dict[str, ca.Function] | None = None
+    ) -> NLP:
+        """Build with Gauss-Newton Hessians for the residual blocks and the callback's
+        block (by name, one at most); solver.hessian ``exact`` or ``limited-memory`` uses
+        IPOPT's usual Hessian for everything instead (callbacks unused)."""
+        callbacks = callbacks or {}
+        if len(callbacks) > 1:
+            raise ValueError("one Gauss-Newton callback at most")
+        if solver.hessian not in ("auto", "gauss-newton"):
+            return self.build(solver, name=name)
+        return self.build(
+            solver,
+            name=name,
+            gauss_newton=next(iter(callbacks.items()), None),
+            residuals=self.residuals,
+        )
+
+
+# --------------------------------------------------------------------------- rotations
+def imu_rotation_function() -> ca.Function:
+    """SX (d (3), rnom (9, column-major 3x3)) -> R = Rnom R(1, d / 2) (3, 3)."""
+    d, rnom = ca.SX.sym("d", 3), ca.SX.sym("rnom", 9)
+    R = ca.mtimes(ca.reshape(rnom, 3, 3), sd.ca_rotmat(sd.ca_gibbs(d)))
+    return ca.Function("imu_rotation", [d, rnom], [R])
+
+
+def planar_rotation_function() -> ca.Function:
+    """SX (psi (1), empty (0)) -> Rz(psi) (3, 3)."""
+    psi, aux = ca.SX.sym("psi"), ca.SX.sym("aux", 0)
+    c, s = ca.cos(psi), ca.sin(psi)
+    R = ca.vertcat(ca.horzcat(c, -s, 0), ca.horzcat(s, c, 0), ca.horzcat(0, 0, 1))
+    return ca.Function("planar_rotation", [psi, aux], [R])
+
+
+# --------------------------------------------------------------------------- Gauss-Newton
+@dataclass(frozen=True)
+class RotatedMapLayout:
+    """Where the magnetometer block's unknowns and data sit in the NLP's x and p vectors.
+
+    pos: (n, d) indices in x of each sample's position; rot: (n, r) indices in x of its
+    orientation unknowns; aux: (n, a) indices in p of its orientation parameters (the
+    nominal rotation), a may be 0; W, c: offsets of the map weights and the constant field
+    (None without one) in x; sigma_m: offset in p."""
+
+    n_x: int
+    n_p: int
+    pos: np.ndarray
+    pos_nominal: np.ndarray | None  # (n, d) indices in p added to x[pos] (error state)
+    rot: np.ndarray
+    aux: np.ndarray
+    W: int
+    c: int | None
+    sigma_m: int
+    Y: int | None = None
+    sigma_f: int | None = None  # with lengthscale: offsets in p; the x entries at W are then
+    lengthscale: int | None = None  # whitened weights V, map weights sqrt(S) V
+
+
+class RotatedFieldGaussNewton(HessianCallback):
+    """Gauss-Newton Hessian (upper triangle, not scaled by lam_f) of
+
+        0.5 sum_k |(y_k - R(o_k)^T (m(p_k) + c)) / sigma_m|^2
+
+    for a reduced-rank map m (``se`` or ``curl_free``). Per sample, the residual's Jacobian
+    with respect to its local unknowns (position and orientation) is L_k = -[R^T dm/dp,
+    d(R^T u)/do] / sigma_m; the weight block is that of the unrotated map (R R^T = I); the
+    sparsity pattern is fixed at construction and values are filled with numpy.
+
+    In mode ``exact``, and in mode ``hybrid`` once the block's cost stalls
+    (:class:`casmag.model.rrmap.HessianCallback`), the second-order terms are added: with
+    lam = -(y - R^T u) / sigma_m^2 and F(o, u) = lam . (R(o)^T u), the blocks F_oo, F_ou,
+    F_ou dm/dp and F_ou dm/dw (u = m + c is linear in w and c), the position-weight block
+    sum_b (R lam)_b d^2 m_b / dp dw and the field's own curvature in position
+    sum_b (R lam)_b d^2 m_b / dp dp (third derivatives of the basis for curl-free): the
+    block's exact Hessian. Measured on the homogeneous outdoor problem (one loop): 59
+    iterations without these terms (linear convergence along the accelerometer-bias/tilt
+    direction), 12 with CasADi's exact Hessian. In a strongly varying field the terms slow
+    the first iterations (rectangle: over 90 iterations with them from the start) but
+    Gauss-Newton alone converges only linearly near the solution (spiral seed 3: 150
+    iterations at a 3-5 % fall of the dual infeasibility per iteration), hence ``hybrid``
+    Hessian."""
+
+    #: hybrid: the exact terms once the block's cost falls by less than 1 % between
+    #: evaluations. At 20 % (the translational map's switch) they came in while still far
+    #: from the solution on weakly determined problems: handwriting seed 1, first prefix (31
+    #: keyframes, no revisit), 133 iterations against 16 at 1 % (every solve of that run
+    #: at most 37, 73 s against 138 s); spiral seed 3 11 + 16 against 13 + 28 iterations.
+    SWITCH = 0.01
+
+    def __init__(
+        self,
+        name: str,
+        basis: HilbertBasis,
+        kernel: str,
+        rotation: ca.Function,
+        layout: RotatedMapLayout,
+        mode: str = "hybrid",
+    ):
+        ca.Callback.__init__(self)
+        self.set_mode(mode)
+        self.basis, self.kernel, self.lay = basis, kernel, layout
+        self.n, self.d = layout.pos.shape
+        self.r = layout.rot.shape[1]
+        M = basis.num_basis
+        self.n_w = M * FIELD_DIM if kernel == "se" else M
+        o = ca.SX.sym("o", self.r)
+        aux = ca.SX.sym("aux", layout.aux.shape[1])
+        u = ca.SX.sym("u", 3)
+        R = rotation(o, aux)
+        Rtu = ca.mtimes(R.T, u)
+        self._rot = ca.Function("rot_jac", [o, aux, u], [ca.vec(R), ca.vec(ca.jacobian(Rtu, o))])
+        self._rot_map = self._rot.map(self.n)
+        lam = ca.SX.sym("lam", 3)
+        Hf = ca.hessian(ca.dot(lam, Rtu), ca.vertcat(o, u))[0]
+        r = self.r
+        self._curv = ca.Function(
+            "rot_curvature", [o, aux, u, lam], [ca.vec(Hf[:r, :r]), ca.vec(Hf[:r, r:])]
+        ).map(self.n)
+        self._pattern()
+        self.construct(name, {})
+
+    def _pattern(self) -> None:
+        lay, _n, M = self.lay, self.n, self.basis.num_basis
+        local = np.hstack([lay.pos, lay.rot])  # (n, nl)
+        nl = local.shape[1]
+        rows: list[np.ndarray] = []
+        cols: list[np.ndarray] = []
+
+        def add(r: Any, c: Any) -> None:
+            r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
+            rows.append(np.minimum(r, c).ravel())
+            cols.append(np.maximum(r, c).ravel())
+
+        for i in range(nl):
+            for j in range(i, nl):
+                add(local[:, i], local[:, j])
+        widx = lay.W + np.arange(self.n_w)
+        for i in range(nl):
+            add(local[:, i][:, None], widx[None, :])
+        iu = np.triu_indices(M)
+        if self.kernel == "se":
+            for b in range(FIELD_DIM):
+                add(lay.W + b * M + iu[0], lay.W + b * M + iu[1])
+        else:
+            add(lay.W + iu[0], lay.W + iu[1])
+        if lay.c is not None:
+            for b in range(FIELD_DIM):
+                for i in range(nl):
+                    add(local[:, i], lay.c + b)
+                add(widx, lay.c + b)
+                add(np.array([lay.c + b]), np.array([lay.c + b]))
+        self._set_pattern(np.concatenate(rows), np.concatenate(cols), lay.n_x, lay.n_p)
+        self._nl = nl
+
+    def _position_weight_curvature(
+        self, P: np.ndarray, mu: np.ndarray, w: np.ndarray
+    ) -> list[np.ndarray]:
+        """sum_b mu_b d^2 m_b / dp_j dw for each position axis j: (n, n_w) each."""
+        n, d = P.shape
+        if self.kernel == "se":
+            grads = self.basis.grad_phi(P)  # (n, D, M)
+            return [(mu[:, :, None] * grads[:, j, :][:, None, :]).reshape(n, -1) for j in range(d)]
+        H = self.basis.second_derivatives(P)
+        return [
+            sum(mu[:, b][:, None] * H[(min(b, j), max(b, j))] for b in range(FIELD_DIM))
+            for j in range(d)
+        ]
+
+    def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The Hessian entries in the order of the pattern's triplets."""
+        lay, n, d, M = self.lay, self.n, self.d, self.basis.num_basis
+        P = x[lay.pos] if lay.pos_nominal is None else x[lay.pos] + p[lay.pos_nominal]
+        o = x[lay.rot]
+        aux = p[lay.aux] if lay.aux.shape[1] else np.zeros((n, 0))
+        w = x[lay.W : lay.W + self.n_w]
+        scale = np.ones(self.n_w)  # dW/dV per weight entry
+        if lay.sigma_f is not None and lay.lengthscale is not None:
+            S = self.basis.prior_variances(
+                self.kernel, float(p[lay.sigma_f]), float(p[lay.lengthscale])
+            )
+            scale = np.tile(np.sqrt(S), self.n_w // M)
+            w = w * scale
+        c = x[lay.c : lay.c + 3] if lay.c is not None else np.zeros(3)
+        inv = 1.0 / float(p[lay.sigma_m])
+        m, A, D = field_and_jacobians(self.basis, self.kernel, P, w)
+        Rv, Jv = self._rot_map(o.T, aux.T, (m + c).T)
+        R = np.asarray(Rv).T.reshape(n, 3, 3, order="F")  # R[k] = R_k
+        Jo = np.asarray(Jv).T.reshape(n, 3, self.r, order="F")
+        Jp = np.einsum("kba,kbj->kaj", R, D)  # R^T dm/dp
+        L = -inv * np.concatenate([Jp, Jo], axis=2)  # (n, 3, nl)
+        # Coefficients of du/d(w, c) in the local-map blocks: -R L / sigma (Gauss-Newton)
+        # plus F_ou (second order, orientation rows only).
+        G = -inv * np.einsum("kab,kbl->kal", R, L)
+        nl = self._nl
+        S = np.zeros((n, nl, nl))
+        exact = False
+        if self.mode != "gauss-newton":
+            Y = p[lay.Y : lay.Y + 3 * n].reshape(n, 3, order="F")
+            e = Y - np.einsum("kba,kb->ka", R, m + c)
+            exact = self._use_exact(0.5 * float(np.sum(e**2)) * inv * inv)
+            lam = -e * inv * inv
+        else:
+            self._use_exact(0.0)
+        if exact:
+            Foo, Fou = self._curv(o.T, aux.T, (m + c).T, lam.T)
+            Foo = np.asarray(Foo).T.reshape(n, self.r, self.r, order="F")
+            Fou = np.asarray(Fou).T.reshape(n, self.r, 3, order="F")
+            S[:, d:, d:] = Foo
+            S[:, d:, :d] = np.einsum("kib,kbj->kij", Fou, D)
+            S[:, :d, d:] = np.transpose(S[:, d:, :d], (0, 2, 1))
+            G[:, :, d:] += np.transpose(Fou, (0, 2, 1))
+            mu = np.einsum("kab,kb->ka", R, lam)  # dF/du = R lam
+            cross = self._position_weight_curvature(P, mu, w)
+            # The field's own curvature in position: sum_b mu_b d^2 m_b / dp dp (third
+            # derivatives of the basis for curl-free).
+            s2, _ = curvature_terms(self.basis, self.kernel, P, w, mu)
+            for (a, b), v in s2.items():
+                S[:, a, b] += v
+                if a != b:
+                    S[:, b, a] += v
+        out = []
+        for i in range(nl):
+            for j in range(i, nl):
+                out.append(np.einsum("ka,ka->k", L[:, :, i], L[:, :, j]) + S[:, i, j])
+        for i in range(nl):
+            if self.kernel == "se":
+                blk = G[:, :, i][:, :, None] * A[0][:, None, :]  # (n, 3, M): column b M + j
+                blk = blk.reshape(n, -1)
+            else:
+                blk = sum(G[:, b, i][:, None] * A[b] for b in range(FIELD_DIM))
+            if exact and i < d:
+                blk = blk + cross[i]
+            out.append(blk * scale)
+        iu = np.triu_indices(M)
+        inv2 = inv * inv
+        sm = scale[:M]  # the same per basis function for every field component
+        if self.kernel == "se":
+            H = (A[0].T @ A[0]) * inv2 * np.outer(sm, sm)
+            out.extend([H[iu]] * FIELD_DIM)
+        else:
+            H = sum(a.T @ a for a in A) * inv2 * np.outer(sm, sm)
+            out.append(H[iu])
+        if lay.c is not None:
+            for b in range(FIELD_DIM):
+                for i in range(nl):
+                    out.append(G[:, b, i])
+                if self.kernel == "se":
+                    v = np.zeros(self.n_w)
+                    v[b * M : (b + 1) * M] = A[0].sum(axis=0) * inv2
+                else:
+                    v = A[b].sum(axis=0) * inv2
+                out.append(v * scale)
+                out.append(np.array([n * inv2]))
+        return np.concatenate([np.ravel(v) for v in out])
+
+
+# --------------------------------------------------------------------------- map blocks
+def add_reduced_rank_map(
+    b: NLPBuilder,
+    basis: HilbertBasis,
+    kernel: str,
+    P: ca.MX,
+    O: ca.MX,
+    AUX: ca.MX | None,
+    rotation: ca.Function,
+    n: int,
+    dim: int,
+) -> tuple[ca.MX, ca.MX]:
+    """Weights, constant field and the blocks ``magnetometer``, ``gp_prior``,
+    ``constant_field_prior`` for a rotated magnetometer. The unknown named ``W`` holds the
+    whitened weights V (map weights sqrt(S) V, S the prior variances). Returns (W, c) with
+    W the map weights (an expression)."""
+    M = basis.num_basis
+    # Whitened weights V (the unknowns): W = sqrt(S) V, so the GP prior is 0.5 |V|^2. With
+    # W itself, the prior variances S span 6 orders of magnitude and IPOPT's gradient test
+    # stalls on the high-frequency weights (handwriting: max |dJ/dW| 0.026 at S = 1.4e-8,
+    # 3.9e-6 in whitened units) while the solution no longer moves.
+    V = b.variable("W", (M, FIELD_DIM) if kernel == "se" else (M, 1))
+    c = b.variable("c", (FIELD_DIM, 1))
+    Y = b.parameter("Y", (n, FIELD_DIM))
+    sigma_m = b.parameter("sigma_m", (1, 1))
+    sigma_f = b.parameter("sigma_f", (1, 1))
+    ell = b.parameter("lengthscale", (1, 1))
+    sigma_lin = b.parameter("sigma_lin", (1, 1))
+    fieldf = basis.field_sx(kernel, position_dim=dim)
+    x, y, sig = ca.SX.sym("x", dim), ca.SX.sym("y", FIELD_DIM), ca.SX.sym("sigma_m")
+    o = ca.SX.sym("o", O.shape[1])
+    n_aux = 0 if AUX is None else AUX.shape[1]
+    aux = ca.SX.sym("aux", n_aux)
+    S = basis.prior_variances(kernel, sigma_f, ell)
+    W = V * ca.repmat(ca.sqrt(S), 1, V.shape[1])
+    w_sx, c_sx = ca.SX.sym("w", *W.shape), ca.SX.sym("c", FIELD_DIM)
+    R = rotation(o, aux)
+    e = (y - ca.mtimes(R.T, fieldf(x, w_sx, c_sx))) / sig
+    resid = ca.Function("rotated_mag_residual", [x, o, aux, y, w_sx, c_sx, sig], [e])
+    aux_arg = AUX.T if AUX is not None else ca.MX(0, n)
+    E = resid.map(n, "serial")(P.T, O.T, aux_arg, Y.T, W, c, sigma_m)
+    b.cost("magnetometer", 0.5 * ca.sumsqr(E))
+    b.cost("gp_prior", 0.5 * ca.sumsqr(V))
+    b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
+    return W, c
+
+
+def gauss_newton_for(
+    b: NLPBuilder,
+    basis: HilbertBasis,
+    kernel: str,
+    rotation: ca.Function,
+    n: int,
+    dim: int,
+    rot_name: str,
+    aux_name: str | None,
+    mode: str = "hybrid",
+    pos_name: str = "P",
+    nominal_name: str | None = None,
+) -> tuple[str, RotatedFieldGaussNewton]:
+    n_x, n_p = b.sizes
+    r = 3 if rot_name == "D" else 1
+    k = np.arange(n)
+    pos = np.column_stack([b.offset(pos_name) + a * n + k for a in range(dim)])
+    pos_nominal = (
+        None
+        if nominal_name is None
+        else np.column_stack([b.offset(nominal_name, "p") + a * n + k for a in range(dim)])
+    )
+    rot = np.column_stack([b.offset(rot_name) + a * n + k for a in range(r)])
+    if aux_name is None:
+        aux = np.zeros((n, 0), dtype=np.int64)
+    else:
+        aux = np.column_stack([b.offset(aux_name, "p") + a * n + k for a in range(9)])
+    layout = RotatedMapLayout(
+        n_x=n_x,
+        n_p=n_p,
+        pos=pos,
+        pos_nominal=pos_nominal,
+        rot=rot,
+        aux=aux,
+        W=b.offset("W"),
+        c=b.offset("c"),
+        sigma_m=b.offset("sigma_m", "p"),
+        Y=b.offset("Y", "p"),
+        sigma_f=b.offset("sigma_f", "p"),
+        lengthscale=b.offset("lengthscale", "p"),
+    )
+    return "magnetometer", RotatedFieldGaussNewton(
+        "rotated_mag_gauss_newton", basis, kernel, rotation, layout, mode
+    )
+
+
+def ridge_weights(
+    basis: HilbertBasis,
+    kernel: str,
+    P: np.ndarray,
+    M_local: np.ndarray,
+    c0: np.ndarray,
+    sigma_m: float,
+    sigma_f: float,
+    lengthscale: float,
+) -> np.ndarray:
+    """Posterior mean of the map weights given the field samples M_local (N, 3) in the
+    local frame at positions P (N, d), with the constant c0 removed."""
+    S = basis.prior_variances(kernel, sigma_f, lengthscale)
+    Mb = basis.num_basis
+    zero = np.zeros(Mb * FIELD_DIM if kernel == "se" else Mb)
+    _, A, _ = field_and_jacobians(basis, kernel, P, zero)
+    Rr = M_local - c0
+    if kernel == "se":
+        G = A[0].T @ A[0] / sigma_m**2 + np.diag(1.0 / S)
+        return np.linalg.solve(G, A[0].T @ Rr / sigma_m**2)
+    G = sum(a.T @ a for a in A) / sigma_m**2 + np.diag(1.0 / S)
+    rhs = sum(A[q].T @ Rr[:, q] for q in range(FIELD_DIM)) / sigma_m**2
+    return np.linalg.solve(G, rhs).reshape(-1, 1)
+
+
+def whiten(
+    basis: HilbertBasis, kernel: str, sigma_f: float, lengthscale: float, W: np.ndarray
+) -> np.ndarray:
+    """Map weights W (M, k) -> the NLP's whitened weights V = W / sqrt(S) (same shape)."""
+    S = basis.prior_variances(kernel, sigma_f, lengthscale)
+    return W / np.sqrt(S)[:, None]
+
+
+# --------------------------------------------------------------------------- IMU NLP
+@dataclass(frozen=True)
+class ImuStructure:
+    """Everything that changes the symbolic IMU problem (and so needs a new build)."""
+
+    K: int  # keyframes
+    n: int  # IMU intervals per keyframe interval
+    T: float  # IMU interval [s]
+    bias: str  # "random_walk" or "constant"
+    zero_position: bool
+    form: str  # "none", "reduced_rank", "exact"
+    kernel: str
+    basis: tuple | None  # reduced rank: (center, half_width, num_basis)
+    jitter: float
+    solver: str  # SolverSpec as JSON
+    imu_hessian: str = "gauss-newton"  # or "exact": CasADi's Hessian of the imu block
+    zero_centre: str = "start"  # or "free": the zero-position sphere's centre is estimated
+
+    def hilbert_basis(self) -> HilbertBasis:
+        return cached_basis(self.basis)
+
+
+def _rt_minus_identity(v: Any, y: Any) -> Any:
+    """(R^T - I) y for the rotation R of the quaternion (1, v) (any v), without forming
+    R - I from R (no cancellation for small v): R^T = I + 2 / (1 + |v|^2) (-[v]x + [v]x^2)."""
+    cy = ca.cross(v, y)
+    return 2.0 / (1.0 + ca.dot(v, v)) * (-cy + ca.cross(v, cy))
+
+
+def imu_residual_function() -> ca.Function:
+    """SX function of one keyframe interval -> whitened residual (9,), in error state about a
+    nominal trajectory and nominal biases (:func:`imu_nominal_terms`): inputs (dp, dv, d,
+    dp1, dv1, d1, b_w, b_a, bbar (6), y (6), e0 (6), jb (54), qres (4), rrel_t (9), rnom (9),
+    linv (81), dt).
+
+    Positions p = pnom + dp, velocities v = vnom + dv and orientations R = Rnom R(1, d / 2)
+    at both ends. y = (Rnom^T (vnom1 - vnom - dt g), Rnom^T (pnom1 - pnom - dt vnom -
+    dt^2 g / 2)) and e0 = y - (Dv, Dp) at the nominal biases bbar, jb the Jacobian of the
+    preintegrated (rotation, Dv, Dp) in the biases there (first order in b - bbar, which the
+    caller re-centres to zero), qres = Dq^-1 qrel_nom, rrel_t = R(qrel_nom)^T. Every large
+    term of the residual (gravity and the nominal's own increments: 0.2 m and 2 m/s over a
+    0.2 s interval) is formed once, in numpy, from the nominal; the unknowns enter only
+    through corrections. Formed from absolute states, the gradient carried rounding noise of
+    about eps |g dt^2| lambda_max (lambda_max up to 6e11 for a precise IMU at 5 Hz keyframes:
+    measured 1e-5 to 9e-5 at the optimum of a 12 cm rectangle, above IPOPT's tolerance)."""
+    names = ("dp", "dv", "d", "dp1", "dv1", "d1", "b_w", "b_a")
+    dp, dv, d, dp1, dv1, d1, bw, ba = (ca.SX.sym(s, 3) for s in names)
+    bbar, y, e0 = ca.SX.sym("bbar", 6), ca.SX.sym("y", 6), ca.SX.sym("e0", 6)
+    jb, qres = ca.SX.sym("jb", 54), ca.SX.sym("qres", 4)
+    rrel_t, rnom, linv = ca.SX.sym("rrel_t", 9), ca.SX.sym("rnom", 9), ca.SX.sym("linv", 81)
+    dt = ca.SX.sym("dt")
+    J = ca.reshape(jb, 9, 6)
+    db = ca.vertcat(bw, ba) - bbar
+    Rn_t = ca.reshape(rnom, 3, 3).T
+    half = 0.5 * d
+    z_v = ca.mtimes(Rn_t, dv1 - dv)
+    z_p = ca.mtimes(Rn_t, dp1 - dp - dt * dv)
+    e_v = _rt_minus_identity(half, y[0:3] + z_v) + z_v + e0[0:3] - ca.mtimes(J[3:6, :], db)
+    e_p = _rt_minus_identity(half, y[3:6] + z_p) + z_p + e0[3:6] - ca.mtimes(J[6:9, :], db)
+    phi = ca.mtimes(J[0:3, :], db)
+    back = ca.mtimes(ca.reshape(rrel_t, 3, 3), half)  # qrel^-1 (d / 2) qrel
+    qe = sd.ca_quat_mul(
+        sd.ca_quat_mul(ca.vertcat(1, -0.5 * phi), qres),
+        sd.ca_quat_mul(ca.vertcat(1, -back), sd.ca_gibbs(d1)),
+    )
+    e_r = sd.ca_rotation_residual(qe)
+    r = ca.mtimes(ca.reshape(linv, 9, 9), ca.vertcat(e_r, e_v, e_p))
+    inputs = [dp, dv, d, dp1, dv1, d1, bw, ba, bbar, y, e0, jb, qres, rrel_t, rnom, linv, dt]
+    return ca.Function("imu_residual", inputs, [r])
+
+
+@lru_cache(maxsize=8)
+def imu_nominal_function(n: int, T: float) -> ca.Function:
+    """SX function of one interval at given biases: (b_w, b_a, dq (4n), dv (3n)) -> (Dq (4),
+    Dv (3), Dp (3), J (54): the Jacobian (9 x 6, column-major) of (rotation of Dq(b)
+    relative to Dq(bbar), Dv, Dp) in (b_w, b_a) at bbar = the given biases)."""
+    pre = sd.preintegration_function(n, T)
+    bw, ba = ca.SX.sym("b_w", 3), ca.SX.sym("b_a", 3)
+    dq, dv, ref = ca.SX.sym("dq", 4 * n), ca.SX.sym("dv", 3 * n), ca.SX.sym("ref", 4)
+    Dq, Dv, Dp = pre(bw, ba, dq, dv)
+    phi = sd.ca_rotation_residual(sd.ca_quat_mul(sd.ca_quat_conj(ref), Dq))
+    J = ca.jacobian(ca.vertcat(phi, Dv, Dp), ca.vertcat(bw, ba))
+    J = ca.substitute(J, ref, Dq)
+    return ca.Function("imu_nominal", [bw, ba, dq, dv], [Dq, Dv, Dp, ca.vec(J)])
+
+
+def imu_nominal_terms(
+    kf: Keyframes,
+    n: int,
+    T: float,
+    P: np.ndarray,
+    V: np.ndarray,
+    Q: np.ndarray,
+    BW: np.ndarray,
+    BA: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """The parameters of :func:`imu_residual_function` per interval (K-1 rows) for the
+    nominal trajectory (P, V, Q at the K keyframes) and nominal biases BW, BA (one row, or
+    one per keyframe): BBAR, IMU_Y, IMU_E0, IMU_J, QRES, RREL_T, plus RNOM (K, 9)."""  # fmt: skip
+    K = P.shape[0]
+    dt = n * T
+    g = sd.gravity_vector()
+    R = sd.quat_to_rotmat(Q)  # (K, 3, 3)
+    Rt = np.transpose(R[:-1], (0, 2, 1))
+    yv = np.einsum("kij,kj->ki", Rt, V[1:] - V[:-1] - dt * g)
+    yp = np.einsum("kij,kj->ki", Rt, P[1:] - P[:-1] - dt * V[:-1] - 0.5 * dt**2 * g)
+    bw = BW[:-1] if BW.shape[0] == K else np.repeat(BW, K - 1, 0)
+    ba = BA[:-1] if BA.shape[0] == K else np.repeat(BA, K - 1, 0)
+    f = imu_nominal_function(n, T).map(K - 1, "serial")
+    Dq, Dv, Dp, J = (np.asarray(v).T for v in f(bw.T, ba.T, kf.DQ.T, kf.DV.T))
+    qrel = sd.quat_mul(sd.quat_conj(Q[:-1]), Q[1:])
+    rrel_t = sd.quat_to_rotmat(qrel)  # R(qrel)^T column-major = R(qrel) row-major
+    return {
+        "BBAR": np.hstack([bw, ba]),
+        "IMU_Y": np.hstack([yv, yp]),
+        "IMU_E0": np.hstack([yv - Dv, yp - Dp]),
+        "IMU_J": J,
+        "QRES": sd.quat_mul(sd.quat_conj(Dq), qrel),
+        "RREL_T": rrel_t.reshape(K - 1, 9),
+        "RNOM": R.transpose(0, 2, 1).reshape(K, 9),
+    }
+
+
+def build_imu(s: ImuStructure) -> NLP:
+    """Build the IMU (GP-SLAM or IMU-only) NLP of a structure (use :func:`cached_imu_nlp`)."""
+    b = GaussNewtonBuilder()
+    K, n = s.K, s.n
+    dP = b.variable("dP", (K, 3))
+    dV = b.variable("dV", (K, 3))
+    D = b.variable("D", (K, 3))
+    Kb = K if s.bias == "random_walk" else 1
+    BW = b.variable("BW", (Kb, 3))
+    BA = b.variable("BA", (Kb, 3))
+    # The nominal trajectory and what the residual needs of it (imu_nominal_terms).
+    RNOM = b.parameter("RNOM", (K, 9))
+    PNOM = b.parameter("PNOM", (K, 3))
+    VNOM = b.parameter("VNOM", (K, 3))
+    nom = {
+        name: b.parameter(name, (K - 1, w))
+        for name, w in (
+            ("BBAR", 6), ("IMU_Y", 6), ("IMU_E0", 6), ("IMU_J", 54), ("QRES", 4), ("RREL_T", 9)
+        )
+    }  # fmt: skip
+    LINV = b.parameter("LINV", (K - 1, 81))
+    p0, v0 = b.parameter("p0", (1, 3)), b.parameter("v0", (1, 3))
+    sig = {
+        k: b.parameter(k, (1, 1))
+        for k in ("sigma_p0", "sigma_v0", "sigma_tilt", "sigma_yaw", "sigma_bw0", "sigma_ba0")
+    }
+    if s.bias == "random_walk":
+        BWi, BAi = BW[:-1, :], BA[:-1, :]
+    else:
+        BWi, BAi = ca.repmat(BW, K - 1, 1), ca.repmat(BA, K - 1, 1)
+    resid = imu_residual_function().map(K - 1, "serial")
+    E = resid(
+        dP[:-1, :].T, dV[:-1, :].T, D[:-1, :].T, dP[1:, :].T, dV[1:, :].T, D[1:, :].T,
+        BWi.T, BAi.T, nom["BBAR"].T, nom["IMU_Y"].T, nom["IMU_E0"].T, nom["IMU_J"].T,
+        nom["QRES"].T, nom["RREL_T"].T, RNOM[:-1, :].T, LINV.T, n * s.T,
+    )  # fmt: skip
+    P = PNOM + dP  # absolute positions for the map and the priors (weakly curved there)
+    if s.imu_hessian == "exact":
+        b.cost("imu", 0.5 * ca.sumsqr(E))
+    else:
+        b.residual("imu", E)
+    if s.bias == "random_walk":
+        rw_w, rw_a = b.parameter("sigma_walk_w", (1, 1)), b.parameter("sigma_walk_a", (1, 1))
+        dt = n * s.T
+        b.cost(
+            "bias_walk",
+            0.5 * ca.sumsqr((BW[1:, :] - BW[:-1, :]) / (rw_w * np.sqrt(dt)))
+            + 0.5 * ca.sumsqr((BA[1:, :] - BA[:-1, :]) / (rw_a * np.sqrt(dt))),
+        )
+    b.cost(
+        "bias_prior",
+        0.5 * ca.sumsqr(BW[0, :] / sig["sigma_bw0"]) + 0.5 * ca.sumsqr(BA[0, :] / sig["sigma_ba0"]),
+    )
+    # Error of the first orientation against the known one, as a small rotation in the
+    # local (world) frame (tilt: x, y; yaw: z): of qnom_0 (1, d_0 / 2) q0^-1. Against q0
+    # itself, not the nominal, which moves to each stage's estimate.
+    QNOM0, Q0 = b.parameter("QNOM0", (1, 4)), b.parameter("q0", (1, 4))
+    eps = sd.ca_rotation_residual(
+        sd.ca_quat_mul(sd.ca_quat_mul(QNOM0.T, sd.ca_gibbs(D[0, :].T)), sd.ca_quat_conj(Q0.T))
+    )
+    b.cost(
+        "initial_state",
+        0.5 * ca.sumsqr((dP[0, :] + (PNOM[0, :] - p0)) / sig["sigma_p0"])
+        + 0.5 * ca.sumsqr((dV[0, :] + (VNOM[0, :] - v0)) / sig["sigma_v0"])
+        + 0.5 * ca.sumsqr(eps[0:2] / sig["sigma_tilt"])
+        + 0.5 * (eps[2] / sig["sigma_yaw"]) ** 2,
+    )
+    if s.zero_position:
+        sz = b.parameter("sigma_zero", (1, 1))
+        if s.zero_centre == "free":
+            centre = b.variable("zero_centre", (1, 3))
+        else:
+            centre = p0
+        b.cost("zero_position", 0.5 * ca.sumsqr((P - ca.repmat(centre, K, 1)) / sz))
+    solver = SolverSpec.model_validate_json(s.solver)
+    rotation = imu_rotation_function()
+    if s.form == "none":
+        return b.build_gauss_newton(solver, name="casmag_imu_only")
+    if s.form == "exact":
+        # Field = constant c (Earth's) + a GP variation F at the keyframes; without c the GP
+        # prior would reward spreading the positions to decorrelate Earth's field.
+        Mf = b.variable("M", (K, FIELD_DIM))
+        c = b.variable("c", (FIELD_DIM, 1))
+        Y = b.parameter("Y", (K, FIELD_DIM))
+        sigma_m = b.parameter("sigma_m", (1, 1))
+        sigma_f = b.parameter("sigma_f", (1, 1))
+        ell = b.parameter("lengthscale", (1, 1))
+        sigma_lin = b.parameter("sigma_lin", (1, 1))
+        d, rn, m_, y_ = ca.SX.sym("d", 3), ca.SX.sym("rn", 9), ca.SX.sym("m", 3), ca.SX.sym("y", 3)
+        sg, c_ = ca.SX.sym("s"), ca.SX.sym("c", 3)
+        e = (y_ - ca.mtimes(rotation(d, rn).T, m_ + c_)) / sg
+        f = ca.Function("mag_exact", [d, rn, m_, c_, y_, sg], [e]).map(K, "serial")
+        b.residual("magnetometer", f(D.T, RNOM.T, Mf.T, c, Y.T, sigma_m))
+        b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
+        del sigma_f, ell  # read by the prior from p
+        # Every symbol is declared: the numpy prior (casmag.gp.exact) sees the full vectors.
+        gp = add_exact_prior(
+            b, get_kernel(s.kernel), Knots(K, 1), 3, s.jitter, positions="dP", dead_reckoning="PNOM"
+        )
+        if solver.hessian == "exact":
+            return b.build(solver, name="casmag_imu_exact", gauss_newton=gp)
+        return b.build_gauss_newton(solver, name="casmag_imu_exact", callbacks=dict([gp]))
+    basis = s.hilbert_basis()
+    add_reduced_rank_map(b, basis, s.kernel, P, D, RNOM, rotation, K, 3)
+    block, gn = gauss_newton_for(
+        b, basis, s.kernel, rotation, K, 3, "D", "RNOM", pos_name="dP", nominal_name="PNOM"
+    )
+    return b.build_gauss_newton(solver, name="casmag_imu_rr", callbacks={block: gn})
+
+
+@lru_cache(maxsize=8)
+def cached_imu_nlp(s: ImuStructure) -> NLP:
+    """The built NLP for a structure, built once per process."""
+    return build_imu(s)
+
+
+# --------------------------------------------------------------------------- IMU solve
+@dataclass
+class Keyframes:
+    """The data at keyframe rate: indices (K,) of the keyframe samples, DQ (K-1, 4n),
+    DV (K-1, 3n) increments per interval, LINV (K-1, 81) whitening of the composed
+    increments, Y (K, 3) magnetometer at keyframes (in the keyframe's body frame, averaged
+    over ``samples`` samples: noise sigma_m * sigma_scale)."""
+
+    idx: np.ndarray
+    DQ: np.ndarray
+    DV: np.ndarray
+    LINV: np.ndarray
+    Y: np.ndarray
+    samples: int = 1
+
+    @property
+    def sigma_scale(self) -> float:
+        """The keyframe magnetometer's noise over one sample's."""
+        return 1.0 / float(np.sqrt(self.samples))
+
+
+def keyframes(
+    data: ImuData, n: int, gyro_density: float, acc_density: float, samples: int = 1
+) -> Keyframes:
+    """Group the increments n at a time (whole groups only) and whiten their composition;
+    the magnetometer at each keyframe averaged over ``samples`` (odd) samples centred on it
+    (``averaged_magnetometer``)."""
+    K = (data.dq.shape[0]) // n + 1
+    m = (K - 1) * n
+    dq, dv = data.dq[:m], data.dv[:m]
+    S = sd.preintegration_covariance(dq, dv, data.T, n, gyro_density, acc_density)
+    Lc = np.linalg.cholesky(S)
+    eye = np.eye(9)
+    Linv = np.stack([scipy.linalg.solve_triangular(L, eye, lower=True) for L in Lc])
+    idx = np.arange(K) * n
+    return Keyframes(
+        idx=idx,
+        DQ=dq.reshape(K - 1, 4 * n),
+        DV=dv.reshape(K - 1, 3 * n),
+        LINV=Linv.transpose(0, 2, 1).reshape(K - 1, 81),  # column-major 9x9
+        Y=averaged_magnetometer(data.Y, data.dq, idx, samples),
+        samples=samples,
+    )
+
+
+def averaged_magnetometer(
+    Y: np.ndarray, dq: np.ndarray, idx: np.ndarray, samples: int
+) -> np.ndarray:
+    """Magnetometer samples Y (N, 3) averaged over ``samples`` (odd) consecutive samples
+    around each index in idx, each rotated into the body frame at the index by the gyro
+    increments dq (N-1, 4) (R_i^T R_j, the relative rotation integrated from the gyro); the
+    window is shifted to stay inside the recording. The relative rotations come from one
+    cumulative gyro attitude G (G_0 = identity, G_{j+1} = G_j dq_j): R_i^T R_j = G_i^T G_j,
+    so the average is G_i^T mean_j(G_j y_j)."""
+    if samples == 1:
+        return Y[idx].copy()
+    N = Y.shape[0]
+    G = np.empty((N, 4))
+    G[0] = (1.0, 0.0, 0.0, 0.0)
+    for j in range(N - 1):
+        G[j + 1] = sd.quat_mul(G[j : j + 1], dq[j : j + 1])[0]
+    G /= np.linalg.norm(G, axis=1, keepdims=True)
+    Z = np.vstack([np.zeros((1, 3)), np.cumsum(sd.rotate(G, Y), axis=0)])
+    h = samples // 2
+    lo = np.clip(idx - h, 0, max(0, N - samples))
+    hi = np.minimum(lo + samples, N)
+    mean = (Z[hi] - Z[lo]) / (hi - lo)[:, None]
+    return sd.rotate(sd.quat_conj(G[idx]), mean)
+
+
+@dataclass
+class ImuSolveStage:
+    """One IPOPT solve of the two-stage pipeline: its solution, NLP and estimates (P, V, Q at
+    keyframes, biases per keyframe in rad/s and m/s^2)."""
+
+    solution: Solution
+    nlp: NLP
+    P: np.ndarray
+    V: np.ndarray
+    Q: np.ndarray
+    b_w: np.ndarray
+    b_a: np.ndarray
+    grow: list[dict[str, Any]] = field(default_factory=list)  # prefix stages (model.gp.grow)
+    sigma_m: float | None = None  # the magnetometer noise this solve used (GP-SLAM)
+    # A reduced-rank map's basis key, kernel and hyperparameters (GP-SLAM; casmag.gp.fieldmap).
+    field_model: dict[str, Any] | None = None
+
+
+def _stage_estimates(sol: Solution, nominal: dict[str, Any], K: int) -> dict[str, np.ndarray]:
+    """Absolute estimates of a solve about the nominal trajectory ``nominal`` (P, V, Q)."""
+    Q = sd.quat_mul(nominal["Q"], sd.gibbs_quat(sol.x["D"]))
+    bw, ba = sol.x["BW"], sol.x["BA"]
+    if bw.shape[0] != K:
+        bw, ba = np.repeat(bw, K, 0), np.repeat(ba, K, 0)
+    P, V = nominal["P"] + sol.x["dP"], nominal["V"] + sol.x["dV"]
+    return {"P": P, "V": V, "Q": Q, "b_w": bw, "b_a": ba}
+
+
+#: Most solves of one IMU stage about re-centred nominal trajectories (_solve_recentred).
+RECENTRE_ROUNDS = 6
+
+
+def _solve_recentred(
+    nlp: NLP,
+    params: dict[str, Any],
+    start: dict[str, Any],
+    carry: tuple[str, ...],
+    terms: Callable[[dict[str, Any]], dict[str, Any]],
+    progress: Progress | None,
+) -> tuple[Solution, dict[str, Any]]:
+    """Solve an IMU NLP from ``start`` (P, V, Q, BW, BA, zero_centre and the variables named
+    in ``carry``) in error state about a nominal that starts there (dP = dV = D = 0);
+    ``terms(nominal)`` gives the nominal's parameters (:func:`imu_nominal_terms`).
+
+    The nominal moves to the estimate and IPOPT starts again from zero corrections (a
+    Gauss-Newton relinearisation, as in factor-graph smoothers) when (a) a converged solve
+    moved the biases: the residual is first order in b - bbar, so one more solve from the
+    converged biases makes the result exact to second order in what that solve still moves
+    them (once: each re-centring also re-rounds the nominal terms); or (b) IPOPT stopped
+    making measurable progress (casmag.nlp.STALLED: the objective unchanged to 1e-12 over
+    three iterations). At most RECENTRE_ROUNDS solves; the returned Solution sums their
+    iterations and seconds (``rounds`` says how many) and carries the last one's status;
+    with it, the last nominal."""
+    rounds: list[Solution] = []
+    nominal = start
+    K = start["P"].shape[0]
+    confirmed = False  # a solve from a nominal at converged biases has run
+    for r in range(RECENTRE_ROUNDS):
+        p = {
+            **params,
+            **terms(nominal),
+            "PNOM": nominal["P"],
+            "VNOM": nominal["V"],
+            "QNOM0": nominal["Q"][0],
+        }
+        x0 = {
+            "dP": np.zeros((K, 3)),
+            "dV": np.zeros((K, 3)),
+            "D": np.zeros((K, 3)),
+            "BW": nominal["BW"],
+            "BA": nominal["BA"],
+            "zero_centre": nominal["zero_centre"],
+            **{name: nominal[name] for name in carry},
+        }
+        sol = nlp.solve(p, x0, progress=progress, stop_when_stalled=r < RECENTRE_ROUNDS - 1)
+        rounds.append(sol)
+        moved = sol.iterations > 0 and any(np.any(sol.x[b] != nominal[b]) for b in ("BW", "BA"))
+        if not (sol.status == STALLED or (sol.success and moved and not confirmed)):
+            break
+        confirmed = confirmed or sol.success
+        est = _stage_estimates(sol, nominal, K)
+        nominal = {
+            "P": est["P"],
+            "V": est["V"],
+            "Q": est["Q"],
+            **{name: sol.x[name] for name in ("BW", "BA", *carry)},
+            "zero_centre": sol.x.get("zero_centre", nominal["zero_centre"]),
+        }
+    last = rounds[-1]
+    merged = dataclasses.replace(
+        last,
+        iterations=sum(s.iterations for s in rounds),
+        solve_seconds=sum(s.solve_seconds for s in rounds),
+        cost_per_iteration=[v for s in rounds for v in s.cost_per_iteration],
+        inf_pr_per_iteration=[v for s in rounds for v in s.inf_pr_per_iteration],
+        inf_du_per_iteration=[v for s in rounds for v in s.inf_du_per_iteration],
+        blocks_before=rounds[0].blocks_before,
+        rounds=len(rounds),
+    )
+    return merged, nominal
+
+
+def _terms_of(kf: Keyframes, n: int, T: float) -> Callable[[dict[str, Any]], dict[str, Any]]:
+    """nominal -> its parameters (:func:`imu_nominal_terms`) for the keyframes kf."""
+
+    def terms(nominal: dict[str, Any]) -> dict[str, Any]:
+        return imu_nominal_terms(
+            kf, n, T, nominal["P"], nominal["V"], nominal["Q"], nominal["BW"], nominal["BA"]
+        )
+
+    return terms
+
+
+def _imu_params(
+    problem: ImuProblem, data: ImuData, kf: Keyframes, s: ImuStructure
+) -> dict[str, Any]:
+    """The parameters of an IMU solve but the nominal trajectory and what depends on it
+    (:func:`_solve_recentred`)."""
+    m = problem.spec.model
+    params: dict[str, Any] = {
+        "LINV": kf.LINV,
+        "p0": data.p0.reshape(1, 3),
+        "v0": data.v0.reshape(1, 3),
+        "q0": np.asarray(data.q0, dtype=float).reshape(1, 4),
+        "sigma_p0": m.initial.position_sigma,
+        "sigma_v0": m.initial.velocity_sigma,
+        "sigma_tilt": np.radians(m.initial.tilt_sigma_deg),
+        "sigma_yaw": np.radians(m.initial.yaw_sigma_deg),
+        "sigma_bw0": np.radians(m.imu.gyro_bias_prior),
+        "sigma_ba0": m.imu.acc_bias_prior,
+    }
+    if s.bias == "random_walk":
+        params["sigma_walk_w"] = problem.gyro_walk
+        params["sigma_walk_a"] = problem.acc_walk
+    if s.zero_position:
+        params["sigma_zero"] = m.zero_position.sigma
+    return params
+
+
+def field_evidence(
+    P: np.ndarray,
+    Y_local: np.ndarray,
+    kernel: str,
+    est: HyperEstimate | None = None,
+    *,
+    windows: tuple[int, int],
+) -> FieldEvidence:
+    """casmag.gp.hyper.field_evidence on windows of the keyframes (``windows``: keyframes per
+    window and the most windows, ``hyper_windows``; ``est`` must come from the same
+    windows). Measured on the IMU scenarios' true paths with 30-keyframe windows: log Bayes
+    factor about -6.7 outdoors (Earth's field only) against +865 or more on the desk and
+    table."""
+    return _field_evidence(P, Y_local, kernel, est, *windows)
+
+
+def hyper_windows(model: Any, K: int) -> tuple[int, int]:
+    """Keyframes per marginal-likelihood window and the most windows (``model.gp``:
+    ``hyper_window``, ``hyper_windows``; ``all``: every whole window of the K keyframes)."""
+    gp = model.gp
+    w = gp.hyper_window
+    return w, (max(1, K // w) if gp.hyper_windows == "all" else gp.hyper_windows)
+
+
+def short_windows(model: Any, K: int) -> tuple[int, int]:
+    """The windows of the re-estimate when the path drifts within the configured ones
+    (``model.gp.drift_ratio``): HYPER_SECONDS of keyframes at ``model.keyframe_rate`` (at
+    least 3), every whole window of the K keyframes."""
+    w = max(3, round(HYPER_SECONDS * model.keyframe_rate))
+    return w, max(1, K // w)
+
+
+@dataclass
+class ImuSolution:
+    """Both stages of an IMU solve plus what was decided between them. ``evidence``: the
+    field check on the last GP-SLAM pass (None when not run); ``fallback``: the field was
+    found homogeneous and the result is the IMU-only adjustment."""
+
+    structure: ImuStructure
+    keyframes: Keyframes
+    strapdown: dict[str, np.ndarray]
+    imu_only: ImuSolveStage
+    slam: ImuSolveStage | None
+    hyperparameters: dict[str, float]
+    hyperparameters_source: str
+    basis_size: int | None
+    slam_passes: list[ImuSolveStage] = field(default_factory=list)
+    evidence: FieldEvidence | None = None
+    fallback: bool = False
+    schedules: list[dict[str, Any]] = field(default_factory=list)
+
+
+def solve_imu_stages(
+    problem: ImuProblem, data: ImuData, progress: Progress | None = None
+) -> ImuSolution:
+    """Strapdown, then the IMU-only adjustment from it, then (unless the map form is
+    ``none``) GP-SLAM passes from the IMU-only result with sigma_m scaled by
+    ``model.gp.anneal`` (hyperparameters estimated once, on the IMU-only trajectory), then,
+    when hyperparameters are estimated, ``model.gp.refine`` more passes with them
+    re-estimated on the previous pass's trajectory. ``slam`` is the last pass,
+    ``slam_passes`` all of them. A failed solve stops the pipeline (``slam`` is None when
+    the IMU-only stage failed, else the failed pass)."""
+    spec = problem.spec
+    m = spec.model
+    n = problem.substeps
+    kf = keyframes(data, n, problem.gyro_density, problem.acc_density, m.magnetometer.samples)
+    K = kf.idx.size
+    # Plain strapdown integration, no bias removed: the initial trajectory.
+    Ps, Vs, Qs = sd.strapdown(
+        data.p0, data.v0, data.q0, data.dq[: (K - 1) * n], data.dv[: (K - 1) * n], data.T
+    )
+    strap = {"P": Ps[kf.idx], "V": Vs[kf.idx], "Q": Qs[kf.idx]}
+    Kb = K if m.imu.bias == "random_walk" else 1
+    base = dict(
+        K=K,
+        n=n,
+        T=float(data.T),
+        bias=m.imu.bias,
+        zero_position=m.zero_position.sigma is not None,
+        zero_centre=m.zero_position.centre,
+        kernel=m.gp.kernel,
+        jitter=m.gp.jitter,
+        solver=spec.solver.model_dump_json(),
+    )
+    s1 = ImuStructure(form="none", basis=None, **base)
+    nlp1 = cached_imu_nlp(s1)
+    start = {
+        **strap,
+        "BW": np.zeros((Kb, 3)),
+        "BA": np.zeros((Kb, 3)),
+        "zero_centre": data.p0.reshape(1, 3),
+    }
+    params = _imu_params(problem, data, kf, s1)
+    sol1, nominal = _solve_recentred(nlp1, params, start, (), _terms_of(kf, n, data.T), progress)
+    st1 = ImuSolveStage(solution=sol1, nlp=nlp1, **_stage_estimates(sol1, nominal, K))
+    hyper = {"sigma_f": float("nan"), "lengthscale": float("nan"), "sigma_m": float("nan")}
+    if not sol1.success or m.gp.form == "none":
+        return ImuSolution(s1, kf, strap, st1, None, hyper, "none", None)
+    # Hyperparameters once, on the IMU-only trajectory; then GP-SLAM passes with sigma_m
+    # annealed (a softer magnetometer first widens the basin), each from the previous one.
+    hyper, source, est, windows = _hyperparameters(problem, kf, st1, "IMU-only")
+    if est is not None and m.gp.homogeneous == "imu_only":
+        # Already homogeneous on the IMU-only path (whose orientation errors can only add
+        # apparent variation): no map. An unidentified lengthscale (sigma_f -> 0 leaves it
+        # free) would otherwise set the basis (measured: l = 0.0085 m on a 12 cm
+        # rectangle in Earth's field, and GP-SLAM hit the iteration limit).
+        pre = field_evidence(st1.P, sd.rotate(st1.Q, kf.Y), m.gp.kernel, est, windows=windows)
+        if pre.homogeneous:
+            return ImuSolution(s1, kf, strap, st1, None, hyper, source, None, [], pre, True)
+    # The anneal schedule; then the coarse-to-fine one when it failed or fits badly (misfit
+    # above model.gp.refit_misfit), then the grown one (the slowest: 16 solves) when the
+    # kept one still failed or fits clearly badly (misfit above GROW_MISFIT), each from the
+    # IMU-only adjustment. A later
+    # schedule is kept when it succeeds and the kept one failed or its final MAP cost is
+    # lower by more than SCHEDULE_MARGIN (all end with sigma_m and the lengthscale x1, on
+    # bases around their own previous passes).
+    ladder = [("anneal", _anneal_schedule(m.gp))]
+    if m.gp.coarse_to_fine is not None:
+        ladder.append(("coarse_to_fine", [("pass", [f], f) for f in m.gp.coarse_to_fine]))
+    if m.gp.fallback_grow is not None:
+        ladder.append(("grown", [("grow", list(m.gp.anneal), 1.0)]))
+    schedules: list[dict[str, Any]] = []
+    passes: list[ImuSolveStage] = []
+    s2, size = s1, None
+    for name, steps in ladder:
+        if (
+            passes
+            and passes[-1].solution.success
+            and schedules[_kept(schedules)]["misfit"]
+            <= (GROW_MISFIT if name == "grown" else m.gp.refit_misfit)
+        ):
+            break
+        run, s2_run, size_run = _run_schedule(
+            problem, data, kf, base, st1, hyper, steps,
+            m.gp.grow if name == "anneal" else m.gp.fallback_grow, progress,
+        )  # fmt: skip
+        record = {**_schedule_record(name, run, K), "kept": False}
+        if not passes or _better(run[-1].solution, passes[-1].solution):
+            for r in schedules:
+                r["kept"] = False
+            record["kept"] = True
+            passes, s2, size = run, s2_run, size_run
+        schedules.append(record)
+    estimated = "estimate" in (m.gp.sigma_f, m.gp.lengthscale)
+    for _ in range(m.gp.refine if estimated else 0):
+        if not passes[-1].solution.success:
+            break
+        hyper, source, _, windows = _hyperparameters(problem, kf, passes[-1], "GP-SLAM")
+        st, s2, size = _slam_pass(problem, data, kf, base, passes[-1], hyper, 1.0, progress)
+        passes.append(st)
+    evidence, fallback = None, False
+    # Only with estimated hyperparameters: given ones assert a field model.
+    if estimated and passes[-1].solution.success and m.gp.homogeneous == "imu_only":
+        # On the GP-SLAM trajectory, whose orientations fit the magnetometer: on the
+        # IMU-only one, orientation errors rotate Earth's field into apparent variation
+        # (measured outdoors: log Bayes factor +21 there, -6.7 on the true path).
+        last = passes[-1]
+        evidence = field_evidence(last.P, sd.rotate(last.Q, kf.Y), m.gp.kernel, windows=windows)
+        fallback = evidence.homogeneous
+    return ImuSolution(
+        s2, kf, strap, st1, passes[-1], hyper, source, size, passes, evidence, fallback,
+        schedules,
+    )  # fmt: skip
+
+
+def _anneal_schedule(gp: Any) -> list[tuple[str, list[float], float]]:
+    """The anneal schedule's steps: one pass per ``anneal`` factor on sigma_m, or with
+    ``grow`` the first pass (with ``grow_anneal`` every one) on growing prefixes."""
+    if gp.grow is not None and gp.grow_anneal:
+        return [("grow", list(gp.anneal), 1.0)]
+    steps = [("pass", [f], 1.0) for f in gp.anneal]
+    if gp.grow is not None:
+        steps[0] = ("grow", [gp.anneal[0]], 1.0)
+    return steps
+
+
+def _better(new: Solution, kept: Solution) -> bool:
+    """Whether a later schedule's final solve replaces the kept one's: it succeeded, and the
+    kept one failed or costs more by more than SCHEDULE_MARGIN."""
+    return new.success and (
+        not kept.success or new.objective < (1.0 - SCHEDULE_MARGIN) * kept.objective
+    )
+
+
+def _kept(schedules: list[dict[str, Any]]) -> int:
+    """Index of the kept schedule's record."""
+    return next(i for i, r in enumerate(schedules) if r["kept"])
+
+
+def _run_schedule(
+    problem: ImuProblem,
+    data: ImuData,
+    kf: Keyframes,
+    base: dict[str, Any],
+    start: ImuSolveStage,
+    hyper: dict[str, float],
+    steps: list[tuple[str, list[float], float]],
+    fractions: list[float] | None,
+    progress: Progress | None,
+) -> tuple[list[ImuSolveStage], ImuStructure, int | None]:
+    """One GP-SLAM schedule from ``start``: steps (kind, sigma_m factors, lengthscale
+    factor), each from the previous step's result; ``pass``: one solve with sigma_m x the
+    factor and the hyperparameters made coarser by the lengthscale factor (``_coarser``);
+    ``grow``: the factors in turn on each growing prefix (``fractions``). Stops at the first
+    failed step."""
+    passes: list[ImuSolveStage] = []
+    prev = start
+    for kind, factors, ell_factor in steps:
+        if kind == "grow":
+            st, s2, size = _grown_pass(
+                problem, data, kf, base, prev, hyper, factors, fractions, progress
+            )
+        else:
+            h = _coarser(problem.spec.model.gp.kernel, hyper, ell_factor)
+            st, s2, size = _slam_pass(problem, data, kf, base, prev, h, factors[0], progress)
+        passes.append(st)
+        if not st.solution.success:
+            break
+        prev = st
+    return passes, s2, size
+
+
+def _coarser(kernel: str, hyper: dict[str, float], factor: float) -> dict[str, float]:
+    """The hyperparameters with the lengthscale times ``factor`` and sigma_f scaled so that
+    the field's variance is unchanged (sigma_f^2 / l^2 for curl-free, sigma_f^2 for se)."""
+    if factor == 1.0:
+        return hyper
+    kern = get_kernel(kernel)
+    ell = hyper["lengthscale"]
+    ratio = kern.variance(1.0, ell) / kern.variance(1.0, factor * ell)
+    return {**hyper, "lengthscale": factor * ell, "sigma_f": hyper["sigma_f"] * ratio**0.5}
+
+
+def _schedule_record(name: str, passes: list[ImuSolveStage], K: int) -> dict[str, Any]:
+    """One GP-SLAM schedule's outcome: its last solve's status and MAP cost, the cost per
+    magnetometer component (``misfit``), iterations per solve (a grown pass: each of its
+    solves)."""
+    sol = passes[-1].solution
+    solves = [g for p in passes for g in (p.grow or [_solve_record(p)])]
+    return {
+        "schedule": name,
+        "status": sol.status,
+        "success": bool(sol.success),
+        "cost": float(sol.objective),
+        "misfit": float(sol.objective) / (FIELD_DIM * K),
+        "iterations": [g["iterations"] for g in solves],
+        "solve_seconds": float(sum(g["solve_seconds"] for g in solves)),
+        "passes": len(passes),
+        "kept": True,
+    }
+
+
+def _slam_seconds(res: ImuSolution) -> float:
+    """Seconds of every GP-SLAM solve: each schedule's (kept or not), then the refine
+    passes after the kept one."""
+    kept = next(r for r in res.schedules if r["kept"])
+    refine = res.slam_passes[kept["passes"] :]
+    return sum(r["solve_seconds"] for r in res.schedules) + sum(
+        p.solution.solve_seconds for p in refine
+    )
+
+
+def _solve_record(p: ImuSolveStage) -> dict[str, Any]:
+    return {"iterations": p.solution.iterations, "solve_seconds": p.solution.solve_seconds}
+
+
+def _hyperparameters(
+    problem: ImuProblem, kf: Keyframes, prev: ImuSolveStage, prev_name: str
+) -> tuple[dict[str, float], str, HyperEstimate | None, tuple[int, int]]:
+    """sigma_f and lengthscale given, or by the windowed marginal likelihood on a previous
+    stage's trajectory with the magnetometer rotated into the local frame by its
+    orientations (``hyper_windows``; on ``short_windows`` when the estimated noise shows
+    drift, ``model.gp.drift_ratio``); sigma_m as assumed. Also returns the estimate (None
+    when given) and the windows used."""
+    m = problem.spec.model
+    sigma_f, ell = m.gp.sigma_f, m.gp.lengthscale
+    sigma_m = float(problem.sigma_m * kf.sigma_scale)
+    source = "given"
+    est = None
+    K = kf.idx.size
+    windows = hyper_windows(m, K)
+    if "estimate" in (sigma_f, ell):
+        Y_local = sd.rotate(prev.Q, kf.Y)
+        est = estimate_hyperparameters(
+            prev.P, Y_local, kernel=m.gp.kernel, window=windows[0], max_windows=windows[1]
+        )
+        source = f"marginal likelihood on the {prev_name} trajectory"
+        if m.gp.drift_ratio is not None and est.sigma_m > m.gp.drift_ratio * sigma_m:
+            windows = short_windows(m, K)
+            est = estimate_hyperparameters(
+                prev.P, Y_local, kernel=m.gp.kernel, window=windows[0], max_windows=windows[1]
+            )
+            source += f" ({windows[0]}-keyframe windows: drift within {m.gp.hyper_window})"
+        if sigma_f == "estimate":
+            sigma_f = est.sigma_f
+        if ell == "estimate":
+            ell = min(est.lengthscale, m.gp.max_lengthscale)
+    return (
+        {"sigma_f": float(sigma_f), "lengthscale": float(ell), "sigma_m": sigma_m},
+        source,
+        est,
+        windows,
+    )
+
+
+def _slam_setup(
+    problem: ImuProblem, prev: ImuSolveStage, hyper: dict[str, float]
+) -> tuple[tuple | None, str]:
+    """The map's basis key (built around the previous stage's trajectory) and the
+    magnetometer block's Hessian mode (``model.gp.curvature``: true ``exact``, false
+    ``gauss-newton``, auto ``exact`` in a field that varies little, else ``hybrid``)."""
+    m = problem.spec.model
+    basis_key = None
+    if m.gp.form == "reduced_rank":
+        num_basis = m.gp.num_basis
+        if num_basis is None:
+            full = make_basis(m.gp.kernel, prev.P, hyper["lengthscale"], None, m.gp.margin)
+            num_basis = min(full.num_basis, m.gp.max_num_basis)
+        hb = make_basis(m.gp.kernel, prev.P, hyper["lengthscale"], num_basis, m.gp.margin)
+        basis_key = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
+    variation = hyper["sigma_f"] / (hyper["lengthscale"] if m.gp.kernel == "curl_free" else 1.0)
+    if m.gp.curvature == "auto":
+        mode = "exact" if variation < CURVATURE_BELOW * problem.sigma_m else "hybrid"
+    else:
+        mode = "exact" if m.gp.curvature else "gauss-newton"
+    return basis_key, mode
+
+
+def _slam_solve(
+    problem: ImuProblem,
+    data: ImuData,
+    kf: Keyframes,
+    base: dict[str, Any],
+    basis_key: tuple | None,
+    hessian_mode: str,
+    hyper: dict[str, float],
+    sigma_m: float,
+    start: dict[str, Any],
+    progress: Progress | None,
+) -> tuple[ImuSolveStage, ImuStructure]:
+    """One GP-SLAM solve on the keyframes kf (all, or a prefix) from ``start``: P, V, Q (the
+    nominal orientations), BW, BA, zero_centre and optionally the whitened map weights W
+    and the constant field c (else the posterior mean of the map given the data rotated by
+    Q at P)."""
+    m = problem.spec.model
+    K = kf.idx.size
+    Qnom = start["Q"]
+    s2 = ImuStructure(
+        form=m.gp.form,
+        basis=basis_key,
+        imu_hessian=IMU_HESSIAN_SLAM,
+        **{**base, "K": K},
+    )
+    nlp2 = cached_imu_nlp(s2)
+    if isinstance(nlp2.keep, tuple) and isinstance(nlp2.keep[1], RotatedFieldGaussNewton):
+        nlp2.keep[1].set_mode(hessian_mode)
+    params = _imu_params(problem, data, kf, s2)
+    params.update(
+        Y=kf.Y,
+        sigma_m=sigma_m,
+        sigma_f=hyper["sigma_f"],
+        lengthscale=hyper["lengthscale"],
+        sigma_lin=m.gp.sigma_lin,
+    )
+    x0 = {name: start[name] for name in ("P", "V", "Q", "BW", "BA", "zero_centre")}
+    Y_local = sd.rotate(Qnom, kf.Y)
+    c0 = Y_local.mean(axis=0)
+    if m.gp.form == "reduced_rank":
+        basis = s2.hilbert_basis()
+        if "W" in start:
+            x0["W"], x0["c"] = start["W"], start["c"]
+        else:
+            x0["W"] = whiten(
+                basis,
+                m.gp.kernel,
+                hyper["sigma_f"],
+                hyper["lengthscale"],
+                ridge_weights(
+                    basis,
+                    m.gp.kernel,
+                    start["P"],
+                    Y_local,
+                    c0,
+                    sigma_m,
+                    hyper["sigma_f"],
+                    hyper["lengthscale"],
+                ),
+            )
+            x0["c"] = c0.reshape(3, 1)
+    else:
+        # The GP posterior mean of the field variation at the previous stage's positions:
+        # the data themselves (Y - c0) would cost 7.5e7 in the prior on handwriting, where
+        # centimetre position errors make neighbouring samples disagree.
+        kern = get_kernel(m.gp.kernel)
+        Kf = field_covariance(kern, start["P"], hyper["sigma_f"], hyper["lengthscale"])
+        r = (Y_local - c0).ravel(order="F")
+        mean = Kf @ np.linalg.solve(Kf + sigma_m**2 * np.eye(r.size), r)
+        x0["M"] = mean.reshape(K, FIELD_DIM, order="F")
+        x0["c"] = c0.reshape(3, 1)
+    carry = ("W", "c") if m.gp.form == "reduced_rank" else ("M", "c")
+    terms = _terms_of(kf, base["n"], base["T"])
+    sol2, nominal = _solve_recentred(nlp2, params, x0, carry, terms, progress)
+    field_model = None
+    if m.gp.form == "reduced_rank":
+        field_model = {
+            "basis": basis_key,
+            "kernel": m.gp.kernel,
+            "hyper": {
+                "sigma_f": hyper["sigma_f"],
+                "lengthscale": hyper["lengthscale"],
+                "sigma_m": sigma_m,
+            },
+        }
+    st2 = ImuSolveStage(
+        solution=sol2,
+        nlp=nlp2,
+        sigma_m=sigma_m,
+        field_model=field_model,
+        **_stage_estimates(sol2, nominal, K),
+    )
+    return st2, s2
+
+
+def _start_from(st: ImuSolveStage, data: ImuData) -> dict[str, Any]:
+    sol = st.solution
+    return {
+        "P": st.P,
+        "V": st.V,
+        "Q": st.Q,
+        "BW": sol.x["BW"],
+        "BA": sol.x["BA"],
+        "zero_centre": sol.x.get("zero_centre", data.p0.reshape(1, 3)),
+    }
+
+
+def _slam_pass(
+    problem: ImuProblem,
+    data: ImuData,
+    kf: Keyframes,
+    base: dict[str, Any],
+    prev: ImuSolveStage,
+    hyper: dict[str, float],
+    sigma_m_factor: float,
+    progress: Progress | None,
+) -> tuple[ImuSolveStage, ImuStructure, int | None]:
+    """One GP-SLAM solve starting from a previous stage's estimates, with the map's basis
+    built around that stage's trajectory and the magnetometer noise scaled by
+    sigma_m_factor."""
+    basis_key, mode = _slam_setup(problem, prev, hyper)
+    sigma_m = problem.sigma_m * kf.sigma_scale * sigma_m_factor
+    st2, s2 = _slam_solve(
+        problem, data, kf, base, basis_key, mode, hyper, sigma_m,
+        _start_from(prev, data), progress,
+    )  # fmt: skip
+    size = s2.hilbert_basis().num_basis if problem.spec.model.gp.form == "reduced_rank" else None
+    return st2, s2, size
+
+
+def prefix_keyframes(kf: Keyframes, K: int) -> Keyframes:
+    """The first K keyframes' data."""
+    return Keyframes(
+        idx=kf.idx[:K],
+        DQ=kf.DQ[: K - 1],
+        DV=kf.DV[: K - 1],
+        LINV=kf.LINV[: K - 1],
+        Y=kf.Y[:K],
+        samples=kf.samples,
+    )
+
+
+def grow_sizes(K: int, fractions: list[float]) -> list[int]:
+    """Keyframes of each prefix: round(f K), at least 2, strictly increasing, the last K."""
+    sizes: list[int] = []
+    for f in fractions:
+        k = K if f >= 1.0 else min(K, max(2, round(f * K)))
+        if not sizes or k > sizes[-1]:
+            sizes.append(k)
+    if sizes[-1] != K:
+        sizes.append(K)
+    return sizes
+
+
+def continue_start(
+    start: dict[str, Any], prefix: ImuSolveStage, ref: ImuSolveStage, K: int
+) -> dict[str, Any]:
+    """The start of a longer prefix (K keyframes): the prefix's solution for its keyframes,
+    then the reference (IMU-only) trajectory continued from the prefix's last state:
+    positions and velocities shifted to join it, orientations turned by its orientation
+    correction, biases the prefix's last; map weights and constant field carried over."""
+    Kp = prefix.P.shape[0]
+    j = Kp - 1
+    corr = sd.quat_mul(prefix.Q[j : j + 1], sd.quat_conj(ref.Q[j : j + 1]))
+    Qn = sd.quat_mul(np.repeat(corr, K - Kp, 0), ref.Q[Kp:K])
+    sol = prefix.solution
+    out = {
+        "P": np.vstack([prefix.P, ref.P[Kp:K] + (prefix.P[j] - ref.P[j])]),
+        "V": np.vstack([prefix.V, ref.V[Kp:K] + (prefix.V[j] - ref.V[j])]),
+        "Q": np.vstack([prefix.Q, Qn]),
+        "zero_centre": sol.x.get("zero_centre", start["zero_centre"]),
+    }
+    for b in ("BW", "BA"):
+        v = sol.x[b]
+        out[b] = v if v.shape[0] == 1 else np.vstack([v, np.repeat(v[-1:], K - Kp, 0)])
+    for name in ("W", "c"):
+        if name in sol.x:
+            out[name] = sol.x[name]
+    return out
+
+
+def _grown_pass(
+    problem: ImuProblem,
+    data: ImuData,
+    kf: Keyframes,
+    base: dict[str, Any],
+    prev: ImuSolveStage,
+    hyper: dict[str, float],
+    factors: list[float],
+    fractions: list[float],
+    progress: Progress | None,
+) -> tuple[ImuSolveStage, ImuStructure, int | None]:
+    """GP-SLAM solved on growing prefixes of the keyframes (``model.gp.grow``), each prefix
+    with sigma_m scaled by each of ``factors`` in turn, the map basis that of the full
+    problem (around prev's trajectory), so weights carry over. Returns the last stage (the
+    full problem with the last factor, or the solve that failed) with every solve's record
+    in ``grow`` (build_seconds 0 when the NLP was built for an earlier solve). A solve before
+    the last that stops at the iteration limit still starts the next (measured, handwriting
+    seed 7: the first 31-keyframe prefix, without a revisit, at sigma_m x1)."""
+    basis_key, mode = _slam_setup(problem, prev, hyper)
+    K = kf.idx.size
+    full = _start_from(prev, data)
+    records: list[dict[str, Any]] = []
+
+    def stage(
+        k: int, before: tuple[ImuSolveStage, Any, dict[str, Any]] | None, last_prefix: bool
+    ) -> tuple[Solution, tuple[ImuSolveStage, Any, dict[str, Any]]]:
+        if before is None:
+            start = {
+                name: (v[:k] if name in ("P", "V", "Q") or v.shape[0] == K else v)
+                for name, v in full.items()
+            }
+        else:
+            start = continue_start(before[2], before[0], prev, k)
+        st: ImuSolveStage | None = None
+        for i, factor in enumerate(factors):
+            if i > 0:  # the same basis: the map weights carry over (reduced rank)
+                start = _start_from(st, data)
+                start.update({n: st.solution.x[n] for n in ("W", "c") if n in st.solution.x})
+            st, s2 = _slam_solve(
+                problem, data, prefix_keyframes(kf, k), base, basis_key, mode, hyper,
+                problem.sigma_m * kf.sigma_scale * factor, start, progress,
+            )  # fmt: skip
+            sol = st.solution
+            records.append(
+                {
+                    "keyframes": k,
+                    "sigma_m_factor": factor,
+                    "status": sol.status,
+                    "success": sol.success,
+                    "iterations": sol.iterations,
+                    "rounds": sol.rounds,
+                    "solve_seconds": sol.solve_seconds,
+                    "build_seconds": st.nlp.build_seconds if i == 0 else 0.0,
+                    "cost": float(sol.objective),
+                }
+            )
+            st.grow = list(records)
+            # An earlier solve only starts the next: the iteration limit does not stop the
+            # growth (casmag.solver.windowing.continues, as every model's stages); any other failure
+            # does.
+            if not continues(sol, last_prefix and i == len(factors) - 1):
+                break
+        assert st is not None
+        return st.solution, (st, s2, start)
+
+    st, s2, _ = grow(grow_sizes(K, fractions), stage)[-1][2]
+    size = s2.hilbert_basis().num_basis if problem.spec.model.gp.form == "reduced_rank" else None
+    return st, s2, size
+
+
+# --------------------------------------------------------------------------- result
+def _map_warnings(problem: ImuProblem, res: ImuSolution) -> list[dict[str, Any]]:
+    """casmag.data.checks on the map's lengthscale against the IMU-only path (the keyframes'
+    extent and step), when a map was solved."""
+    ell = res.hyperparameters.get("lengthscale")
+    if problem.spec.model.gp.form == "none" or ell is None or not np.isfinite(ell):
+        return []
+    return lengthscale_warnings(res.imu_only.P, ell)
+
+
+def _map_arrays(st: ImuSolveStage) -> dict[str, np.ndarray]:
+    """A GP-SLAM stage's reduced-rank map on a horizontal grid at the path's median
+    height, with its posterior std given the keyframe positions (casmag.gp.fieldmap)."""
+    fm = st.field_model
+    assert fm is not None
+    basis = cached_basis(fm["basis"])
+    W = unwhitened(basis, fm["kernel"], fm["hyper"], st.solution.x["W"])
+    return map_arrays(basis, fm["kernel"], W, st.solution.x["c"], fm["hyper"], st.P)
+
+
+def _errors(P: np.ndarray | None, Q: np.ndarray | None, Pt: Any, Qt: Any) -> dict[str, Any]:
+
+    if P is None or Pt is None:
+        return {"rmse": None, "max": None, "orientation_rms_deg": None, "orientation_max_deg": None}
+    rmse, mx = rmse_and_max(P, Pt)
+    ang = np.degrees(sd.quat_angle(Q, Qt))
+    return {
+        "rmse": rmse,
+        "max": mx,
+        "orientation_rms_deg": float(np.sqrt(np.mean(ang**2))),
+        "orientation_max_deg": float(ang.max()),
+    }
+
+
+def solve_imu(
+    problem: ImuProblem | Any, data: ImuData | None = None, progress: Progress | None = None
+) -> Result:
+    """Solve an IMU problem (an ImuProblem, a YAML path or a dictionary): simulate its data
+    (unless given), run the stages, compare with the truth. A failed stage is reported with
+    ``success = False`` and IPOPT's status, never as a result: the errors of the failed stage
+    and the stages after it are None."""
+    problem = load_imu_problem(problem)
+    data = simulate_imu(problem) if data is None else data
+    res = solve_imu_stages(problem, data, progress)
+    idx = res.keyframes.idx
+    truth = data.truth
+    Pt = truth.P[idx] if truth is not None else None
+    Qt = truth.Q[idx] if truth is not None else None
+    s1, s2 = res.imu_only, res.slam
+    ok1 = s1.solution.success
+    final = s2 if s2 is not None else s1
+    ok = final.solution.success and ok1
+    slam_map = s2 if (s2 is not None and ok) else None
+    est = s1 if (res.fallback and ok) else slam_map
+    imu_only = s1 if ok1 else None
+    if problem.spec.model.gp.form == "none":
+        decision = "none"
+    else:
+        decision = "homogeneous: IMU only" if res.fallback else "map"
+    errors = {
+        "strapdown": _errors(res.strapdown["P"], res.strapdown["Q"], Pt, Qt),
+        "imu_only": _errors(
+            None if imu_only is None else imu_only.P,
+            None if imu_only is None else imu_only.Q,
+            Pt,
+            Qt,
+        ),
+        "gp_slam": _errors(None if est is None else est.P, None if est is None else est.Q, Pt, Qt),
+    }
+    if res.fallback:
+        errors["gp_slam_map"] = _errors(
+            None if slam_map is None else slam_map.P,
+            None if slam_map is None else slam_map.Q,
+            Pt,
+            Qt,
+        )
+
+    flags = []
+    if slam_map is not None and not res.fallback:
+        flag = _estimate_flag(problem, data, errors, slam_map, res)
+        if flag is not None:
+            flags.append(flag)
+
+    def mean_bias(st: ImuSolveStage | None, which: str) -> list[float] | None:
+        if st is None:
+            return None
+        v = st.b_w if which == "gyro" else st.b_a
+        v = np.degrees(v) if which == "gyro" else v
+        return [float(x) for x in v.mean(axis=0)]
+
+    biases: dict[str, dict[str, list[float] | None]] = {}
+    for which in ("gyro", "acc"):
+        true = None
+        if data.b_w is not None:
+            tb = data.b_w[idx] if which == "gyro" else data.b_a[idx]
+            tb = np.degrees(tb) if which == "gyro" else tb
+            true = [float(x) for x in tb.mean(axis=0)]
+        biases[which] = {
+            "truth": true,
+            "imu_only": mean_bias(imu_only, which),
+            "gp_slam": mean_bias(est, which),
+        }
+        if res.fallback:
+            biases[which]["gp_slam_map"] = mean_bias(slam_map, which)
+    spec = problem.spec
+    info = {
+        "name": problem.name,
+        "source": problem.source,
+        "seed": spec.seed,
+        "scenario": spec.simulation.scenario.kind,
+        "imu_rate_hz": spec.simulation.imu.rate,
+        "keyframe_rate_hz": spec.model.keyframe_rate,
+        "imu_samples": int(data.n_samples),
+        "keyframes": int(idx.size),
+        "duration_s": float((idx[-1]) * data.T),
+        "bias_model": spec.model.imu.bias,
+        "zero_position_sigma": spec.model.zero_position.sigma,
+        "anchor": {
+            "kind": "initial state (position, velocity, tilt, heading priors)",
+            "position": [float(v) for v in data.p0],
+            "sigma": spec.model.initial.position_sigma,
+        },
+        "gp_form": spec.model.gp.form,
+        "kernel": spec.model.gp.kernel,
+        "num_basis": res.basis_size,
+        "map_decision": decision,
+        "hessian": "gauss-newton" if spec.solver.hessian == "auto" else spec.solver.hessian,
+        "casmag": __version__,
+        "casadi": ca.__version__,
+        "versions": versions(),
+    }
+
+    t = idx * data.T
+    arrays: dict[str, Any] = {
+        "t": t,
+        "P_strapdown": res.strapdown["P"],
+        "P_imu_only": None if imu_only is None else imu_only.P,
+        "P_estimate": None if est is None else est.P,
+        "P_true": Pt,
+    }
+    if Qt is not None:
+        if imu_only is not None:
+            arrays["att_err_imu_only_deg"] = np.degrees(sd.quat_angle(imu_only.Q, Qt))
+        if est is not None:
+            arrays["att_err_est_deg"] = np.degrees(sd.quat_angle(est.Q, Qt))
+    if res.fallback and slam_map is not None:
+        arrays["P_gp_slam_map"] = slam_map.P
+    if decision == "map" and slam_map is not None and slam_map.field_model is not None:
+        arrays.update(_map_arrays(slam_map))
+    if arrays["P_estimate"] is None:
+        arrays["P_estimate"] = arrays["P_imu_only"] if spec.model.gp.form == "none" else None
+    passes = [
+        {
+            "name": "gp_slam",
+            "status": p.solution.status,
+            "iterations": p.solution.iterations,
+            "rounds": p.solution.rounds,
+            "solve_seconds": p.solution.solve_seconds,
+            "build_seconds": p.nlp.build_seconds,
+            **(
+                {
+                    "grow": p.grow,
+                    "iterations_total": sum(g["iterations"] for g in p.grow),
+                    "solve_seconds_total": sum(g["solve_seconds"] for g in p.grow),
+                }
+                if p.grow
+                else {}
+            ),
+        }
+        for p in res.slam_passes
+    ]
+    if passes and s2 is not None:
+        passes[-1]["cost_blocks"] = s2.solution.cost_blocks()
+    imu_only_stage = {
+        "name": "imu_only",
+        "status": s1.solution.status,
+        "iterations": s1.solution.iterations,
+        "rounds": s1.solution.rounds,
+        "solve_seconds": s1.solution.solve_seconds,
+        "cost_per_iteration": s1.solution.cost_per_iteration,
+        "cost_blocks": s1.solution.cost_blocks(),
+    }
+    return Result(
+        motion="imu",
+        info=info,
+        status=final.solution.status if ok1 else s1.solution.status,
+        success=bool(ok),
+        iterations=final.solution.iterations,
+        # Passes with the same structure share one (cached) build: count each build once.
+        build_seconds=s1.nlp.build_seconds
+        + sum({id(p.nlp): p.nlp.build_seconds for p in res.slam_passes}.values())
+        + sum(
+            g["build_seconds"] for p in res.slam_passes for g in p.grow if g["keyframes"] < idx.size
+        ),
+        # Every schedule's solves (a grown pass: each prefix's), kept or not.
+        solve_seconds=_slam_seconds(res) if res.schedules else s1.solution.solve_seconds,
+        rmse_before=errors["imu_only"]["rmse"],
+        max_before=errors["imu_only"]["max"],
+        rmse_after=errors["gp_slam"]["rmse"],
+        max_after=errors["gp_slam"]["max"],
+        hyperparameters=res.hyperparameters,
+        cost_blocks=final.solution.cost_blocks(),
+        cost_per_iteration=final.solution.cost_per_iteration,
+        stages=[imu_only_stage, *passes],
+        details={
+            "errors": errors,
+            "biases": biases,
+            "failed_stage": None if ok else ("imu_only" if not ok1 else "gp_slam"),
+            "map_decision": decision,
+            "field_evidence": None if res.evidence is None else res.evidence.to_dict(),
+            "hyperparameters_source": res.hyperparameters_source,
+            "schedules": res.schedules,
+        },
+        flags=flags,
+        warnings=_map_warnings(problem, res),
+        convergence=[s1.solution.trace("IMU only")]
+        + [
+            p.solution.trace(
+                f"GP-SLAM {i + 1}/{len(res.slam_passes)}"
+                + ("" if p.sigma_m is None else f", sigma_m {p.sigma_m:.2g}")
+            )
+            for i, p in enumerate(res.slam_passes)
+        ],
+        arrays=arrays,
+    )
+
+
+def _truth_start_cost(
+    problem: ImuProblem, data: ImuData, slam: ImuSolveStage, res: ImuSolution
+) -> tuple[float, str]:
+    """The last GP-SLAM solve again (same map basis, sigma_m and Hessian mode), started from
+    the true trajectory and biases: its MAP cost and IPOPT status."""
+    idx = res.keyframes.idx
+    tr = data.truth
+    K = idx.size
+    bw, ba = data.b_w[idx], data.b_a[idx]
+    if problem.spec.model.imu.bias != "random_walk":
+        bw, ba = bw.mean(axis=0, keepdims=True), ba.mean(axis=0, keepdims=True)
+    start = {
+        "P": tr.P[idx],
+        "V": tr.V[idx],
+        "Q": tr.Q[idx],
+        "BW": bw,
+        "BA": ba,
+        "zero_centre": data.p0.reshape(1, 3),
+    }
+    _, mode = _slam_setup(problem, slam, res.hyperparameters)
+    base = {
+        k: getattr(res.structure, k)
+        for k in ("n", "T", "bias", "zero_position", "zero_centre", "kernel", "jitter", "solver")
+    }
+    st, _ = _slam_solve(
+        problem, data, res.keyframes, {**base, "K": K}, res.structure.basis, mode,
+        res.hyperparameters, float(slam.sigma_m), start, None,
+    )  # fmt: skip
+    return float(st.solution.objective), st.solution.status
+
+
+def _estimate_flag(
+    problem: ImuProblem,
+    data: ImuData,
+    errors: dict[str, dict[str, Any]],
+    slam: ImuSolveStage,
+    res: ImuSolution,
+) -> dict[str, Any] | None:
+    """The ``wrong_basin`` or ``worse_than_imu_only`` flag of a GP-SLAM estimate (None when
+    neither applies).
+
+    A GP-SLAM RMSE above WRONG_BASIN_RATIO of the IMU-only adjustment's is either a wrong
+    local optimum or a field/path that carries little position information (no revisit);
+    the solve started from the truth tells them apart: ``wrong_basin`` when it reaches a MAP
+    cost lower by more than one (a likelihood ratio of e) than the estimate's. When it does
+    not, and the estimate is more than WORSE_RATIO worse than the IMU-only adjustment, the
+    optimum itself is worse than no map: ``worse_than_imu_only``."""
+    before, after = errors["imu_only"]["rmse"], errors["gp_slam"]["rmse"]
+    if before is None or after is None or after <= WRONG_BASIN_RATIO * before:
+        return None
+    if data.truth is None or data.b_w is None or slam.sigma_m is None:
+        return None
+    cost = float(slam.solution.objective)
+    truth_cost, truth_status = _truth_start_cost(problem, data, slam, res)
+    mag = slam.solution.blocks_after.get("magnetometer")
+    K = res.keyframes.idx.size
+    evidence = {
+        "rmse_imu_only": before,
+        "rmse_gp_slam": after,
+        "ratio": after / before,
+        "threshold": WRONG_BASIN_RATIO,
+        "map_cost": cost,
+        "map_cost_from_truth": truth_cost,
+        "status_from_truth": truth_status,
+        # 0.5 sum |e / sigma_m|^2 -> mean square per component in sigma_m^2 units.
+        "magnetometer_mean_square": None if mag is None else 2.0 * mag / (FIELD_DIM * K),
+        "log_bayes_factor": None if res.evidence is None else res.evidence.log_bayes_factor,
+    }
+    if not truth_cost < cost - 1.0:
+        if after <= WORSE_RATIO * before:
+            return None
+        return {
+            "name": "worse_than_imu_only",
+            "reason": (
+                f"GP-SLAM position RMSE {after:.4g} m is {after / before:.2f} times the IMU-only "
+                f"adjustment's {before:.4g} m, and the same problem started from the truth "
+                f"reaches no lower MAP cost ({truth_cost:.6g} against {cost:.6g}): the map "
+                f"model (hyperparameters {res.hyperparameters_source}) does not fit this field"
+            ),
+            "evidence": evidence,
+        }
+    return {
+        "name": "wrong_basin",
+        "reason": (
+            f"GP-SLAM position RMSE {after:.4g} m is {after / before:.2f} of the IMU-only "
+            f"adjustment's {before:.4g} m, and the same problem started from the truth reaches "
+            f"a lower MAP cost ({truth_cost:.6g} against {cost:.6g}): a wrong local optimum"
+        ),
+        "evidence": evidence,
+    }

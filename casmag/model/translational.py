@@ -1,0 +1,514 @@
+"""The translational GP-SLAM MAP problem (paper Section 3.1, Eq. 3 and 5-8) as one NLP.
+
+Unknowns: the positions P (N, d) as dead reckoning Q plus a drift correction C (K, d) at
+knots, P = Q + A C (casmag.model.knots; one knot per sample by default, which is the paper's
+formulation), the field M (N, 3) at the samples (exact GP) or basis weights W (reduced
+rank), optionally a per-step odometry bias b (1, d) and the log-hyperparameters
+log sigma_f, log l. Named cost blocks (negative log-densities):
+
+- ``odometry``: 0.5 sum_k |(p_{k+1} - p_k - (u_k - b)) / sigma_o|^2, which on the knots is
+  0.5 sum_j |c_{j+1} - c_j + k_j b|^2 / (k_j sigma_o^2)
+- ``magnetometer``: 0.5 sum_k |(y_k - m_k) / sigma_m|^2 (Eq. 3 with R = I)
+- ``gp_prior``: 0.5 m^T K(P)^-1 m (Eq. 6)
+- ``gp_logdet``: 0.5 log|K(P)| (Eq. 6), when sigma_f or l is estimated
+- ``anchor``: 0.5 |(p_0 - a) / sigma_a|^2
+- ``bias_prior``: 0.5 |b / sigma_b|^2, when a bias prior is set
+
+Data and fixed settings are NLP parameters, so one build serves every seed and every value
+of a fixed hyperparameter; the build is cached by the problem's structure.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import scipy.linalg
+
+from casmag.data.simulate import Dataset
+from casmag.gp.exact import add_exact_prior
+from casmag.gp.fieldmap import field_at, reduced_rank_std
+from casmag.gp.hyper import estimate_conditional
+from casmag.gp.kernels import FIELD_DIM, get_kernel
+from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.model.knots import Knots
+from casmag.model.rrmap import (
+    GaussNewtonHessian,
+    MagnetometerCost,
+    MapLayout,
+    MapModel,
+    field_and_jacobians,
+    make_basis,
+)
+from casmag.nlp import NLP, NLPBuilder, Solution, lowest_cost
+from casmag.problem.spec import Problem, SolverSpec
+
+HYPERPARAMETERS = ("sigma_f", "lengthscale", "sigma_m")
+
+
+@dataclass(frozen=True)
+class Structure:
+    """Everything that changes the symbolic problem (and so needs a new build)."""
+
+    n: int
+    dim: int
+    kernel: str
+    estimate: tuple[str, ...]
+    estimate_bias: bool
+    bias_prior: bool
+    jitter: float
+    logdet: bool
+    solver: str  # SolverSpec as JSON (hashable)
+    form: str = "exact"
+    basis: tuple | None = None  # reduced rank: (center, half_width, num_basis)
+    constant_field: bool = False
+    knot_every: int = 1
+    starts: tuple[int, ...] = (0,)  # first sample of each session (casmag.solver.multisession)
+
+    @classmethod
+    def of(cls, problem: Problem, data: Dataset, positions: np.ndarray | None = None) -> Structure:
+        """The structure of a problem on a data set; a reduced-rank map's box is fitted
+        around ``positions`` (default: the dead reckoning)."""
+        m = problem.spec.model
+        basis = None
+        if m.gp.form == "reduced_rank":
+            hb = make_basis(
+                problem.assumed_kernel,
+                data.dead_reckoning() if positions is None else positions,
+                problem.assumed_lengthscale,
+                m.gp.num_basis,
+                m.gp.margin,
+            )
+            basis = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
+        return cls(
+            n=data.n_samples,
+            dim=data.dim,
+            kernel=problem.assumed_kernel,
+            estimate=tuple(sorted(m.estimate)),
+            estimate_bias=m.odometry.estimate_bias,
+            bias_prior=m.odometry.bias_prior_sigma is not None,
+            jitter=m.gp.jitter,
+            logdet=bool({"sigma_f", "lengthscale"} & set(m.estimate))
+            if m.gp.logdet is None
+            else m.gp.logdet,
+            solver=problem.spec.solver.model_dump_json(exclude={"uncertainty"}),
+            form=m.gp.form,
+            basis=basis,
+            constant_field=m.gp.sigma_lin is not None,
+            knot_every=m.trajectory.knot_every,
+            starts=tuple(int(i) for i in data.starts),
+        )
+
+    def hilbert_basis(self) -> HilbertBasis:
+        return cached_basis(self.basis)
+
+    @property
+    def knots(self) -> Knots:
+        return Knots(self.n, self.knot_every, self.starts)
+
+    @property
+    def sessions(self) -> int:
+        return len(self.starts)
+
+
+def _hyper(builder: NLPBuilder, name: str, estimated: bool) -> ca.MX:
+    """A positive hyperparameter: exp of a variable when estimated, else a parameter."""
+    if estimated:
+        return ca.exp(builder.variable(f"log_{name}", (1, 1)))
+    return builder.parameter(name, (1, 1))
+
+
+def _first(P: ca.MX, s: Structure) -> ca.MX:
+    """(S, d) first position of each session."""
+    return P[0, :] if s.sessions == 1 else P[list(s.starts), :]
+
+
+def build_translational(s: Structure) -> NLP:
+    """Build the translational GP-SLAM NLP for a structure (use :func:`cached_nlp`)."""
+    b = NLPBuilder()
+    knots = s.knots
+    C = b.variable("C", (knots.count, s.dim))
+    S = s.sessions
+    bias = b.variable("bias", (S, s.dim)) if s.estimate_bias else ca.MX.zeros(S, s.dim)
+    sigma_f, ell, sigma_m = (_hyper(b, h, h in s.estimate) for h in HYPERPARAMETERS)
+
+    Q = b.parameter("Q", (s.n, s.dim))
+    Y = b.parameter("Y", (s.n, FIELD_DIM))
+    anchor = b.parameter("anchor", (S, s.dim))
+    sigma_o = b.parameter("sigma_o", (1, 1))
+    sigma_a = b.parameter("sigma_anchor", (1, 1))
+
+    P = Q + (C if s.knot_every == 1 else ca.mtimes(knots.casadi_matrix(), C))
+    b.cost("odometry", knots.odometry_cost(C, bias, sigma_o))
+    if s.form == "reduced_rank":
+        return _build_reduced_rank(b, s, P, bias, anchor, sigma_f, ell, sigma_a)
+    M = b.variable("M", (s.n, FIELD_DIM))
+    sigma_b = b.parameter("sigma_bias", (1, 1)) if s.bias_prior else None
+    b.cost("magnetometer", 0.5 * ca.sumsqr((Y - M) / sigma_m))
+    # Every variable and parameter is declared: the numpy prior blocks see the full vectors.
+    kernel = get_kernel(s.kernel)
+    gp = add_exact_prior(b, kernel, s.knots, s.dim, s.jitter, s.estimate, s.logdet)
+    b.cost("anchor", 0.5 * ca.sumsqr((_first(P, s) - anchor) / sigma_a))
+    if s.bias_prior:
+        b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
+    solver = SolverSpec.model_validate_json(s.solver)
+    return b.build(solver, name="casmag_translational", gauss_newton=gp)
+
+
+def add_map_magnetometer(
+    b: NLPBuilder,
+    basis: HilbertBasis,
+    kernel: str,
+    knots: Knots,
+    dim: int,
+    constant_field: bool,
+    name: str = "magnetometer",
+) -> MapModel:
+    """Add the reduced-rank map's magnetometer block (a numpy callback, casmag.model.rrmap) as
+    cost ``magnetometer``, reading C, W (and c) from the variables and Q, Y, sigma_m from the
+    parameters already declared on ``b``; declare every symbol first. Returns the model the
+    Hessian callback needs."""
+    n_x, n_p = b.sizes
+    model = MapModel(
+        basis,
+        kernel,
+        knots,
+        dim,
+        MapLayout(
+            n_x=n_x,
+            n_p=n_p,
+            C=b.offset("C"),
+            Q=b.offset("Q", "p"),
+            Y=b.offset("Y", "p"),
+            W=b.offset("W"),
+            c=b.offset("c") if constant_field else None,
+            sigma_m=b.offset("sigma_m", "p"),
+        ),
+    )
+    mag = b.retain(MagnetometerCost(name, model))
+    b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
+    return model
+
+
+def _build_reduced_rank(
+    b: NLPBuilder,
+    s: Structure,
+    P: ca.MX,
+    bias: ca.MX,
+    anchor: ca.MX,
+    sigma_f: ca.MX,
+    ell: ca.MX,
+    sigma_a: ca.MX,
+) -> NLP:
+    """Reduced-rank map: weights W (SE, (M, 3)) or w (curl-free, (M, 1)), optional constant
+    field c. The magnetometer block, its gradient and its Hessian are numpy callbacks
+    (casmag.model.rrmap) over the samples, which keeps the build O(1) in N."""
+    basis = s.hilbert_basis()
+    M = basis.num_basis
+    W = b.variable("W", (M, FIELD_DIM) if s.kernel == "se" else (M, 1))
+    c = b.variable("c", (FIELD_DIM, 1)) if s.constant_field else None
+    sigma_lin = b.parameter("sigma_lin", (1, 1)) if s.constant_field else None
+    sigma_b = b.parameter("sigma_bias", (1, 1)) if s.bias_prior else None
+    # Every variable and parameter is declared: the numpy blocks see the full vectors.
+    model = add_map_magnetometer(b, basis, s.kernel, s.knots, s.dim, s.constant_field)
+    S = basis.prior_variances(s.kernel, sigma_f, ell)  # (M, 1)
+    n_cols = W.shape[1]
+    b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2 / ca.repmat(S, 1, n_cols))))
+    if {"sigma_f", "lengthscale"} & set(s.estimate):
+        b.cost("gp_logdet", 0.5 * n_cols * ca.sum1(ca.log(S)))
+    if s.constant_field:
+        b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
+    b.cost("anchor", 0.5 * ca.sumsqr((_first(P, s) - anchor) / sigma_a))
+    if s.bias_prior:
+        b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
+    solver = SolverSpec.model_validate_json(s.solver)
+    if solver.linear_solver == "mumps" and "mumps_pivot_order" not in solver.ipopt:
+        # METIS keeps the dense knot-weight border from filling the knot chain: one
+        # factorisation of a 4,000-knot x 650-weight arrow took 1.35 s against 7.0 s with
+        # MUMPS's default ordering (and AMD, AMF, PORD, QAMD).
+        solver = solver.model_copy(update={"ipopt": {**solver.ipopt, "mumps_pivot_order": 5}})
+    gn = None
+    if solver.hessian != "limited-memory":
+        mode = {"auto": "hybrid"}.get(solver.hessian, solver.hessian)
+        gn = ("magnetometer", GaussNewtonHessian("mag_hessian", model, mode=mode))
+    return b.build(solver, name="casmag_translational_rr", gauss_newton=gn)
+
+
+def initial_weights(
+    s: Structure,
+    P: np.ndarray,
+    Y: np.ndarray,
+    sigma_m: float,
+    sigma_f: float,
+    lengthscale: float,
+    c0: np.ndarray,
+) -> np.ndarray:
+    """Ridge fit of the map weights to the data at the initial positions (the posterior mean
+    of the weights given P): (A^T A / sigma_m^2 + diag(1 / S))^-1 A^T (y - c0) / sigma_m^2."""
+    basis = s.hilbert_basis()
+    S = basis.prior_variances(s.kernel, sigma_f, lengthscale)
+    M = basis.num_basis
+    zero = np.zeros(M * FIELD_DIM if s.kernel == "se" else M)
+    _, A, _ = field_and_jacobians(basis, s.kernel, P, zero)
+    R = Y - c0
+    if s.kernel == "se":
+        G = A[0].T @ A[0] / sigma_m**2 + np.diag(1.0 / S)
+        return np.linalg.solve(G, A[0].T @ R / sigma_m**2)
+    G = sum(a.T @ a for a in A) / sigma_m**2 + np.diag(1.0 / S)
+    rhs = sum(A[q].T @ R[:, q] for q in range(FIELD_DIM)) / sigma_m**2
+    return np.linalg.solve(G, rhs).reshape(-1, 1)
+
+
+def positions(s: Structure, sol: Solution, dead_reckoning: np.ndarray) -> np.ndarray:
+    """(N, d) estimated positions: the dead reckoning plus the knot corrections."""
+    return s.knots.positions(dead_reckoning, sol.x["C"])
+
+
+def field_estimate(s: Structure, sol: Solution, P: np.ndarray) -> np.ndarray:
+    """(N, 3) estimated field at the estimated positions P."""
+    if s.form != "reduced_rank":
+        return sol.x["M"]
+    basis = s.hilbert_basis()
+    m, _, _ = field_and_jacobians(basis, s.kernel, P, sol.x["W"].ravel(order="F"))
+    return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
+
+
+def field_on_grid(
+    s: Structure,
+    sol: Solution,
+    hyper: dict[str, float],
+    grid: np.ndarray,
+    jitter: float,
+    P: np.ndarray,
+) -> np.ndarray:
+    """(G, 3) estimated field at grid points (G, d): the reduced-rank map itself, or for the
+    exact GP the posterior mean given the estimated field at the estimated positions P,
+    K(grid, P) K(P, P)^-1 m."""
+    if s.form == "reduced_rank":
+        m = field_at(s.hilbert_basis(), s.kernel, grid, sol.x["W"])
+        return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
+    kernel = get_kernel(s.kernel)
+    M = sol.x["M"]
+    sf, ell = hyper["sigma_f"], hyper["lengthscale"]
+    K = kernel.matrix(P, P, sf, ell)
+    K = K + jitter * kernel.variance(sf, ell) * np.eye(K.shape[0])
+    Ks = kernel.matrix(grid, P, sf, ell)
+    if kernel.output_dim == 1:
+        return Ks @ np.linalg.solve(K, M)
+    mean = Ks @ np.linalg.solve(K, M.ravel(order="F"))
+    return mean.reshape(FIELD_DIM, -1).T
+
+
+#: Most samples for which :func:`field_std_on_grid` computes the exact GP's posterior std
+#: (a dense (3 N)^2 factor: 3,000 samples take 650 MB).
+EXACT_STD_MAX_SAMPLES = 3_000
+
+
+def field_std_on_grid(
+    s: Structure,
+    hyper: dict[str, float],
+    grid: np.ndarray,
+    P: np.ndarray,
+    jitter: float,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The map's posterior standard deviation per field component at grid points (G, d),
+    given the magnetometer at the estimated positions P (the positions taken as known), and
+    its prior standard deviation there, both (G, 3): where the two are close no sample
+    informs the map. Reduced rank: from the weights' posterior precision
+    A^T A / sigma_m^2 + diag(1 / S) (the constant field left out: every sample informs it);
+    exact GP: k(x, x) - k(x, P) (K + sigma_m^2 I)^-1 k(P, x). None for an exact GP above
+    EXACT_STD_MAX_SAMPLES samples."""
+    if s.form == "reduced_rank":
+        return reduced_rank_std(s.hilbert_basis(), s.kernel, hyper, P, grid)
+    sf, ell, sm = hyper["sigma_f"], hyper["lengthscale"], hyper["sigma_m"]
+    if P.shape[0] > EXACT_STD_MAX_SAMPLES:
+        return None
+    kernel = get_kernel(s.kernel)
+    K = kernel.matrix(P, P, sf, ell)
+    K = K + (jitter * kernel.variance(sf, ell) + sm**2) * np.eye(K.shape[0])
+    L = np.linalg.cholesky(K)
+    var0 = kernel.variance(sf, ell)
+    post = []
+    for rows in np.array_split(np.arange(grid.shape[0]), max(1, grid.shape[0] // 500)):
+        Ks = kernel.matrix(grid[rows], P, sf, ell)  # (g, N) or (3 g, 3 N)
+        V = scipy.linalg.solve_triangular(L, Ks.T, lower=True)
+        var = var0 - (V**2).sum(axis=0)
+        post.append(
+            np.repeat(var[:, None], FIELD_DIM, 1)
+            if kernel.output_dim == 1
+            else var.reshape(FIELD_DIM, -1).T
+        )
+    std = np.sqrt(np.maximum(np.vstack(post), 0.0))
+    return std, np.full_like(std, np.sqrt(var0))
+
+
+@lru_cache(maxsize=8)
+def cached_nlp(structure: Structure) -> NLP:
+    """The built NLP for a structure, built once per process."""
+    return build_translational(structure)
+
+
+def parameters_and_guess(
+    problem: Problem,
+    data: Dataset,
+    s: Structure,
+    initial_positions: np.ndarray | None = None,
+    hyper_start: dict[str, float] | None = None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Parameter values and the initial guess: the dead reckoning (or the knot corrections
+    closest to ``initial_positions``), the field fitted there, zero bias, hyperparameters at
+    their assumed values (estimated ones at ``hyper_start`` where it names them, see
+    :func:`estimate_start`)."""
+    m = problem.spec.model
+    hyper = {
+        "sigma_f": problem.assumed_sigma_f,
+        "lengthscale": problem.assumed_lengthscale,
+        "sigma_m": problem.assumed_sigma_m,
+    }
+    params: dict[str, Any] = {
+        "Q": data.dead_reckoning(),
+        "Y": data.Y,
+        "anchor": np.asarray(data.anchor, dtype=float).reshape(s.sessions, -1),
+        "sigma_o": problem.assumed_sigma_odometry,
+        "sigma_anchor": m.anchor.sigma,
+    }
+    if s.bias_prior:
+        params["sigma_bias"] = m.odometry.bias_prior_sigma
+    Q = params["Q"]
+    if initial_positions is None:
+        P0, C0 = Q, np.zeros((s.knots.count, s.dim))
+    else:
+        C0 = s.knots.fit(Q, initial_positions)
+        P0 = s.knots.positions(Q, C0)
+    x0: dict[str, Any] = {"C": C0}
+    if s.form == "reduced_rank":
+        c0 = data.Y.mean(axis=0) if s.constant_field else np.zeros(FIELD_DIM)
+        x0["W"] = initial_weights(
+            s, P0, data.Y, hyper["sigma_m"], hyper["sigma_f"], hyper["lengthscale"], c0
+        )
+        if s.constant_field:
+            x0["c"] = c0.reshape(-1, 1)
+            params["sigma_lin"] = m.gp.sigma_lin
+    else:
+        x0["M"] = data.Y
+    if s.estimate_bias:
+        x0["bias"] = np.zeros((s.sessions, s.dim))
+    for h, value in hyper.items():
+        if h in s.estimate:
+            x0[f"log_{h}"] = np.log((hyper_start or {}).get(h, value))
+        else:
+            params[h] = value
+    return params, x0
+
+
+def estimate_start(
+    problem: Problem, data: Dataset, s: Structure, initial_positions: np.ndarray | None = None
+) -> dict[str, Any] | None:
+    """Where the joint MAP starts the estimated sigma_f and lengthscale
+    (``model.estimate_start``): None when neither is estimated; else a record with
+    ``method``, ``values`` (the start of each estimated hyperparameter), ``assumed`` (the
+    problem's values) and, for ``marginal_likelihood`` and ``both``, the estimate's details
+    (casmag.gp.hyper.estimate_conditional at the initial positions, the other hyperparameters
+    fixed at their assumed values, zero-mean field). With ``both`` the MAP is solved from
+    ``values`` and from ``assumed`` (:func:`solve_translational`)."""
+    free = [h for h in HYPERPARAMETERS if h in s.estimate and h != "sigma_m"]
+    if not free:
+        return None
+
+    assumed = {
+        "sigma_f": problem.assumed_sigma_f,
+        "lengthscale": problem.assumed_lengthscale,
+        "sigma_m": problem.assumed_sigma_m,
+    }
+    method = problem.spec.model.estimate_start
+    record: dict[str, Any] = {"method": method, "assumed": {h: assumed[h] for h in free}}
+    if method == "assumed":
+        record["values"] = {h: assumed[h] for h in free}
+        return record
+    P0 = data.dead_reckoning() if initial_positions is None else initial_positions
+    est = estimate_conditional(
+        P0, data.Y, s.kernel, assumed, free, sigma_lin=problem.spec.model.gp.sigma_lin or 0.0
+    )
+    record["values"] = {h: est.values[h] for h in free}
+    record["marginal_likelihood"] = {
+        "neg_log_marginal": est.neg_log_marginal,
+        "windows": est.n_windows,
+        "samples": est.n_samples,
+        "converged": est.converged,
+        "iterations": est.iterations,
+    }
+    return record
+
+
+def _better_of_two_starts(
+    nlp: NLP,
+    sol: Solution,
+    params: dict[str, Any],
+    x0: dict[str, Any],
+    start: dict[str, Any],
+    progress: Any,
+) -> Solution:
+    """``estimate_start: both``: ``sol`` was solved from the marginal-likelihood start; solve
+    again from the assumed values and keep the solution with the lower MAP cost (a
+    successful solve before a failed one). Records both solves in ``start`` (``solves``,
+    ``chosen``; ``values`` becomes the chosen start); the kept solution's solve_seconds is
+    the sum of both solves."""
+    ml = dict(start["values"])
+    x0_assumed = dict(x0)
+    for h, value in start["assumed"].items():
+        x0_assumed[f"log_{h}"] = np.log(value)
+    other = nlp.solve(params, x0_assumed, progress=progress)
+    solves = {"marginal_likelihood": (ml, sol), "assumed": (dict(start["assumed"]), other)}
+    names = list(solves)
+    best_ok = lowest_cost([solves[k][1] for k in names])
+    chosen = (
+        names[best_ok]
+        if best_ok is not None
+        else min(names, key=lambda k: solves[k][1].objective)  # both failed: the lower
+    )
+    start["solves"] = {
+        k: {
+            "start": v,
+            "objective": s.objective,
+            "status": s.status,
+            "iterations": s.iterations,
+            "solve_seconds": s.solve_seconds,
+        }
+        for k, (v, s) in solves.items()
+    }
+    start["chosen"] = chosen
+    start["values"] = solves[chosen][0]
+    best = solves[chosen][1]
+    best.solve_seconds = sol.solve_seconds + other.solve_seconds
+    return best
+
+
+def solve_translational(
+    problem: Problem,
+    data: Dataset,
+    progress: Any = None,
+    initial_positions: np.ndarray | None = None,
+) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure]:
+    """Solve the problem on a data set. Returns the solution (``sol.x["P"]`` holds the
+    estimated positions), the NLP, the final hyperparameters (estimated or fixed), the
+    (N, 3) field estimate at the samples and the problem's structure."""
+    s = Structure.of(problem, data, initial_positions)
+    nlp = cached_nlp(s)
+    start = estimate_start(problem, data, s, initial_positions)
+    params, x0 = parameters_and_guess(
+        problem, data, s, initial_positions, None if start is None else start["values"]
+    )
+    sol = nlp.solve(params, x0, progress=progress)
+    if start is not None and start["method"] == "both":
+        sol = _better_of_two_starts(nlp, sol, params, x0, start, progress)
+    if start is not None:
+        sol.stats["estimate_start"] = start
+    hyper = {
+        h: float(np.exp(sol.x[f"log_{h}"][0, 0])) if h in s.estimate else float(params[h])
+        for h in HYPERPARAMETERS
+    }
+    sol.x["P"] = positions(s, sol, params["Q"])
+    return sol, nlp, hyper, field_estimate(s, sol, sol.x["P"]), s

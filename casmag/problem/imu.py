@@ -1,0 +1,644 @@
+"""IMU problem files (``problems/imu/*.yaml``): schema, validation and loading.
+
+A file has a top-level integer ``seed`` and the sections ``simulation`` (scenario, IMU
+errors, magnetometer, physical field), ``model`` (what the MAP problem assumes) and
+``solver`` (IPOPT, the same settings as translational problems). Every key is validated
+before anything is built; a bad file raises :class:`~casmag.errors.ProblemError` naming the
+file, the dotted key and the reason, on one line. Units are in the key names' docs: angles
+in degrees, rates in deg/s, accelerations in m/s^2, field in a.u. (Earth = 1).
+
+Model noise settings left ``null`` take the simulation's true values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from casmag.data.imusim import HANDWRITING_LETTERS
+from casmag.errors import ProblemError
+from casmag.problem.spec import (
+    SolverSpec,
+    Strict,
+    as_overrides,
+    parse_override,
+    read_yaml,
+    validate_spec,
+)
+
+PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegativeFloat = Annotated[float, Field(ge=0)]
+Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+# --------------------------------------------------------------------------- scenarios
+class _Motion(Strict):
+    """Common to every scenario: speed [m/s] (slower in tight curves), static [s] at rest
+    before and after, corner_radius [m] of the hand's rounding, attitude_deg (roll, pitch,
+    yaw) of the device [deg], wobble_deg amplitudes of smooth random roll, pitch, yaw [deg]."""
+
+    speed: PositiveFloat = 0.12
+    static: NonNegativeFloat = 1.0
+    corner_radius: NonNegativeFloat = 0.02
+    attitude_deg: Vector3 = [0.0, 0.0, 0.0]
+    wobble_deg: Vector3 = [3.0, 3.0, 8.0]
+
+
+class RectangleScenario(_Motion):
+    """A rectangle of ``size`` [m] (x, y) traced ``loops`` times on a plane."""
+
+    kind: Literal["rectangle"]
+    size: Annotated[list[PositiveFloat], Field(min_length=2, max_length=2)] = [0.4, 0.25]
+    loops: Annotated[int, Field(ge=1, le=50)] = 4
+
+
+class SpiralScenario(_Motion):
+    """An Archimedean spiral out for ``turns`` turns and back in between its own turns:
+    start_radius [m], pitch [m] between outward turns."""
+
+    kind: Literal["spiral"]
+    start_radius: NonNegativeFloat = 0.02
+    pitch: PositiveFloat = 0.05
+    turns: Annotated[float, Field(gt=0, le=30)] = 3.0
+
+
+class HandwritingScenario(_Motion):
+    """A word written with a pen-held device, ``passes`` times over itself: height [m] of
+    one em (x-height is half), lift [m] of the pen on the way back between passes."""
+
+    kind: Literal["handwriting"]
+    speed: PositiveFloat = 0.05
+    corner_radius: NonNegativeFloat = 0.003
+    word: str = "casmag"
+    height: PositiveFloat = 0.06
+    passes: Annotated[int, Field(ge=1, le=10)] = 2
+    lift: NonNegativeFloat = 0.01
+
+    @model_validator(mode="after")
+    def _letters(self) -> HandwritingScenario:
+
+        bad = sorted(set(self.word) - set(HANDWRITING_LETTERS))
+        if not self.word or bad:
+            raise ValueError(
+                f"word must use the letters {HANDWRITING_LETTERS!r}"
+                + (f", not {''.join(bad)!r}" if bad else "")
+            )
+        return self
+
+
+Scenario = Annotated[
+    RectangleScenario | SpiralScenario | HandwritingScenario, Field(discriminator="kind")
+]
+
+
+class ImuSimSpec(Strict):
+    """The IMU: rate [Hz]; white-noise densities gyro [deg/s/sqrt(Hz)] and acc
+    [m/s^2/sqrt(Hz)]; constant biases gyro [deg/s] and acc [m/s^2]; bias random walks gyro
+    [deg/s/sqrt(s)] and acc [m/s^2/sqrt(s)] (paper Eq. 2); levelling_seconds [s] at rest at
+    the start whose mean specific force gives the initial roll and pitch. Defaults: an
+    industrial MEMS IMU of the MTi-300 class."""
+
+    rate: Annotated[float, Field(gt=0, le=2000)] = 100.0
+    gyro_noise_density: NonNegativeFloat = 0.01
+    acc_noise_density: NonNegativeFloat = 6.0e-4
+    gyro_bias: Vector3 = [0.05, -0.08, 0.12]
+    acc_bias: Vector3 = [0.02, -0.015, 0.03]
+    gyro_bias_walk: NonNegativeFloat = 3.0e-4
+    acc_bias_walk: NonNegativeFloat = 2.0e-5
+    levelling_seconds: PositiveFloat = 0.5
+
+
+class DipoleSpec(Strict):
+    """A magnetic dipole: position [m] in the local frame, moment [a.u. m^3] (the on-axis
+    field at distance r is 2 |moment| / r^3 a.u.)."""
+
+    name: str = ""
+    position: Vector3
+    moment: Vector3
+
+
+class FieldSimSpec(Strict):
+    """The physical field: Earth's field of magnitude earth_intensity [a.u.] with the given
+    inclination and declination [deg], plus dipoles."""
+
+    earth_intensity: NonNegativeFloat = 1.0
+    inclination_deg: Annotated[float, Field(ge=-90, le=90)] = 67.0
+    declination_deg: Annotated[float, Field(ge=-180, le=180)] = 2.0
+    dipoles: list[DipoleSpec] = []
+
+
+class MagnetometerSimSpec(Strict):
+    """Magnetometer white noise per component [a.u.], sampled with the IMU."""
+
+    noise: NonNegativeFloat = 0.004
+
+
+class ImuSimulationSpec(Strict):
+    scenario: Scenario
+    imu: ImuSimSpec = ImuSimSpec()
+    magnetometer: MagnetometerSimSpec = MagnetometerSimSpec()
+    field: FieldSimSpec = FieldSimSpec()
+
+
+# --------------------------------------------------------------------------- model
+class ImuModelSpec(Strict):
+    """IMU noise the model assumes (null: the simulation's), in the simulation's units.
+
+    bias: ``random_walk`` (a bias per keyframe, Eq. 2) or ``constant`` (one per run).
+    gyro_bias_prior [deg/s], acc_bias_prior [m/s^2]: standard deviation of a zero-mean prior
+    on the initial biases. Bias random-walk strengths cannot be estimated in the joint MAP
+    (0.5 |db|^2 / s^2 + n log s falls without bound as the walk flattens and s -> 0): set them.
+    """
+
+    gyro_noise_density: PositiveFloat | None = None
+    acc_noise_density: PositiveFloat | None = None
+    gyro_bias_walk: PositiveFloat | None = None
+    acc_bias_walk: PositiveFloat | None = None
+    bias: Literal["random_walk", "constant"] = "random_walk"
+    gyro_bias_prior: PositiveFloat = 0.5
+    acc_bias_prior: PositiveFloat = 0.1
+
+
+class InitialStateSpec(Strict):
+    """Priors on the first keyframe: position [m] and velocity [m/s] standard deviations
+    (known start, at rest), tilt and heading [deg] about the levelled initial attitude (the
+    heading defines the local frame)."""
+
+    position_sigma: PositiveFloat = 1.0e-4
+    velocity_sigma: PositiveFloat = 1.0e-3
+    tilt_sigma_deg: PositiveFloat = 1.0
+    yaw_sigma_deg: PositiveFloat = 0.01
+
+
+class ZeroPositionSpec(Strict):
+    """Weak zero-position update (the paper's "within a one metre sphere"): every keyframe
+    position gets a prior N(centre, sigma^2 I) [m]; null switches it off. centre: ``start``
+    (the known first position) or ``free`` (an unknown centre, estimated)."""
+
+    sigma: PositiveFloat | None = 1.0
+    centre: Literal["start", "free"] = "start"
+
+
+#: Keyframes per marginal-likelihood window and the most windows used (``casmag.gp.hyper``):
+#: the defaults of ``model.gp.hyper_window`` and ``hyper_windows``.
+HYPER_WINDOW = 30
+HYPER_WINDOWS = 16
+#: Seconds of keyframes per window of the re-estimate on short windows
+#: (``model.gp.drift_ratio``).
+HYPER_SECONDS = 2.0
+
+
+class ImuGPSpec(Strict):
+    """The field map. The measurements behind these defaults are in
+    ``problems/imu/README.md`` (section "Measurements behind the map settings").
+
+    form: ``reduced_rank`` (Hilbert-space basis on a 3-D box around the IMU-only
+    trajectory), ``exact`` (dense GP over the keyframes; a few hundred at most), or ``none``
+    (no magnetometer: the IMU-only adjustment). sigma_f, lengthscale [m]: a value, or
+    ``estimate`` for the windowed marginal likelihood (paper Eq. 5) on the IMU-only
+    trajectory with the magnetometer rotated into the local frame. sigma_lin: prior standard
+    deviation of a constant field [a.u.] (Earth's). num_basis, margin [m]: as for
+    translational problems (null: frequencies up to 5 / l, at most max_num_basis, margin
+    3 l); an iteration costs about keyframes x num_basis^2. max_lengthscale [m]: upper limit
+    on an estimated lengthscale.
+
+    curvature (true, false or auto): the magnetometer's second-order terms in orientation
+    and position-weight on top of its Gauss-Newton Hessian
+    (``casmag.model.imu.RotatedFieldGaussNewton``): true always (``exact``), false never
+    (``gauss-newton``); ``auto``: always when the field varies little (sigma_f / l below 5
+    sigma_m for curl-free, sigma_f below 5 sigma_m for se); otherwise ``hybrid``:
+    Gauss-Newton while the magnetometer cost falls fast and the exact terms once it falls by
+    less than 1 % between iterations.
+
+    anneal: factors on sigma_m of successive GP-SLAM passes, each starting from the previous
+    one (a softer magnetometer first widens the basin of the global optimum).
+
+    homogeneous: what to do when the field turns out to carry no position information
+    (``casmag.model.imu.field_evidence``: the windowed marginal likelihood of a field with
+    spatial structure does not beat a constant field by the BIC penalty of its two extra
+    hyperparameters). ``imu_only`` (default): the result is the IMU-only adjustment (the
+    GP-SLAM pass is still reported, as ``gp_slam_map``); ``keep``: the GP-SLAM estimate.
+    The check runs only when sigma_f or the lengthscale is ``estimate``, first on the
+    IMU-only path (no map is solved when the field is homogeneous already there), then on
+    the last GP-SLAM pass's path.
+
+    refine: further GP-SLAM passes, each with the hyperparameters re-estimated on the
+    previous pass's trajectory (only when some are ``estimate``).
+
+    grow: null (default) or increasing fractions in (0, 1] ending in 1, e.g. [0.25, 0.5,
+    0.75, 1]: the first GP-SLAM pass is solved on growing prefixes of the keyframes (the
+    first round(f K)), each started from the previous prefix's solution and, for its new
+    keyframes, the IMU-only trajectory continued from the previous prefix's last state
+    (positions and velocities shifted to join it, orientations turned by its orientation
+    correction, biases its last ones); the map basis is that of the full problem, so the map
+    weights carry over. Each stage's keyframes, iterations, status and seconds are recorded
+    under ``grow`` in the pass's record in the result's ``stages``; a stage before the last that
+    stops at the iteration limit still starts the next, any other failure stops the
+    pipeline with its IPOPT status. grow_anneal: with grow, run the whole anneal schedule on
+    every prefix before growing it (one GP-SLAM pass, whose ``grow`` lists every solve).
+
+    coarse_to_fine: lengthscale factors of a second GP-SLAM schedule (null: none), each a
+    pass from the previous one (the first from the IMU-only adjustment) with the lengthscale
+    and sigma_m both scaled by the factor (sigma_f so that the field's variance stays the
+    estimated one); the last factor must be 1, so that both schedules end with the same
+    hyperparameters and sigma_m. It runs when the anneal schedule's final solve failed or
+    its MAP cost per magnetometer component (``misfit``) is above ``refit_misfit`` (0: run
+    both always), and is kept when its final MAP cost is lower by more than
+    ``casmag.model.imu.SCHEDULE_MARGIN``; both are recorded under ``details.schedules``.
+
+    fallback_grow: prefix fractions of a third schedule (null: none), run when the
+    schedule kept so far failed or fits clearly badly (misfit above
+    ``casmag.model.imu.GROW_MISFIT``): the anneal factors on each growing prefix (as ``grow``
+    with ``grow_anneal``), from the IMU-only adjustment, kept by the same rule.
+
+    hyper_window, hyper_windows: keyframes per window of the windowed marginal likelihood
+    (``estimate``, and the field check) and the most windows, evenly spread (``all``: every
+    whole window, K // hyper_window). drift_ratio: null (default) or a ratio: when the
+    estimate's magnetometer noise exceeds this many times the assumed keyframe noise
+    (sigma_m / sqrt(samples)), the hyperparameters are estimated again on windows of
+    ``HYPER_SECONDS`` of keyframes (at least 3), all of them, and those are used, for the
+    field check too.
+    """
+
+    form: Literal["reduced_rank", "exact", "none"] = "reduced_rank"
+    kernel: Literal["se", "curl_free"] = "curl_free"
+    sigma_f: PositiveFloat | Literal["estimate"] = "estimate"
+    lengthscale: PositiveFloat | Literal["estimate"] = "estimate"
+    sigma_lin: PositiveFloat = 2.0
+    num_basis: Annotated[int, Field(ge=1, le=5000)] | None = None
+    margin: PositiveFloat | None = None
+    jitter: Annotated[float, Field(ge=0, le=1)] = 1.0e-6
+    max_lengthscale: PositiveFloat = 5.0
+    curvature: bool | Literal["auto"] = "auto"
+    refine: Annotated[int, Field(ge=0, le=5)] = 0
+    anneal: Annotated[list[PositiveFloat], Field(min_length=1, max_length=6)] = [4.0, 1.0]
+    max_num_basis: Annotated[int, Field(ge=1, le=5000)] = 900
+    homogeneous: Literal["imu_only", "keep"] = "imu_only"
+    grow: Annotated[list[float], Field(min_length=1, max_length=10)] | None = None
+    grow_anneal: bool = False
+    fallback_grow: Annotated[list[float], Field(min_length=1, max_length=10)] | None = [
+        0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875, 1.0,
+    ]  # fmt: skip
+    coarse_to_fine: Annotated[list[PositiveFloat], Field(min_length=1, max_length=6)] | None = [
+        4.0,
+        2.0,
+        1.0,
+    ]
+    refit_misfit: Annotated[float, Field(ge=0.0, le=1.0e6)] = 0.55
+    hyper_window: Annotated[int, Field(ge=3, le=10000)] = HYPER_WINDOW
+    hyper_windows: Annotated[int, Field(ge=1, le=10000)] | Literal["all"] = HYPER_WINDOWS
+    drift_ratio: Annotated[float, Field(gt=1.0, le=1.0e6)] | None = None
+
+    @field_validator("coarse_to_fine")
+    @classmethod
+    def _coarse_to_fine_ends_at_one(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and v[-1] != 1.0:
+            raise ValueError("the last factor must be 1")
+        return v
+
+    @field_validator("grow", "fallback_grow")
+    @classmethod
+    def _grow_fractions(cls, v: list[float] | None) -> list[float] | None:
+        if v is None:
+            return v
+        if any(not 0.0 < f <= 1.0 for f in v):
+            raise ValueError("fractions must be in (0, 1]")
+        if any(b <= a for a, b in itertools.pairwise(v)):
+            raise ValueError("fractions must be increasing")
+        if v[-1] != 1.0:
+            raise ValueError("the last fraction must be 1")
+        return v
+
+
+class MagnetometerModelSpec(Strict):
+    """Magnetometer noise sigma_m [a.u.] the model assumes per sample (null: truth), and
+    ``samples``: how many consecutive magnetometer samples (odd) make one keyframe's
+    measurement, each rotated into the keyframe's body frame by the gyro increments and
+    averaged, with noise sigma_m / sqrt(samples) (the window is shifted inside the recording
+    at its ends). Default 5: the averaging's own error (the field's variation over the
+    window, gyro bias and noise) measured on the simulated scenarios' noise-free
+    magnetometer, seed 1, at 100 Hz, RMS per component against sigma_m / sqrt(samples) with
+    sigma_m 0.004: 5 samples 1e-5..9e-5 against 1.8e-3 on every scenario; 11 samples
+    1.4e-5..4.2e-4 against 1.2e-3 (handwriting 12 % of the noise variance); 21 samples
+    1.9e-5..1.3e-3 against 8.7e-4 (the error larger than the noise on the handwriting desk).
+    1: the keyframe's own sample only."""
+
+    sigma_m: PositiveFloat | None = None
+    samples: Annotated[int, Field(ge=1)] = 5
+
+    @field_validator("samples")
+    @classmethod
+    def _odd(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"must be odd (centred on the keyframe), got {v}")
+        return v
+
+
+class ImuProblemModelSpec(Strict):
+    """keyframe_rate [Hz]: states are kept at this rate, the IMU increments between them
+    composed (the IMU rate must be a whole multiple); the magnetometer is used at keyframes,
+    averaged over ``magnetometer.samples`` samples around each."""
+
+    keyframe_rate: PositiveFloat = 10.0
+    imu: ImuModelSpec = ImuModelSpec()
+    initial: InitialStateSpec = InitialStateSpec()
+    zero_position: ZeroPositionSpec = ZeroPositionSpec()
+    gp: ImuGPSpec = ImuGPSpec()
+    magnetometer: MagnetometerModelSpec = MagnetometerModelSpec()
+
+
+class ImuProblemSpec(Strict):
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)]  # numpy's generators: 0 .. 2^32 - 1
+    name: str | None = None
+    description: str | None = None
+    simulation: ImuSimulationSpec
+    model: ImuProblemModelSpec = ImuProblemModelSpec()
+    solver: SolverSpec = SolverSpec()
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ImuProblemSpec:
+        sim = self.simulation
+        if sim.imu.levelling_seconds > sim.scenario.static:
+            raise ValueError(
+                f"simulation.imu.levelling_seconds: the attitude is levelled while at rest, so "
+                f"it must not exceed simulation.scenario.static ({sim.scenario.static:g} s), "
+                f"got {sim.imu.levelling_seconds:g} s"
+            )
+        ratio = self.simulation.imu.rate / self.model.keyframe_rate
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(
+                "model.keyframe_rate: must divide simulation.imu.rate "
+                f"({self.simulation.imu.rate:g}"
+                f" Hz) a whole number of times, got {self.model.keyframe_rate:g} Hz"
+            )
+        samples = self.model.magnetometer.samples
+        if samples > round(ratio) + 1:
+            raise ValueError(
+                "model.magnetometer.samples: at most one keyframe interval's samples plus one "
+                f"({round(ratio) + 1} at {self.simulation.imu.rate:g} Hz and "
+                f"{self.model.keyframe_rate:g} Hz keyframes; neighbouring keyframes would "
+                f"share noise), got {samples}"
+            )
+        if self.solver.hessian == "gauss-newton" and self.model.gp.form != "reduced_rank":
+            raise ValueError("solver.hessian: gauss-newton needs model.gp.form: reduced_rank")
+        return self
+
+
+# --------------------------------------------------------------------------- resolved
+@dataclass(frozen=True)
+class ImuProblem:
+    """A validated IMU problem and where it came from, with model values resolved (SI units:
+    rad, rad/s, m/s^2)."""
+
+    spec: ImuProblemSpec
+    source: str = "<dict>"
+
+    @property
+    def name(self) -> str:
+        if self.spec.name:
+            return self.spec.name
+        return Path(self.source).stem if self.source != "<dict>" else "imu"
+
+    @property
+    def substeps(self) -> int:
+        """IMU intervals per keyframe interval."""
+        return round(self.spec.simulation.imu.rate / self.spec.model.keyframe_rate)
+
+    def _resolve(self, value: float | None, truth: float, field: str) -> float:
+        if value is not None:
+            return value
+        if truth <= 0:
+            raise ProblemError(
+                self.source,
+                field,
+                "must be set when the simulated value is 0 (cannot default to it)",
+            )
+        return truth
+
+    @property
+    def gyro_density(self) -> float:
+        """Assumed gyroscope noise density [rad/s/sqrt(Hz)]."""
+        m, s = self.spec.model.imu, self.spec.simulation.imu
+        v = self._resolve(
+            m.gyro_noise_density, s.gyro_noise_density, "model.imu.gyro_noise_density"
+        )
+        return float(np.radians(v))
+
+    @property
+    def acc_density(self) -> float:
+        m, s = self.spec.model.imu, self.spec.simulation.imu
+        return self._resolve(
+            m.acc_noise_density, s.acc_noise_density, "model.imu.acc_noise_density"
+        )
+
+    @property
+    def gyro_walk(self) -> float:
+        """Assumed gyroscope bias random walk [rad/s/sqrt(s)]."""
+        m, s = self.spec.model.imu, self.spec.simulation.imu
+        if m.bias == "constant":
+            return 0.0
+        v = self._resolve(m.gyro_bias_walk, s.gyro_bias_walk, "model.imu.gyro_bias_walk")
+        return float(np.radians(v))
+
+    @property
+    def acc_walk(self) -> float:
+        m, s = self.spec.model.imu, self.spec.simulation.imu
+        if m.bias == "constant":
+            return 0.0
+        return self._resolve(m.acc_bias_walk, s.acc_bias_walk, "model.imu.acc_bias_walk")
+
+    @property
+    def sigma_m(self) -> float:
+        return self._resolve(
+            self.spec.model.magnetometer.sigma_m,
+            self.spec.simulation.magnetometer.noise,
+            "model.magnetometer.sigma_m",
+        )
+
+    def resolve_all(self) -> None:
+        """Resolve every defaulted value now, so a bad file fails before anything is built."""
+        for name in ("gyro_density", "acc_density", "gyro_walk", "acc_walk"):
+            getattr(self, name)
+        if self.spec.model.gp.form != "none":
+            self.sigma_m  # noqa: B018
+
+
+def load_imu_problem(
+    problem: str | Path | Mapping[str, Any] | ImuProblem,
+    overrides: Iterable[str] = (),
+    source: str | None = None,
+) -> ImuProblem:
+    """Load and validate an IMU problem from a YAML path, a dictionary or an ImuProblem,
+    with ``key.path=value`` overrides (YAML values) applied before validation."""
+    if isinstance(problem, ImuProblem):
+        if not overrides:
+            return problem
+        problem, source = problem.spec.model_dump(mode="python"), problem.source
+    spec, src = validate_spec(ImuProblemSpec, problem, overrides, source)
+    out = ImuProblem(spec=spec, source=src)
+    out.resolve_all()
+    return out
+
+
+# --------------------------------------------------------------------------- planar recordings
+class PlanarModelSpec(Strict):
+    """The planar odometry-with-heading model for ``casmag slam`` on a recording with
+    ``dfwd,dleft,dyaw`` columns: the fields of :class:`PlanarOptions` (units
+    there: metres, radians, seconds; field units of the recording)."""
+
+    sigma_disp: PositiveFloat = 0.01
+    sigma_dyaw: PositiveFloat = 0.002
+    bias: Literal["constant", "random_walk"] = "constant"
+    bias_walk: PositiveFloat = 1.0e-4
+    bias_prior: PositiveFloat = 0.05
+    sigma_m: PositiveFloat | Literal["estimate"] = "estimate"
+    kernel: Literal["se", "curl_free"] = "se"
+    sigma_f: PositiveFloat | Literal["estimate"] = "estimate"
+    lengthscale: PositiveFloat | Literal["estimate"] = "estimate"
+    sigma_lin: PositiveFloat | None = None
+    num_basis: Annotated[int, Field(ge=1, le=5000)] | None = None
+    margin: PositiveFloat | None = None
+    sigma_anchor: PositiveFloat = 1.0e-3
+    sigma_psi0: PositiveFloat = 1.0e-3
+    curvature: bool = True
+    starts: Annotated[int, Field(ge=1, le=21)] = 1
+    start_heading_deg: PositiveFloat = 10.0
+
+    @field_validator("starts")
+    @classmethod
+    def _odd(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError("must be odd (the dead reckoning and pairs of +-biases)")
+        return v
+
+
+#: Solver settings of planar recordings that differ from SolverSpec's defaults (keys a
+#: problem file or ``--set solver.KEY=...`` does not give keep these values).
+PLANAR_SOLVER_DEFAULTS: dict[str, Any] = {
+    "max_iter": 150,
+    "tol": 1.0e-5,
+    "ipopt": {"acceptable_tol": 1.0e-4, "acceptable_iter": 5},
+    # Growing prefixes of 150, 300, ... samples (casmag.solver.windowing.grow) on recordings longer
+    # than about 212 samples; shorter ones are one batch. Measured on the handheld square
+    # recording (747 samples, ARKit truth, RMSE 2.33 m before): the batch from the dead
+    # reckoning stopped at the iteration limit (150, 6.4 min); growing converged (118
+    # iterations in the last stage, 4.1 min) to 1.15 m and a heading error of 6.2 from
+    # 42 deg. The simulated 186-sample loop walks are one batch either way.
+    "warm_start": {"strategy": "growing", "first_samples": 150, "growth": 2.0},
+}
+
+
+class PlanarSpec(Strict):
+    """A problem file for a planar recording: ``model`` (:class:`PlanarModelSpec`) and
+    ``solver`` (IPOPT; defaults :data:`PLANAR_SOLVER_DEFAULTS`)."""
+
+    model: PlanarModelSpec = PlanarModelSpec()
+    solver: SolverSpec = SolverSpec(**PLANAR_SOLVER_DEFAULTS)
+
+
+@dataclass(frozen=True)
+class PlanarOptions:
+    """Settings of the planar odometry-with-heading problem (defaults in brackets).
+
+    sigma_disp: displacement noise per step and axis [m] (0.01); sigma_dyaw: heading
+    increment noise per step [rad] (0.002); bias: heading-rate bias ``constant`` or
+    ``random_walk`` [constant]; bias_walk: its random walk [rad/s/sqrt(s)] (1e-4);
+    bias_prior: zero-mean prior on the (first) bias [rad/s] (0.05); sigma_m, sigma_f,
+    lengthscale: magnetometer noise [field units], field variation [field units] and
+    lengthscale [m]: values or ``estimate`` (windowed marginal likelihood on the
+    dead-reckoned path, short windows) [estimate]; kernel: ``se`` or ``curl_free`` [se];
+    sigma_lin: constant-field prior [field units] (None: from the data, the largest
+    |mean| of a field component plus the field's standard deviation, as for translational
+    recordings); num_basis, margin: reduced-rank basis
+    (None: defaults of ``casmag.model.rrmap``); sigma_anchor [m] (1e-3) and sigma_psi0 [rad] (1e-3):
+    priors on the known first position and heading; starts: number of starts (odd: the dead
+    reckoning and pairs of +-heading-rate biases, the lowest MAP cost kept) [1];
+    start_heading_deg: the heading the first pair's bias turns over the recording [10];
+    solver: IPOPT settings."""
+
+    sigma_disp: float = 0.01
+    sigma_dyaw: float = 0.002
+    bias: str = "constant"
+    bias_walk: float = 1e-4
+    bias_prior: float = 0.05
+    sigma_m: float | str = "estimate"
+    kernel: str = "se"
+    sigma_f: float | str = "estimate"
+    lengthscale: float | str = "estimate"
+    sigma_lin: float | None = None
+    num_basis: int | None = None
+    margin: float | None = None
+    sigma_anchor: float = 1e-3
+    sigma_psi0: float = 1e-3
+    curvature: bool = True
+    starts: int = 1
+    start_heading_deg: float = 10.0
+    solver: SolverSpec = dataclasses.field(
+        default_factory=lambda: SolverSpec(**PLANAR_SOLVER_DEFAULTS)
+    )
+
+
+def load_planar_options(
+    problem: str | Path | Mapping[str, Any] | None = None,
+    overrides: Iterable[str] = (),
+    source: str | None = None,
+) -> PlanarOptions:
+    """:class:`PlanarOptions` from an optional problem file (only its
+    ``model`` and ``solver`` sections are read; other sections are ignored) and
+    ``key.path=value`` overrides such as ``model.sigma_disp=0.002``. Raises ProblemError
+    naming the file (or ``--set``), the key and the reason."""
+    if problem is None:
+        data: dict[str, Any] = {}
+        source = source or "--set"
+    elif isinstance(problem, Mapping):
+        data = dict(problem)
+    else:
+        data, source = read_yaml(Path(problem)), source or str(problem)
+    data = {k: v for k, v in data.items() if k in ("model", "solver")}
+    solver = data.get("solver")
+    data["solver"] = {**PLANAR_SOLVER_DEFAULTS, **(solver if isinstance(solver, dict) else {})}
+    if solver is not None and not isinstance(solver, dict):
+        data["solver"] = solver  # let validation name the bad value
+    spec, _ = validate_spec(PlanarSpec, data, overrides, source)
+    if spec.solver.warm_start.strategy not in ("none", "growing"):
+        raise ProblemError(
+            source,
+            "solver.warm_start.strategy",
+            f"{spec.solver.warm_start.strategy!r}: the planar model takes none or growing",
+        )
+    return PlanarOptions(**spec.model.model_dump(), solver=spec.solver)
+
+
+#: Solver settings only the translational solver uses (warm starts, the Laplace
+#: covariance); the IMU and planar models ignore them.
+UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncertainty_inflation")
+
+
+#: The warm-start keys the planar model reads (growing prefixes).
+PLANAR_WARM_START_KEYS = tuple(
+    f"solver.warm_start.{k}" for k in ("strategy", "first_samples", "growth", "stage_max_iter")
+)
+
+
+def refuse_unused_solver_keys(
+    overrides: Iterable[str], command: str, used: tuple[str, ...] = ()
+) -> None:
+    """Refuse ``--set`` keys the IMU and planar models would ignore (ProblemError naming
+    the key), so that a setting never silently does nothing; ``used``: keys under those
+    that the model reads."""
+    for text in as_overrides(overrides):
+        key = ".".join(parse_override(text)[0])
+        if key in used:
+            continue
+        for unused in UNUSED_SOLVER_KEYS:
+            if key == unused or key.startswith(unused + "."):
+                raise ProblemError(
+                    "--set", key, f"{command} does not use {unused} (translational problems only)"
+                )

@@ -1,0 +1,247 @@
+"""The library entry points: :func:`solve` a problem, get a :class:`~casmag.result.Result`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from casmag.data.checks import refuse_simulation_truths
+from casmag.data.imusim import ImuData
+from casmag.data.simulate import Dataset, simulate_problem
+from casmag.errors import ProblemError
+from casmag.gp.fieldmap import grid_over
+from casmag.model.imu import solve_imu
+from casmag.model.translational import (
+    HYPERPARAMETERS,
+    field_estimate,
+    field_on_grid,
+    field_std_on_grid,
+    parameters_and_guess,
+    solve_translational,
+)
+from casmag.problem.imu import ImuProblem, load_imu_problem
+from casmag.problem.spec import Problem, document_kind, load_problem, read_yaml
+from casmag.result import Result
+from casmag.result.evaluation import anchor_info
+from casmag.result.metrics import rmse_and_max
+from casmag.solver.sliding import solve_coarse_to_fine, solve_sliding
+from casmag.solver.uncertainty import (
+    NotPositiveDefinite,
+    magnetometer_correction,
+    position_uncertainty,
+    residual_inflation,
+)
+from casmag.solver.windowing import Stage, continued, solve_growing
+from casmag.versions import __version__, versions
+
+
+def solve(
+    problem: Problem | ImuProblem | str | Path | dict[str, Any],
+    data: Dataset | ImuData | None = None,
+    progress: Callable[[int, float, float, float], None] | None = None,
+    initial_positions: np.ndarray | None = None,
+) -> Result:
+    """Solve a GP-SLAM problem and return its result.
+
+    problem: a Problem, a YAML path or a dictionary (validated with :func:`load_problem`).
+    A problem of the IMU model (an ImuProblem, or a file or dictionary whose keys say so,
+    casmag.problem.spec.document_kind) is solved by :func:`casmag.model.imu.solve_imu` (a Result
+    with ``motion`` imu); a table file or a real-data problem file is refused naming its
+    entry point.
+    data: the data set to use; simulated from the problem (with its seed) when omitted.
+    Data not simulated (no ``M_true``, e.g. a recording) need the model's noise and GP
+    settings given (or estimated): a null there means "the simulation's value" and is
+    refused (ProblemError naming the key; casmag.data.checks.refuse_simulation_truths).
+    progress: called after every IPOPT iteration with (iteration, cost, max-norm of the
+    step, seconds since the solve started).
+    initial_positions: (N, d) start of a plain batch solve (default: the dead reckoning).
+    A failed solve is returned with ``success = False`` and IPOPT's ``status``; its error
+    fields are None, so a failure is never mistaken for a result.
+    """
+    source = str(problem) if isinstance(problem, (str, Path)) else None
+    if source is not None:  # read once: its keys say which kind it is
+        problem = read_yaml(Path(source))
+    kind = _kind(problem)
+    if kind == "imu":
+        return solve_imu(load_imu_problem(problem, source=source), data, progress)
+    if kind in ("table", "recording"):
+        where = (
+            "casmag.experiments.sweep (casmag sweep FILE)"
+            if kind == "table"
+            else "casmag solve FILE"
+        )
+        raise ProblemError(source or "<dict>", "", f"a {kind} file is not one problem; use {where}")
+    problem = load_problem(problem, source=source)
+    if data is None:
+        data = simulate_problem(problem)
+    else:
+        refuse_simulation_truths(problem, data)
+    ws = problem.spec.solver.warm_start
+    stages: list[Stage] = []
+    if ws.strategy == "growing" and data.n_samples > ws.first_samples:
+        sol, nlp, hyper, field, structure, solved, stages = solve_growing(problem, data, progress)
+    elif ws.strategy in ("sliding", "coarse-to-fine"):
+        staged = solve_sliding if ws.strategy == "sliding" else solve_coarse_to_fine
+        sol, nlp, hyper, field, structure, solved, stages = staged(problem, data, progress)
+    else:
+        sol, nlp, hyper, field, structure = solve_translational(
+            problem, data, progress, initial_positions
+        )
+        solved = data
+
+    P_odo = data.dead_reckoning()
+    P_est = sol.x["P"]
+    if solved.n_samples < data.n_samples:  # a growing stage failed: not a result
+        P_est = continued(P_est, P_odo)
+        field = np.vstack([field, np.full((data.n_samples - field.shape[0], 3), np.nan)])
+    before = after = (None, None)
+    if data.P_true is not None:
+        before = rmse_and_max(P_odo, data.P_true)
+        if sol.success:
+            after = rmse_and_max(P_est, data.P_true)
+    bias = sol.x.get("bias")
+    uncertainty, cov, cov_plain = _uncertainty(
+        problem, nlp, sol, structure, solved, P_est, data.P_true
+    )
+    grid_x = grid_y = field_grid = std_grid = None
+    if sol.success:
+        grid_x, grid_y = grid_over(P_est, problem.assumed_lengthscale)
+        pts = np.column_stack([grid_x.ravel(), grid_y.ravel()])
+        jitter = problem.spec.model.gp.jitter
+        field_grid = field_on_grid(structure, sol, hyper, pts, jitter, P_est)
+        std_grid = field_std_on_grid(structure, hyper, pts, P_est, jitter)
+
+    info = {
+        "name": problem.name,
+        "source": problem.source,
+        "seed": problem.spec.seed,
+        "n_samples": data.n_samples,
+        "kernel": problem.assumed_kernel,
+        "gp_form": problem.spec.model.gp.form,
+        "num_basis": None if structure.basis is None else structure.basis[2],
+        "estimated": sorted(problem.spec.model.estimate),
+        "estimate_bias": problem.spec.model.odometry.estimate_bias,
+        "hessian": problem.spec.solver.hessian,
+        "knot_every": problem.spec.model.trajectory.knot_every,
+        "warm_start": ws.strategy if stages else "none",
+        "linear_solver": problem.spec.solver.linear_solver,
+        "anchor": anchor_info(data, problem.spec.model.anchor.sigma),
+        "casmag": __version__,
+        "casadi": ca.__version__,
+        "versions": versions(),
+    }
+    initial = problem.assumed_hyperparameters
+    start = sol.stats.get("estimate_start")
+    if start is not None:  # the joint MAP's start of its estimated hyperparameters
+        info["estimate_start"] = start
+        initial.update(start["values"])
+    return Result(
+        info=info,
+        status=sol.status,
+        success=sol.success,
+        iterations=sol.iterations,
+        build_seconds=nlp.build_seconds,
+        solve_seconds=sol.solve_seconds,
+        rmse_before=before[0],
+        max_before=before[1],
+        rmse_after=after[0],
+        max_after=after[1],
+        hyperparameters={h: hyper[h] for h in HYPERPARAMETERS},
+        hyperparameters_initial=initial,
+        odometry_bias=None if bias is None else [float(v) for v in np.ravel(bias)],
+        odometry_bias_true=None
+        if data.bias_true is None
+        else [float(v) for v in np.ravel(data.bias_true)],
+        cost_blocks=sol.cost_blocks(),
+        stages=[st.to_dict() for st in stages],
+        cost_per_iteration=sol.cost_per_iteration,
+        constraint_violation_per_iteration=sol.inf_pr_per_iteration,
+        uncertainty=uncertainty,
+        convergence=[sol.trace("GP-SLAM, final solve" if stages else "GP-SLAM")],
+        arrays={
+            "P_cov": cov,
+            "P_cov_uninflated": cov_plain,
+            "P_odometry": P_odo,
+            "P_estimate": P_est,
+            "P_true": data.P_true,
+            "M_estimate": field,
+            "Y": data.Y,
+            "map_x": grid_x,
+            "map_y": grid_y,
+            "map_field": None if field_grid is None else field_grid.reshape(*grid_x.shape, 3),
+            "map_std": None if std_grid is None else std_grid[0].reshape(*grid_x.shape, 3),
+            "map_prior_std": None if std_grid is None else std_grid[1].reshape(*grid_x.shape, 3),
+        },
+    )
+
+
+def load_result(folder: str | Path) -> Result:
+    """Any saved result folder (result.json, arrays.npz) of any motion model
+    (:meth:`casmag.result.Result.load`)."""
+    return Result.load(folder)
+
+
+def _kind(problem: Any) -> str:
+    """The document kind of what :func:`solve` was given (casmag.problem.spec.document_kind)."""
+    if isinstance(problem, ImuProblem):
+        return "imu"
+    if isinstance(problem, Mapping):
+        return document_kind(problem)
+    return "translational"
+
+
+# Largest number of unknowns for which the Laplace covariance is computed (a dense factor
+# of the Hessian: 12,000 unknowns take 1.2 GB).
+UNCERTAINTY_MAX_UNKNOWNS = 12_000
+
+
+def _uncertainty(
+    problem: Problem,
+    nlp: Any,
+    sol: Any,
+    structure: Any,
+    solved: Dataset,
+    P_est: np.ndarray,
+    P_true: np.ndarray | None,
+) -> tuple[dict[str, Any] | None, np.ndarray | None, np.ndarray | None]:
+    """Laplace position covariances at the solution (casmag.solver.uncertainty) and their summary
+    (mean 1-sigma, NEES against truth); None when switched off or the solve failed. With
+    ``solver.uncertainty_inflation`` other than ``none`` the covariance is the sandwich for
+    correlated magnetometer residuals; the summary then has ``inflation`` (tau, residual
+    RMS and factor per session and component) and ``uninflated`` (the plain Laplace
+    summary), and the third value is the plain covariance (else None)."""
+    if not (sol.success and problem.spec.solver.uncertainty):
+        return None, None, None
+    if solved.n_samples != P_est.shape[0]:
+        return None, None, None
+
+    if nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
+        reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
+        return {"error": f"not computed: {reason}"}, None, None
+    params, _ = parameters_and_guess(problem, solved, structure)
+    method = problem.spec.solver.uncertainty_inflation
+    sigma_o = problem.assumed_sigma_odometry
+    try:
+        u0 = position_uncertainty(nlp, sol, params, structure.knots, structure.dim, sigma_o)
+        if method == "none":
+            return u0.summary(P_est, P_true), u0.cov, None
+        R = solved.Y - field_estimate(structure, sol, P_est)
+        sigma_m = problem.assumed_sigma_m
+        inflation = residual_inflation(R, structure.knots.bounds, sigma_m, method)
+        u = u0
+        if inflation.active:
+            factors = inflation.factors(solved.n_samples)
+            meat = magnetometer_correction(nlp, sol, structure, factors, sigma_m)
+            u = position_uncertainty(
+                nlp, sol, params, structure.knots, structure.dim, sigma_o, meat=meat
+            )
+    except NotPositiveDefinite as exc:
+        return {"error": str(exc)}, None, None
+    summary = u.summary(P_est, P_true)
+    summary["inflation"] = inflation.to_dict()
+    summary["uninflated"] = u0.summary(P_est, P_true)
+    return summary, u.cov, u0.cov

@@ -1,0 +1,733 @@
+"""GP-SLAM on recordings: the problem ``casmag slam`` solves (its defaults estimated from
+the data), the check that the field carries position information, and one recording
+(:func:`slam`) or several of the same field with one map (:func:`slam_sessions`).
+
+It sits above :mod:`casmag.solver.api` (one solve) and :mod:`casmag.solver.multisession` (sessions
+added one at a time, two starts kept by cost)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from casmag.data.checks import model_warnings, recording_warnings, warning_lines
+from casmag.data.clock import LagEstimate, estimate_lag, lag_warning, shift_magnetometer
+from casmag.data.recording import Recording, read_recording
+from casmag.data.simulate import Dataset
+from casmag.errors import DataError, ProblemError
+from casmag.gp.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
+from casmag.model.planar import dead_reckon_planar, solve_planar_recording
+from casmag.problem.imu import (
+    PLANAR_WARM_START_KEYS,
+    load_planar_options,
+    refuse_unused_solver_keys,
+)
+from casmag.problem.spec import (
+    Problem,
+    as_overrides,
+    load_problem,
+    parse_override,
+    read_yaml,
+    section_overrides,
+)
+from casmag.result import Result
+from casmag.result.evaluation import anchor_info
+from casmag.result.metrics import rmse_and_max
+from casmag.result.verdict import revisit_pairs
+from casmag.solver.api import solve
+from casmag.solver.multisession import (
+    FIRST_PREFIX,
+    session_rows,
+    solve_sessions,
+    solve_two_starts,
+    stack,
+)
+from casmag.solver.uncertainty import PositionUncertainty
+from casmag.versions import __version__, versions
+
+KNOT_SECONDS = 1.0
+"""Default knot spacing of ``casmag slam`` [s]: one drift-correction knot per second ..."""
+LONG_RECORDING = 20_000
+LONG_KNOT_SECONDS = 5.0
+"""... and one per 5 s above LONG_RECORDING samples: at 64,000 samples (10 Hz) one knot per
+second made a 35-million-entry Hessian border (13 GB, stopped after 9 minutes); one per 5 s
+solved in 308 s and 2.9 GB with RMSE 8.0 m -> 9.6 mm (make bench-scale)."""
+
+ODOMETRY_NOISE_FRACTION = 0.02
+"""Default odometry noise of ``casmag slam``: 2 % of the median step length, per axis."""
+
+HYPER_PATHS = {
+    "sigma_f": ("model", "gp", "sigma_f"),
+    "lengthscale": ("model", "gp", "lengthscale"),
+    "sigma_m": ("model", "magnetometer", "sigma_m"),
+}
+
+
+def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def recording_problem(
+    data: Dataset,
+    times: np.ndarray,
+    name: str,
+    problem: str | Path | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+) -> tuple[Problem, dict[str, Any]]:
+    """The problem ``casmag slam`` solves on a recording, and how its values were chosen.
+
+    Defaults: reduced-rank squared-exponential map with a constant field; sigma_f,
+    lengthscale and sigma_m estimated from the data by the windowed marginal likelihood at
+    the dead-reckoned positions (casmag.gp.hyper; the windows are short, so their drift is
+    small); odometry noise ODOMETRY_NOISE_FRACTION of the median step; one knot per
+    KNOT_SECONDS (LONG_KNOT_SECONDS above LONG_RECORDING samples); growing warm starts. A
+    problem file (its ``model`` and ``solver`` sections) overrides any of these;
+    hyperparameters it leaves null are still estimated.
+    """
+    overrides = as_overrides(overrides)
+    check_recording_overrides(overrides)
+    user: dict[str, Any] = {}
+    source = name
+    if problem is not None:
+        user = read_yaml(Path(problem))
+        source = str(problem)
+        if "simulation" in user:
+            raise ProblemError(source, "simulation", "has no meaning for a recording; remove it")
+    dt = float(np.median(np.diff(times)))
+    knot_seconds = KNOT_SECONDS if data.n_samples <= LONG_RECORDING else LONG_KNOT_SECONDS
+    steps = np.linalg.norm(data.U, axis=1)
+    sigma_o = max(ODOMETRY_NOISE_FRACTION * float(np.median(steps)), 1e-6)
+    base: dict[str, Any] = {
+        "seed": 0,
+        "name": name,
+        "description": f"GP-SLAM on the recording {name}",
+        "model": {
+            "gp": {"form": "reduced_rank", "kernel": "se"},
+            "trajectory": {"knot_every": max(1, round(knot_seconds / dt))},
+            "odometry": {"sigma": sigma_o, "estimate_bias": True},
+            "anchor": {"sigma": 1.0e-3},
+        },
+        "solver": {"warm_start": {"strategy": "growing"}},
+    }
+    merged = _merge(base, user)
+    kernel = merged["model"]["gp"].get("kernel") or "se"
+    merged["model"]["gp"]["kernel"] = kernel
+    how: dict[str, Any] = {
+        "odometry_sigma": "problem file"
+        if user.get("model", {}).get("odometry", {}).get("sigma") is not None
+        else f"{ODOMETRY_NOISE_FRACTION:g} x median step"
+    }
+    missing = [h for h, path in HYPER_PATHS.items() if _get(merged, path) is None]
+    scale = float(np.abs(data.Y).max()) or 1.0
+    if constant_magnetometer(data.Y):
+        # Every row the same: no spread to estimate from (the marginal likelihood's noise
+        # goes to 0 and its matrices become singular) and no position information.
+        how["field_evidence"] = {"homogeneous": True, "constant": True, "reason": CONSTANT_FIELD}
+        how["noise_correlation_samples"] = None
+        nominal = {
+            "sigma_f": 1e-3 * scale,
+            "lengthscale": max(float(np.ptp(data.dead_reckoning(), axis=0).max()), 1e-3),
+            "sigma_m": 1e-3 * scale,
+        }
+        if missing:
+            how["marginal_likelihood"] = {"not_estimated": CONSTANT_FIELD, **nominal}
+        for h in missing:
+            _set(merged, HYPER_PATHS[h], nominal[h])
+    else:
+        est = estimate_hyperparameters(data.dead_reckoning(), data.Y, kernel)
+        how["field_evidence"] = field_evidence(data.dead_reckoning(), data.Y, kernel, est).to_dict()
+        # Diagnostic: magnetometer residuals correlated over tau samples make a white-noise
+        # sigma_m over-confident by about sqrt(tau) (measured on real sequence 5: tau 2.0).
+        how["noise_correlation_samples"] = noise_correlation_time(
+            data.dead_reckoning(), data.Y, kernel, est
+        )
+        if missing:
+            how["marginal_likelihood"] = {
+                "sigma_f": est.sigma_f,
+                "lengthscale": est.lengthscale,
+                "sigma_m": est.sigma_m,
+                "windows": est.n_windows,
+                "samples": est.n_samples,
+                "converged": est.converged,
+            }
+            for h in missing:
+                _set(merged, HYPER_PATHS[h], getattr(est, h))
+    if (
+        merged["model"]["gp"].get("sigma_lin") is None
+        and merged["model"]["gp"]["form"] == "reduced_rank"
+    ):
+        sigma_lin = float(np.abs(data.Y.mean(axis=0)).max() + data.Y.std())
+        merged["model"]["gp"]["sigma_lin"] = sigma_lin if sigma_lin > 0 else scale
+    how["estimated"] = missing
+    return load_problem(merged, overrides, source=source), how
+
+
+CONSTANT_FIELD = (
+    "the magnetometer is constant (every row of mx, my, mz the same), so the field carries "
+    "no position information; result is the odometry"
+)
+
+
+def constant_magnetometer(Y: np.ndarray) -> bool:
+    """Whether every magnetometer row is the same (to 1e-12 of the largest component)."""
+    Y = np.asarray(Y, dtype=float)
+    spread = float(np.ptp(Y, axis=0).max()) if Y.size else 0.0
+    return spread <= 1e-12 * float(np.abs(Y).max()) if Y.size else True
+
+
+def refuse_constant_field(source: Any) -> None:
+    """A solve forced on a constant magnetometer (no field check): one-line DataError."""
+    raise DataError(
+        f"{source}: mx, my, mz: the magnetometer is constant (every row the same), so GP-SLAM "
+        "has no field to correct the drift with; without --no-field-check the result is the "
+        "odometry (Odometry_Only)"
+    )
+
+
+#: Top-level problem keys a recording's problem does not use: its data come from the file.
+RECORDING_IGNORES = ("simulation", "seed")
+
+
+def check_recording_overrides(overrides: list[str]) -> None:
+    """Refuse ``--set`` keys a solve on a recording would ignore (ProblemError naming the
+    key): the simulation settings and the seed, which only simulated data use."""
+    for text in overrides:
+        path, _ = parse_override(text)
+        if path[0] in RECORDING_IGNORES:
+            raise ProblemError(
+                "--set",
+                ".".join(path),
+                f"{path[0]} has no meaning for a recording (its data come from the file); "
+                "remove it",
+            )
+
+
+def _evidence_text(how: dict[str, Any]) -> str:
+    ev = how["field_evidence"]
+    if ev.get("constant"):
+        return CONSTANT_FIELD
+    return (
+        f"log Bayes factor {ev['log_bayes_factor']:.1f} <= 0 for a GP map against a constant "
+        "field, so the field carries no position information; result is the odometry"
+    )
+
+
+def odometry_only(problem: Problem, data: Dataset, reason: str) -> Result:
+    """The dead reckoning as the result, with its own uncertainty: the anchor plus the
+    odometry random walk plus, with a bias prior sigma_b, the bias's drift,
+    cov(p_k) = (sigma_anchor^2 + k sigma_o^2 + k^2 sigma_b^2) I. A bias the model takes as
+    unknown without a prior makes that unbounded: no covariance, said so."""
+    P = data.dead_reckoning()
+    sigma_o = problem.assumed_sigma_odometry
+    odometry = problem.spec.model.odometry
+    k = np.arange(data.n_samples, dtype=float)
+    u: PositionUncertainty | None = None
+    summary: dict[str, Any]
+    if odometry.estimate_bias and odometry.bias_prior_sigma is None:
+        summary = {
+            "error": "not computed: odometry only with an unknown bias (no "
+            "model.odometry.bias_prior_sigma), the position uncertainty is unbounded"
+        }
+    else:
+        sigma_b = odometry.bias_prior_sigma if odometry.estimate_bias else 0.0
+        var = problem.spec.model.anchor.sigma**2 + sigma_o**2 * k + (sigma_b * k) ** 2
+        u = PositionUncertainty(var[:, None, None] * np.eye(data.dim))
+        summary = u.summary(P, data.P_true)
+    before = after = (None, None)
+    if data.P_true is not None:
+        before = after = rmse_and_max(P, data.P_true)
+    hyper = problem.assumed_hyperparameters
+    return Result(
+        info={
+            "name": problem.name,
+            "source": problem.source,
+            "n_samples": data.n_samples,
+            "anchor": anchor_info(data, problem.spec.model.anchor.sigma),
+            "fallback": reason,
+            "casmag": __version__,
+            "versions": versions(),
+        },
+        status="Odometry_Only",
+        success=True,
+        iterations=0,
+        build_seconds=0.0,
+        solve_seconds=0.0,
+        rmse_before=before[0],
+        max_before=before[1],
+        rmse_after=after[0],
+        max_after=after[1],
+        hyperparameters=hyper,
+        hyperparameters_initial=dict(hyper),
+        odometry_bias=None,
+        odometry_bias_true=None
+        if data.bias_true is None
+        else [float(v) for v in np.ravel(data.bias_true)],
+        cost_blocks={},
+        cost_per_iteration=[],
+        constraint_violation_per_iteration=[],
+        uncertainty=summary,
+        arrays={
+            "P_odometry": P,
+            "P_estimate": P,
+            "P_true": data.P_true,
+            "Y": data.Y,
+            "P_cov": None if u is None else u.cov,
+        },
+    )
+
+
+def _get(d: dict[str, Any], path: tuple[str, ...]) -> Any:
+    for key in path:
+        if not isinstance(d, dict) or key not in d:
+            return None
+        d = d[key]
+    return d
+
+
+def _set(d: dict[str, Any], path: tuple[str, ...], value: Any) -> None:
+    for key in path[:-1]:
+        d = d.setdefault(key, {})
+    d[path[-1]] = value
+
+
+def solve_from_two_starts(
+    problem: Problem,
+    data: Dataset,
+    progress: Callable[[int, float, float, float], None] | None = None,
+) -> Result:
+    """:func:`solve` with the growing warm start (``casmag slam``'s default) where that is
+    one batch (at most ``solver.warm_start.first_samples`` samples): the batch from the dead
+    reckoning and growing prefixes from casmag.solver.multisession.FIRST_PREFIX samples are both
+    solved and the start with the lower MAP cost is kept
+    (:func:`casmag.solver.multisession.solve_two_starts`); the final solve starts from its
+    positions.
+    Neither start is right every time on the real field (sequence 5: the batch reached
+    0.012 m at 0.5 m drift where growing stopped at 0.418 m, growing 0.011 m at 1.5 m drift
+    where the batch stopped at 0.944 m), and the lower cost picked the right one in both.
+    Both starts are the first records of ``stages`` (name ``start``, with ``start``,
+    ``cost``, ``kept``); their iterations are added to ``iterations``. Other strategies,
+    longer recordings and recordings of at most 2 x FIRST_PREFIX samples are solved by
+    :func:`solve` as they are.
+    """
+    ws = problem.spec.solver.warm_start
+    if (
+        ws.strategy != "growing"
+        or data.n_samples > ws.first_samples
+        or data.n_samples <= 2 * FIRST_PREFIX
+        or data.n_sessions > 1
+    ):
+        return solve(problem, data, progress)
+    P0, starts = solve_two_starts(problem, data)
+    batch = problem.with_overrides(["solver.warm_start.strategy=none"])
+    result = solve(batch, data, progress, initial_positions=P0)
+    result.stages = starts + result.stages
+    result.iterations += sum(st["iterations"] for st in starts)
+    return result
+
+
+#: Where a recording's estimate starts (casmag.solver.recslam.slam's ``anchor``).
+ANCHORS = ("truth", "origin")
+
+
+def slam(
+    recording: str | Path,
+    problem: str | Path | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+    field_check: bool = True,
+    on_warning: Callable[[str], None] | None = None,
+    anchor: str = "truth",
+    mag_lag: float | str | None = None,
+    refit_noise: bool = False,
+    **sections: Mapping[str, Any],
+) -> Result:
+    """GP-SLAM on a recording (CSV, see casmag.data.recording) with the defaults of
+    :func:`recording_problem`. Without truth in the recording the RMSE fields are None.
+
+    field_check: first test whether the field carries position information at all
+    (casmag.gp.hyper.field_evidence: windowed marginal likelihood of a GP map against a
+    homogeneous field, BIC-penalised, at the dead-reckoned positions). When it does not,
+    GP-SLAM has nothing to correct the drift with and can only add error (the paper's Table
+    1 at sigma_f = 0.001), so the result is the odometry itself (:func:`odometry_only`),
+    with ``info["fallback"]`` saying why. Otherwise the MAP is started twice
+    (:func:`solve_from_two_starts`).
+
+    Plausibility checks (casmag.data.checks: time unit, speed, field unit, sigma_m against the
+    field's variation, lengthscale against the path) go to ``result.warnings``, and each
+    line to ``on_warning`` before the solve.
+
+    A planar recording (``dfwd,dleft,dyaw``) is solved with the planar heading model
+    (:func:`slam_planar`, a planar :class:`casmag.result.Result`). ``sections``: settings as
+    keyword arguments, e.g. ``model={"gp": {"lengthscale": 0.3}}``, applied after
+    ``overrides`` (:func:`casmag.problem.spec.section_overrides`).
+
+    anchor: where the estimate starts: ``truth`` (default) the first true pose when the
+    recording has truth, else the origin; ``origin`` the origin (heading 0) always, the
+    odometry's frame (then compare with the truth after an alignment, casmag.result.evaluation).
+    ``info["anchor"]`` records which.
+
+    The magnetometer's lag behind the motion is estimated from the dead reckoning
+    (casmag.data.clock) and recorded in ``info["magnetometer_lag"]``, with a warning when it is a
+    sample or more; ``mag_lag`` [s] removes a lag (``casmag slam --mag-lag``) before
+    anything else, and ``mag_lag="auto"`` (translational recordings) removes the estimated
+    one when it is ``significant``, the problem made again on the shifted data.
+    ``refit_noise`` (translational recordings, sigma_m estimated): estimate sigma_m again
+    where the path returns and solve again with it when that is clearly larger
+    (:func:`refit_sigma_m`). Neither is the default: together they brought the right
+    estimates on the real robot sequences about three times closer and made the wrong ones
+    worse (casmag.data.clock, :func:`refit_sigma_m`)."""
+    if anchor not in ANCHORS:
+        raise DataError(f"anchor: expected one of {', '.join(ANCHORS)}, got {anchor!r}")
+    overrides = [*as_overrides(overrides), *section_overrides(sections)]
+    check_recording_overrides(overrides)
+    if isinstance(mag_lag, str) and mag_lag != "auto":
+        raise DataError(f"mag_lag: expected seconds or 'auto', got {mag_lag!r}")
+    auto = mag_lag == "auto"
+    raw = read_recording(recording)
+    rec = with_lag_removed(raw, None if auto else mag_lag)
+    if rec.motion == "planar":
+        refuse_translational_options(recording, mag_lag, refit_noise)
+        return slam_planar(
+            rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag
+        )
+    data = rec.to_dataset(anchor)
+    prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
+    lag = estimate_lag(rec.t, data.dead_reckoning(), rec.Y, _assumed(prob))
+    removed = None if auto else mag_lag
+    if auto and lag is not None and lag.significant:
+        # --mag-lag auto: a clear lag is removed, the problem made again on the shifted data.
+        removed = lag.lag_seconds
+        rec = with_lag_removed(raw, removed, "estimated from the dead reckoning")
+        data = rec.to_dataset(anchor)
+        prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
+    found = _plausibility(rec, data, prob) + (lag_warning(lag) if not removed else [])
+    for line in warning_lines(recording, found):
+        if on_warning is not None:
+            on_warning(line)
+    if not field_check and how["field_evidence"].get("constant"):
+        refuse_constant_field(recording)
+    if field_check and how["field_evidence"]["homogeneous"]:
+        result = odometry_only(prob, data, "homogeneous field: " + _evidence_text(how))
+    else:
+        result = solve_from_two_starts(prob, data, progress)
+        if refit_noise and "sigma_m" in how["estimated"]:
+            result = refit_sigma_m(prob, data, result, progress)
+    result.info["recording"] = str(recording)
+    result.info["defaults"] = how
+    result.info["magnetometer_lag"] = _lag_record(lag, removed)
+    result.warnings = found
+    return result
+
+
+def refuse_translational_options(
+    recording: str | Path, mag_lag: float | str | None, refit_noise: bool
+) -> None:
+    """DataError for ``mag_lag="auto"`` or ``refit_noise`` on a planar recording (they are
+    made for translational ones)."""
+    if mag_lag == "auto" or refit_noise:
+        raise DataError(
+            f"{recording}: --mag-lag auto and --refit-noise are for translational "
+            "recordings; this one is planar"
+        )
+
+
+def _assumed(prob: Problem) -> SimpleNamespace:
+    return SimpleNamespace(
+        sigma_f=prob.assumed_sigma_f,
+        lengthscale=prob.assumed_lengthscale,
+        sigma_m=prob.assumed_sigma_m,
+    )
+
+
+#: sigma_m is estimated again from the revisits when their noise exceeds this many times the
+#: first estimate (:func:`refit_sigma_m`).
+REFIT_FACTOR = 1.5
+#: Revisit pairs needed for that estimate.
+REFIT_MIN_PAIRS = 30
+
+
+def revisit_noise(
+    P: np.ndarray, Y: np.ndarray, M: np.ndarray, lengthscale: float
+) -> tuple[float, int]:
+    """(noise per magnetometer component that does not repeat where the path returns, pairs):
+    RMS over revisit pairs (casmag.result.verdict.revisit_pairs) of the difference of their
+    residuals y - m(p), over sqrt(2). The map's own variation between the two samples
+    cancels in the difference; what remains is what the same place does not give twice
+    (sensor noise, and the errors a white-noise model cannot hold: a tilt, a height, a
+    timing error). NaN without pairs."""
+    pairs = revisit_pairs(P, lengthscale)
+    if pairs.shape[0] == 0:
+        return float("nan"), 0
+    E = np.asarray(Y, dtype=float) - np.asarray(M, dtype=float)
+    d = E[pairs[:, 0]] - E[pairs[:, 1]]
+    return float(np.sqrt(np.mean(d**2) / 2.0)), int(pairs.shape[0])
+
+
+def refit_sigma_m(
+    prob: Problem,
+    data: Dataset,
+    first: Result,
+    progress: Callable[[int, float, float, float], None] | None = None,
+) -> Result:
+    """The magnetometer noise estimated again where the path returns, and the MAP solved
+    again from ``first`` with it when it is clearly larger.
+
+    The windowed marginal likelihood (casmag.gp.hyper) sees the noise within a few seconds;
+    errors that stay for seconds (the sensor's height and tilt, a timing error) it reads as
+    field. Where the path returns, they do not repeat: :func:`revisit_noise` at the first
+    estimate measures them. When that exceeds REFIT_FACTOR x sigma_m (on REFIT_MIN_PAIRS
+    pairs or more), the problem is solved again from the first estimate's positions with
+    sigma_m = the revisit noise, and that result is kept when it succeeds.
+    ``info["sigma_m_refit"]`` records the figures and the decision.
+
+    Measured on the real robot sequences (``casmag convert --no-align``, seeds = sequence
+    numbers; RMSE before -> after, the default against ``--mag-lag auto --refit-noise``):
+    the marginal likelihood gives 0.33-0.77 uT, the revisits 0.8-1.4 uT. At 0.5 m of drift
+    sequence 5 0.286 -> 0.069 against 0.021 m, sequence 3 0.293 -> 0.059 against 0.026 m,
+    but sequence 2 0.281 -> 0.146 against 0.199 m and sequence 4 0.288 -> 0.27 against
+    0.36 m (its lengthscale estimate shrank with the lag removed, 0.21 -> 0.16 m, and the
+    run took 8 min); at 1.5 m sequence 5 reached 0.077 m from 0.863 m. Either alone changed
+    little (the refit alone: 0.083 and 0.057 m on sequences 5 and 3). From a wrong first
+    estimate a softer magnetometer lets the path wander further: a simulated walk with a
+    slow magnetometer error went 0.135 -> 0.23 m, and 0.96 m after the refit. Hence not
+    the default."""
+    rec: dict[str, Any] = {"first": prob.assumed_sigma_m, "factor": REFIT_FACTOR}
+    a = first.arrays or {}
+    ell = (first.hyperparameters or {}).get("lengthscale")
+    if not first.success or a.get("M_estimate") is None or not ell:
+        first.info["sigma_m_refit"] = {**rec, "refit": False, "reason": "no estimate"}
+        return first
+    noise, pairs = revisit_noise(a["P_estimate"], a["Y"], a["M_estimate"], float(ell))
+    rec.update(revisit=noise, pairs=pairs)
+    if pairs < REFIT_MIN_PAIRS or not noise > REFIT_FACTOR * prob.assumed_sigma_m:
+        first.info["sigma_m_refit"] = {**rec, "refit": False}
+        return first
+    again = prob.with_overrides(
+        [f"model.magnetometer.sigma_m={noise!r}", "solver.warm_start.strategy=none"]
+    )
+    second = solve(again, data, progress, initial_positions=a["P_estimate"])
+    rec.update(refit=True, status=second.status, iterations=second.iterations)
+    if not second.success:
+        first.info["sigma_m_refit"] = {**rec, "kept": "first"}
+        return first
+    second.iterations += first.iterations
+    second.stages = first.stages_named("start") + second.stages
+    second.info["sigma_m_refit"] = {**rec, "kept": "refit"}
+    return second
+
+
+def with_lag_removed(rec: Recording, mag_lag: float | None, how: str = "as asked") -> Recording:
+    """The recording with a magnetometer lag of ``mag_lag`` seconds removed (unchanged for
+    None or 0), the change noted as a warning."""
+    if not mag_lag:
+        return rec
+    note = {
+        "check": "magnetometer_lag",
+        "column": "mx,my,mz",
+        "reason": f"shifted by {mag_lag:g} s (a lag removed, {how})",
+    }
+    return dataclasses.replace(
+        rec, Y=shift_magnetometer(rec.t, rec.Y, mag_lag), notes=(*rec.notes, note)
+    )
+
+
+def _lag_record(lag: LagEstimate | None, applied: float | None) -> dict[str, Any]:
+    """``info["magnetometer_lag"]``: the estimate (on the recording as read, or after a lag
+    given with ``mag_lag``) and what was removed."""
+    return {"removed_seconds": applied or 0.0, "estimate": None if lag is None else lag.to_dict()}
+
+
+def _planar_lag(rec: Recording) -> LagEstimate | None:
+    """The magnetometer lag of a planar recording: its field turned into the world frame
+    along the dead-reckoned heading, against the dead-reckoned path (from the origin)."""
+    inc = rec.increments
+    P, psi = dead_reckon_planar(inc, np.zeros(2), 0.0)
+    c, s = np.cos(psi), np.sin(psi)
+    Y = rec.Y
+    world = np.column_stack([c * Y[:, 0] - s * Y[:, 1], s * Y[:, 0] + c * Y[:, 1], Y[:, 2]])
+    return estimate_lag(rec.t, P, world)
+
+
+def _plausibility(rec: Recording, data: Dataset, prob: Problem) -> list[dict[str, str]]:
+    """What reading the recording changed (rows merged or resampled), then casmag.data.checks on
+    it and on the lengthscale its problem uses."""
+    found = [*rec.notes, *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion)]
+    return found + model_warnings(
+        data.dead_reckoning(), rec.Y, prob.assumed_lengthscale, prob.assumed_sigma_m
+    )
+
+
+def slam_sessions(
+    recordings: Sequence[str | Path],
+    problem: str | Path | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+    field_check: bool = True,
+    name: str | None = None,
+    on_warning: Callable[[str], None] | None = None,
+) -> Result:
+    """GP-SLAM on several recordings of the same field with one shared map
+    (:func:`slam`'s defaults, computed on all sessions together). The stacked
+    result's RMSE is over all samples; ``info["sessions"]`` has each session's. The
+    plausibility checks of :func:`slam` run on every recording (``recording`` in each
+    warning)."""
+    overrides = as_overrides(overrides)
+    check_recording_overrides(overrides)
+
+    recs = [read_recording(r) for r in recordings]
+    datasets = [r.to_dataset() for r in recs]
+    data = stack(datasets)
+    label = name or "+".join(Path(r).stem for r in recordings)
+    # One time axis for the defaults (the sample period): the sessions end to end.
+    times, offset = [], 0.0
+    for r in recs:
+        times.append(r.t - r.t[0] + offset)
+        offset = times[-1][-1] + float(np.median(np.diff(r.t)))
+    # The growing warm start cuts prefixes of one trajectory; sessions are one batch.
+    prob, how = recording_problem(
+        data,
+        np.concatenate(times),
+        label,
+        problem,
+        ["solver.warm_start.strategy=none", *overrides] if data.n_sessions > 1 else overrides,
+    )
+    found = []
+    for path, rec, d in zip(recordings, recs, datasets, strict=True):
+        own = _plausibility(rec, d, prob)
+        for line in warning_lines(path, own):
+            if on_warning is not None:
+                on_warning(line)
+        found.extend({**w, "recording": str(path)} for w in own)
+    if prob.spec.model.gp.form != "reduced_rank" and data.n_sessions > 1:
+        raise ProblemError(
+            prob.source, "model.gp.form", "several sessions need the reduced-rank map"
+        )
+    if not field_check and how["field_evidence"].get("constant"):
+        refuse_constant_field(", ".join(map(str, recordings)))
+    if field_check and how["field_evidence"]["homogeneous"]:
+        result = odometry_only(prob, data, "homogeneous field: " + _evidence_text(how))
+        order = list(range(len(datasets)))
+    else:
+        result, data, order = solve_sessions(prob, datasets, progress)
+    names = [Path(recordings[i]).stem for i in order]
+    result.info["recordings"] = [str(recordings[i]) for i in order]
+    result.info["defaults"] = how
+    result.info["sessions"] = session_rows(data, result, names)
+    result.warnings = found
+    return result
+
+
+def slam_planar(
+    rec: Recording,
+    problem: str | Path | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+    field_check: bool = True,
+    on_warning: Callable[[str], None] | None = None,
+    anchor: str = "truth",
+    mag_lag: float | None = None,
+) -> Result:
+    """A planar recording (``dfwd,dleft,dyaw``) with the planar model and a heading-rate
+    bias (:func:`casmag.model.planar.solve_planar_recording`). Settings from the problem file's
+    ``model``/``solver`` sections and ``model.KEY=...`` overrides
+    (:class:`casmag.problem.imu.PlanarModelSpec`). A constant magnetometer carries no
+    position information: the result is the dead reckoning, status ``Odometry_Only``
+    (:func:`planar_odometry_only`; with ``field_check`` off, DataError)."""
+    overrides = as_overrides(overrides)
+    refuse_unused_solver_keys(
+        overrides, "casmag slam on a planar recording", PLANAR_WARM_START_KEYS
+    )
+    options = load_planar_options(problem, overrides)
+    lag = _planar_lag(rec)
+    found = [
+        *rec.notes,
+        *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
+        *lag_warning(lag),
+    ]
+    for line in warning_lines(rec.path, found):
+        if on_warning is not None:
+            on_warning(line)
+    if constant_magnetometer(rec.Y):
+        if not field_check:
+            refuse_constant_field(rec.path)
+        result = planar_odometry_only(rec, anchor)
+    else:
+        result = solve_planar_recording(rec, options, progress=progress, anchor=anchor)
+    result.warnings = found
+    result.info["magnetometer_lag"] = _lag_record(lag, mag_lag)
+    a = result.arrays
+    if a.get("P_true") is not None and a.get("psi_true") is None:
+        # True positions without a true heading: the heading column is written empty
+        # (NaN), as trajectory.csv has a heading beside every position.
+        a["psi_true"] = np.full(a["P_true"].shape[0], np.nan)
+    return result
+
+
+def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
+    """The planar dead reckoning as the result of a recording whose magnetometer is constant
+    (status ``Odometry_Only``, the reason in ``info.fallback``), started where
+    :func:`casmag.model.planar.solve_planar` starts: the first true pose, else (or with
+    ``anchor`` ``origin``) the origin."""
+    P_true = None if rec.P_true is None else rec.P_true[:, :2]
+    known = P_true is not None and anchor == "truth"
+    p0 = P_true[0] if known else np.zeros(2)
+    psi0 = float(rec.yaw_true[0]) if known and rec.yaw_true is not None else 0.0
+    P, psi = dead_reckon_planar(rec.increments, np.asarray(p0, dtype=float), psi0)
+    errors = (None, None) if P_true is None else rmse_and_max(P, P_true)
+    heading = None
+    if P_true is not None and rec.yaw_true is not None:
+        wrapped = np.angle(np.exp(1j * (psi - rec.yaw_true)))
+        heading = float(np.degrees(np.sqrt(np.mean(wrapped**2))))
+    name = Path(rec.path).stem
+    return Result(
+        motion="planar",
+        status="Odometry_Only",
+        success=True,
+        iterations=0,
+        build_seconds=0.0,
+        solve_seconds=0.0,
+        rmse_before=errors[0],
+        max_before=errors[1],
+        rmse_after=errors[0],
+        max_after=errors[1],
+        details={"heading_rms_deg_before": heading, "heading_rms_deg_after": heading},
+        hyperparameters={},
+        cost_blocks={},
+        cost_per_iteration=[],
+        info={
+            "name": name,
+            "samples": int(rec.n_samples),
+            "num_basis": 0,
+            "anchor": {
+                "kind": "first true position"
+                if known
+                else ("origin (no truth)" if P_true is None else "origin"),
+                "position": [float(v) for v in p0],
+                "heading_rad": psi0,
+            },
+            "fallback": "homogeneous field: " + CONSTANT_FIELD,
+            "recording": str(rec.path),
+            "casmag": __version__,
+            "versions": versions(),
+        },
+        arrays={
+            "t": rec.t,
+            "P_odometry": P,
+            "psi_odometry": psi,
+            "P_estimate": P,
+            "psi_estimate": psi,
+            "P_true": P_true,
+            "psi_true": rec.yaw_true if P_true is not None else None,
+        },
+    )

@@ -1,0 +1,343 @@
+"""Posterior uncertainty of the positions: the Laplace approximation at the MAP.
+
+Around the MAP estimate x*, the posterior is approximated by N(x*, H^-1), where H is the
+Hessian of the objective (the negative log-posterior) at x* (:meth:`casmag.nlp.NLP.hessian`:
+IPOPT's Hessian, with the Gauss-Newton term for the reduced-rank magnetometer block). The
+positions are linear in the knot corrections, p_k = q_k + sum_j A_kj c_j (casmag.model.knots), so
+
+    cov(p_k) = sum_{j, j'} A_kj A_kj' cov(c_j, c_j'),
+
+with cov(c) the knot block of H^-1: every other unknown (map, bias, estimated
+hyperparameters) is marginalised, not conditioned on. Hyperparameters held fixed are taken as
+known, so their uncertainty is not in the covariance.
+
+The NEES (normalised estimation error squared) e_k^T cov(p_k)^-1 e_k, e_k = p_k - p_true,
+has expected value d (the position dimension) when the covariance is honest: a mean NEES well
+above d means over-confidence, well below d under-confidence.
+
+Correlated magnetometer residuals (``solver.uncertainty_inflation``). The magnetometer block
+assumes white noise of standard deviation sigma_m. On the real field the residuals at the MAP
+are correlated along the path (the map's own error, which the reduced-rank GP cannot follow),
+and N correlated residuals carry about the information of N / tau independent ones, tau their
+integrated autocorrelation time: the plain Laplace covariance H^-1 is then over-confident
+(mean NEES 6-17 for an expected 2 on the real five-session problem at 0.5 m drift). With
+``long-run`` (the default) the covariance is the sandwich (robust, HAC) covariance of the MAP
+estimate under that misspecification,
+
+    cov(x) = H^-1 B H^-1,    B = H + sum_kc (lambda_kc - 1) J_kc^T J_kc / sigma_m^2,
+
+where J_kc is the gradient of the magnetometer residual of sample k, component c: the
+magnetometer part of the score's covariance uses the residuals' long-run variance s^2 tau
+(the spectral density at frequency zero) instead of sigma_m^2, lambda = max(1, s^2 tau /
+sigma_m^2), with s^2 the residuals' variance at the solution and tau
+(:func:`autocorrelation_time`, Geyer's initial monotone sequence estimator) computed per
+session and field component (:func:`residual_inflation`, :func:`magnetometer_correction`).
+``correlation`` uses lambda = max(1, tau) (sigma_m taken as right), ``none`` gives H^-1.
+White noise gives tau near 1 and s below sigma_m (the fit absorbs part of it), so lambda = 1
+and the covariance is H^-1: synthetic problems are unchanged. The truth is never used.
+Measured on the real field, five sessions with one map (problems/real/sessions-drift*.yaml):
+mean NEES per session 5.2-16.7 plain, 0.78-2.94 with ``long-run`` (all samples: 9.7-10.3
+plain, 1.77 with ``long-run``; inside the 95 % ellipse 52-53 % -> 92-93 %); at 0.5 m drift
+0.48-1.44 with ``correlation``, and 3.9-11.8 when the magnetometer information was scaled by
+1 / lambda inside H instead (the posterior of a model with correlated noise, not the error
+of this estimate). One pooled lambda per component over the sessions gave 0.89-3.25.
+A single session's map fits its own residuals more closely (RMS 0.4-1.2 uT against
+sigma_m = 2 uT, tau 1.6-10), so lambda is 1-2.4 there: sequence 5 (the one that revisits
+itself most) mean NEES 1.94 -> 1.40 at 0.5 m drift and 1.57 -> 1.18 at 1.5 m; where a single
+session stays near its odometry (NEES 68-5,195) the error is an unobservable drift, not
+correlated noise, and the inflation does not change that.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.linalg as sla
+
+from casmag.gp.kernels import FIELD_DIM
+from casmag.model.knots import Knots
+from casmag.model.rrmap import MapModel, field_and_jacobians
+from casmag.nlp import NLP, Solution
+
+
+@dataclass
+class PositionUncertainty:
+    """cov (N, d, d) [m^2] per sample; ``sigma`` (N, d) the marginal standard deviations."""
+
+    cov: np.ndarray
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.einsum("kii->ki", self.cov))
+
+    def nees(self, P_est: np.ndarray, P_true: np.ndarray) -> np.ndarray:
+        """(N,) NEES of each position against the truth."""
+        e = P_est - P_true
+        return np.einsum("ki,ki->k", e, np.linalg.solve(self.cov, e[..., None])[..., 0])
+
+    def summary(self, P_est: np.ndarray, P_true: np.ndarray | None) -> dict[str, Any]:
+        """Mean 1-sigma radius, and against truth the mean and median NEES with the expected
+        value d, the fraction of samples inside the 95 % ellipse and the range a mean NEES
+        takes with 95 % probability when the covariance is honest
+        (:func:`nees_consistency`)."""
+        d = self.cov.shape[1]
+        out: dict[str, Any] = {
+            "sigma_mean": float(np.mean(np.sqrt(np.trace(self.cov, axis1=1, axis2=2)))),
+            "sigma_max": float(np.max(np.sqrt(np.trace(self.cov, axis1=1, axis2=2)))),
+            "nees_expected": float(d),
+            "nees_mean": None,
+            "nees_median": None,
+            "inside_95": None,
+        }
+        if P_true is not None:
+            from scipy.stats import chi2
+
+            q = self.nees(P_est, P_true)
+            out.update(
+                nees_mean=float(np.mean(q)),
+                nees_median=float(np.median(q)),
+                inside_95=float(np.mean(q <= chi2.ppf(0.95, d))),
+                **nees_consistency(q, d),
+            )
+        return out
+
+
+def nees_consistency(q: np.ndarray, d: int) -> dict[str, Any]:
+    """How far a mean NEES may stray from d by chance. Errors along a trajectory are smooth,
+    so neighbouring NEES values are not independent: the series q (N,) has an integrated
+    autocorrelation time tau (:func:`autocorrelation_time`, at least 1) and carries about
+    n = N / tau independent values. With an honest covariance each is chi-squared with d
+    degrees of freedom, so the mean of n of them is chi2(n d) / n: ``nees_interval_95`` is
+    its central 95 % interval, the range of mean NEES that does not contradict the
+    covariance. Measured on the real five-session problem (problems/real/sessions-*.yaml):
+    tau 190-470 samples per session, 4-9 independent values, intervals from about
+    [0.55, 4.4] to [0.9, 3.5] around the expected 2."""
+    from scipy.stats import chi2
+
+    q = np.asarray(q, dtype=float)
+    tau = max(1.0, autocorrelation_time(q))
+    n = q.size / tau
+    a = 0.025
+    return {
+        "nees_tau": float(tau),
+        "nees_independent": float(n),
+        "nees_interval_95": [float(chi2.ppf(a, n * d) / n), float(chi2.ppf(1 - a, n * d) / n)],
+    }
+
+
+class NotPositiveDefinite(ValueError):
+    """The Hessian at the solution is not positive definite (no Laplace approximation)."""
+
+
+def position_uncertainty(
+    nlp: NLP,
+    sol: Solution,
+    params: dict,
+    knots: Knots,
+    dim: int,
+    sigma_o: float = 0.0,
+    meat: np.ndarray | None = None,
+) -> PositionUncertainty:
+    """Laplace covariances of the positions at the solution ``sol`` of ``nlp``.
+
+    The Hessian is factored densely (the unknowns are the knots, the bias, the map weights
+    and estimated hyperparameters: a few thousand at most with knots), then solved for the
+    knot columns only. Between knots the odometry random walk (per-step standard deviation
+    sigma_o) adds its Brownian-bridge variance sigma_o^2 s (k - s) / k per axis, s steps
+    after a knot of an interval of k steps: the knot model leaves that part of the odometry
+    noise out of the unknowns. Raises NotPositiveDefinite when the factorisation fails.
+    (The Hessian does not depend on the bias value, in which the odometry block is
+    quadratic, so the total bias a growing or sliding solve leaves in ``sol.x`` is harmless.)
+    meat: a dense (n_x, n_x) matrix B - H (:func:`magnetometer_correction`): the sandwich
+    covariance H^-1 B H^-1 of the knots instead of H^-1 (the covariance of the MAP estimate
+    when the score's covariance is B, not H).
+    """
+    x = {k: v for k, v in sol.x.items() if k in nlp.x_layout.entries}
+    H = nlp.hessian(x, params).toarray()
+    entry = nlp.x_layout.entries["C"]
+    K = knots.count
+    cols = entry.offset + np.arange(K * dim)  # column-major (K, d): axis a at a*K + j
+    try:
+        factor = sla.cho_factor(H, lower=True, check_finite=True)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise NotPositiveDefinite(
+            f"Hessian at the solution is not positive definite ({exc})"
+        ) from None
+    E = np.zeros((H.shape[0], cols.size))
+    E[cols, np.arange(cols.size)] = 1.0
+    Z = sla.cho_solve(factor, E)  # (n_x, K d)
+    cov_c = Z[cols, :]  # (K d, K d)
+    if meat is not None:
+        cov_c = cov_c + Z.T @ (meat @ Z)
+    A = knots.matrix  # sparse (N, K)
+    N = knots.n
+    cov = np.empty((N, dim, dim))
+    for a in range(dim):
+        for b in range(dim):
+            block = cov_c[a * K : (a + 1) * K, b * K : (b + 1) * K]
+            cov[:, a, b] = _row_quadratic(A, block)
+    s_in = np.arange(N) - knots.samples[knots.left]
+    k_in = knots.samples[knots.left + 1] - knots.samples[knots.left]
+    bridge = sigma_o**2 * s_in * (k_in - s_in) / k_in
+    cov += bridge[:, None, None] * np.eye(dim)
+    return PositionUncertainty(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+
+
+def _row_quadratic(A, B: np.ndarray) -> np.ndarray:
+    """(N,) diag(A B A^T) for a sparse or dense A (N, K) and dense B (K, K)."""
+    AB = A @ B
+    if hasattr(A, "multiply"):
+        return np.asarray(A.multiply(AB).sum(axis=1)).ravel()
+    return np.sum(np.asarray(A) * AB, axis=1)
+
+
+# ----------------------------------------------------------------- correlated residuals
+INFLATION_METHODS = ("none", "correlation", "long-run")
+
+
+def autocorrelation_time(r: np.ndarray) -> float:
+    """Integrated autocorrelation time tau = 1 + 2 sum_{k>=1} rho_k of a sequence (its
+    mean removed), by Geyer's (1992) initial monotone sequence estimator: the sums of
+    adjacent autocorrelations Gamma_m = rho_2m + rho_2m+1 are summed while positive, each
+    capped at the previous one, tau = -1 + 2 sum_m Gamma_m. White noise gives about 1, an
+    AR(1) sequence (1 + phi) / (1 - phi). At least 1 is not enforced here (negative
+    correlation gives tau < 1); 1.0 for fewer than 4 samples or a constant sequence."""
+    x = np.asarray(r, dtype=float).ravel()
+    n = x.size
+    x = x - x.mean()
+    var = float(np.dot(x, x)) / max(n, 1)
+    if n < 4 or var <= 0.0:
+        return 1.0
+    f = np.fft.rfft(x, 2 * n)
+    acov = np.fft.irfft(f * np.conj(f), 2 * n)[:n] / n
+    rho = acov / acov[0]
+    m = (n - 1) // 2
+    gamma = rho[0 : 2 * m : 2] + rho[1 : 2 * m : 2]
+    total, last = 0.0, np.inf
+    for g in gamma:
+        if g <= 0.0:
+            break
+        last = min(last, float(g))
+        total += last
+    return -1.0 + 2.0 * total
+
+
+@dataclass
+class Inflation:
+    """Per session (rows) and field component (columns): the residuals' autocorrelation time
+    ``tau``, their standard deviation ``rms`` at the solution (mean removed) and the factor
+    ``lam`` by which the magnetometer variance sigma_m^2 is inflated in the sandwich's
+    score covariance."""
+
+    method: str
+    sigma_m: float
+    bounds: list[tuple[int, int]]
+    tau: np.ndarray
+    rms: np.ndarray
+    lam: np.ndarray
+
+    def factors(self, n: int) -> np.ndarray:
+        """(n, 3) factor lambda of every magnetometer residual (sample, component)."""
+        w = np.ones((n, self.lam.shape[1]))
+        for s, (a, b) in enumerate(self.bounds):
+            w[a:b] = self.lam[s]
+        return w
+
+    @property
+    def active(self) -> bool:
+        return bool(np.any(self.lam != 1.0))
+
+    def to_dict(self) -> dict:
+        return {
+            "method": self.method,
+            "sigma_m": self.sigma_m,
+            "tau": self.tau.tolist(),
+            "residual_rms": self.rms.tolist(),
+            "factor": self.lam.tolist(),
+            "factor_mean": float(np.mean(self.lam)),
+            "active": self.active,
+        }
+
+
+def residual_inflation(
+    R: np.ndarray, bounds: list[tuple[int, int]], sigma_m: float, method: str = "long-run"
+) -> Inflation:
+    """The magnetometer variance inflation of each session and component from the
+    residuals R (N, 3) = y - m(p) at the solution (see the module docstring)."""
+    if method not in INFLATION_METHODS:
+        raise ValueError(f"inflation method {method!r} is not one of {INFLATION_METHODS}")
+    S, c = len(bounds), R.shape[1]
+    tau, rms = np.ones((S, c)), np.zeros((S, c))
+    for s, (a, b) in enumerate(bounds):
+        for j in range(c):
+            tau[s, j] = autocorrelation_time(R[a:b, j])
+            rms[s, j] = float(np.std(R[a:b, j]))
+    if method == "none":
+        lam = np.ones((S, c))
+    elif method == "correlation":
+        lam = np.maximum(1.0, tau)
+    else:
+        lam = np.maximum(1.0, tau * rms**2 / sigma_m**2)
+    return Inflation(method, float(sigma_m), list(bounds), tau, rms, lam)
+
+
+def magnetometer_correction(
+    nlp: NLP, sol: Solution, structure, weights: np.ndarray, sigma_m: float
+) -> np.ndarray:
+    """Dense (n_x, n_x) change of the Hessian when the Gauss-Newton information of each
+    magnetometer residual (sample k, component c) is scaled by weights[k, c]:
+    sum_kc (weights_kc - 1) J_kc^T J_kc / sigma_m^2, with J_kc the residual's gradient.
+
+    Reduced-rank map (casmag.model.rrmap): J_kc reaches the knots through dm_c/dp_k and the
+    interpolation matrix A, the weights through the basis row (SE: component c's column of
+    W; curl-free: the shared potential) and the constant field c_c. Exact GP: the residual
+    y_kc - M_kc, so only the diagonal of the M block changes."""
+    n_x = nlp.x_layout.size
+    E = nlp.x_layout.entries
+    V = (np.asarray(weights, dtype=float) - 1.0) / sigma_m**2  # (N, 3)
+    out = np.zeros((n_x, n_x))
+    if structure.form != "reduced_rank":
+        e = E["M"]
+        N = e.shape[0]
+        idx = e.offset + np.arange(N * FIELD_DIM)  # column-major (N, 3)
+        out[idx, idx] = V.ravel(order="F")
+        return out
+    import scipy.sparse as sp
+
+    knots, d, kernel = structure.knots, structure.dim, structure.kernel
+    basis = structure.hilbert_basis()
+    M, K = basis.num_basis, knots.count
+    wts = sol.x["W"].ravel(order="F")
+    P = sol.x["P"]
+    cidx = E["C"].offset + np.arange(K * d)
+    w0 = E["W"].offset
+    c0 = E["c"].offset if "c" in E else None
+    A = knots.matrix
+    step = MapModel.CHUNK // 4
+    for s0 in range(0, knots.n, step):
+        r = slice(s0, min(knots.n, s0 + step))
+        _, Aw, D = field_and_jacobians(basis, kernel, P[r], wts)
+        Ar = A[r]
+        for comp in range(FIELD_DIM):
+            v = V[r, comp]
+            if not np.any(v):
+                continue
+            Jp = sp.hstack([sp.diags(D[:, comp, a]) @ Ar for a in range(d)]).tocsr()
+            if kernel == "se":
+                Jw, widx = Aw[0], w0 + comp * M + np.arange(M)
+            else:
+                Jw, widx = Aw[comp], w0 + np.arange(M)
+            if c0 is not None:
+                Jd = np.column_stack([Jw, np.ones(Jw.shape[0])])
+                didx = np.append(widx, c0 + comp)
+            else:
+                Jd, didx = Jw, widx
+            VJp = sp.diags(v) @ Jp
+            out[np.ix_(cidx, cidx)] += (Jp.T @ VJp).toarray()
+            Hpd = np.asarray(VJp.T @ Jd)
+            out[np.ix_(cidx, didx)] += Hpd
+            out[np.ix_(didx, cidx)] += Hpd.T
+            out[np.ix_(didx, didx)] += Jd.T @ (v[:, None] * Jd)
+    return out
