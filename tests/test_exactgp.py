@@ -1,4 +1,4 @@
-"""The numpy exact GP prior (casmag.gp.exact) against CasADi's automatic derivatives of the
+"""The numpy exact GP prior (casmag.model.exact) against CasADi's automatic derivatives of the
 symbolic prior (casmag.gp.reference.ExactGPPrior), and inside the MAP problem."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from casmag.gp.exact import ExactLayout, ExactPriorHessian, ExactPriorModel
+from casmag.model.exact import ExactLayout, ExactPriorHessian, ExactPriorModel
 from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.reference import ExactGPPrior
 from casmag.model.knots import Knots

@@ -293,7 +293,7 @@ def test_noise_free_gp_slam_with_biases_returns_the_truth():
 
 
 def test_noise_free_gp_slam_with_the_exact_gp_at_keyframes():
-    """The same noise-free rectangle with the exact GP at the keyframes (casmag.gp.exact, no
+    """The same noise-free rectangle with the exact GP at the keyframes (casmag.model.exact, no
     basis truncation), started from the GP posterior mean of the field at the IMU-only path.
     Measured: 0.74 mm at most, orientation within 0.083 deg, gyroscope biases within 7.5 %
     (z: 0.129 against 0.12 deg/s), 4 iterations of the map pass."""

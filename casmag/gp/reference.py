@@ -7,7 +7,7 @@ With the field m at the N sample points as unknowns, the prior block of the MAP 
 with K built from the kernel at the estimated positions P. The quadratic form uses a
 differentiable sparse LDL solve on MX, so CasADi differentiates it to any order. The NLPs no
 longer use this graph (its Hessian costs O(N^3) virtual-machine operations per evaluation):
-they use the numpy blocks of casmag.gp.exact, and this form is their test reference.
+they use the numpy blocks of casmag.model.exact, and this form is their test reference.
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ import scipy.sparse
 from casmag import strapdown as sd
 from casmag.data.checks import lengthscale_warnings
 from casmag.data.imusim import ImuData, simulate_imu
-from casmag.gp.exact import add_exact_prior
+from casmag.model.exact import add_exact_prior
 from casmag.gp.fieldmap import map_arrays, unwhitened
 from casmag.gp.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
 from casmag.gp.hyper import field_evidence as _field_evidence
@@ -82,9 +82,13 @@ Progress = Callable[[int, float, float, float], None]
 IMU_HESSIAN_SLAM = "gauss-newton"
 
 #: A GP-SLAM estimate whose position RMSE against the truth is above this fraction of the
-#: IMU-only adjustment's, in a field the map was solved in, is flagged ``wrong_basin``: the
-#: magnetometer carried position information and the optimiser did not use it.
-WRONG_BASIN_RATIO = 0.5
+#: IMU-only adjustment's, in a field the map was solved in, is solved again from the truth,
+#: and flagged ``wrong_basin`` when that reaches a lower MAP cost: the magnetometer carried
+#: position information and the optimiser did not use it. 0.2, the criterion of
+#: ``make bench-imu`` (casmag.experiments.imubench.MAP_RATIO): at 0.5, handwriting seed 20
+#: (0.0577 m from 0.1519 m, ratio 0.38; right-basin seeds reach 0.001-0.003 m) was reported
+#: as a trusted success although the solve from the truth reaches MAP cost 437 against 699.
+WRONG_BASIN_RATIO = 0.2
 
 #: A GP-SLAM estimate more than this factor worse (position RMSE) than the IMU-only
 #: adjustment, where the solve from the truth does not find a lower MAP cost, is flagged
@@ -734,7 +738,7 @@ def build_imu(s: ImuStructure) -> NLP:
         b.residual("magnetometer", f(D.T, RNOM.T, Mf.T, c, Y.T, sigma_m))
         b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
         del sigma_f, ell  # read by the prior from p
-        # Every symbol is declared: the numpy prior (casmag.gp.exact) sees the full vectors.
+        # Every symbol is declared: the numpy prior (casmag.model.exact) sees the full vectors.
         gp = add_exact_prior(
             b, get_kernel(s.kernel), Knots(K, 1), 3, s.jitter, positions="dP", dead_reckoning="PNOM"
         )

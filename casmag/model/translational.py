@@ -29,7 +29,7 @@ import numpy as np
 import scipy.linalg
 
 from casmag.data.simulate import Dataset
-from casmag.gp.exact import add_exact_prior
+from casmag.model.exact import add_exact_prior
 from casmag.gp.fieldmap import field_at, reduced_rank_std
 from casmag.gp.hyper import estimate_conditional
 from casmag.gp.kernels import FIELD_DIM, get_kernel
