@@ -7,9 +7,9 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from casmag.model.exact import ExactLayout, ExactPriorHessian, ExactPriorModel
 from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.reference import ExactGPPrior
+from casmag.model.exact import ExactLayout, ExactPriorHessian, ExactPriorModel
 from casmag.model.knots import Knots
 
 

@@ -60,12 +60,12 @@ import scipy.sparse
 from casmag import strapdown as sd
 from casmag.data.checks import lengthscale_warnings
 from casmag.data.imusim import ImuData, simulate_imu
-from casmag.model.exact import add_exact_prior
 from casmag.gp.fieldmap import map_arrays, unwhitened
 from casmag.gp.hyper import FieldEvidence, HyperEstimate, estimate_hyperparameters
 from casmag.gp.hyper import field_evidence as _field_evidence
 from casmag.gp.kernels import FIELD_DIM, field_covariance, get_kernel
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.model.exact import add_exact_prior
 from casmag.model.knots import Knots
 from casmag.model.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
 from casmag.nlp import NLP, STALLED, NLPBuilder, Solution

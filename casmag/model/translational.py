@@ -29,11 +29,11 @@ import numpy as np
 import scipy.linalg
 
 from casmag.data.simulate import Dataset
-from casmag.model.exact import add_exact_prior
 from casmag.gp.fieldmap import field_at, reduced_rank_std
 from casmag.gp.hyper import estimate_conditional
 from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.model.exact import add_exact_prior
 from casmag.model.knots import Knots
 from casmag.model.rrmap import (
     GaussNewtonHessian,
