@@ -138,6 +138,7 @@ def test_a_result_saved_in_the_layout_before_the_one_result_still_loads(tmp_path
     (tmp_path / "translational" / "result.json").write_text(json.dumps(old))
     t = Result.load(tmp_path / "translational")
     assert [s["name"] for s in t.stages] == ["start", "prefix", "prefix"]
+    assert t.info["warm_start"] == "growing"
     assert t.stages[2] == {"name": "prefix", "samples": 800, "iterations": 4}
     p = Result.load(tmp_path / "planar")
     assert p.motion == "planar" and p.odometry_bias == [0.001] and p.info["num_basis"] == 120

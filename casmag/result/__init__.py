@@ -331,9 +331,11 @@ def upgrade_layout(data: dict[str, Any]) -> dict[str, Any]:
     stages = [{"name": "start", **s} for s in info.pop("two_starts", None) or []]
     stages += [{"name": "start", **s} for s in info.pop("session_stages", None) or []]
     if isinstance(info.get("warm_start"), list):
-        records = info.pop("warm_start")
-        stages += [{"name": s.pop("kind", "prefix"), **s} for s in map(dict, records)]
-        info["warm_start"] = "recorded in stages"
+        records = [{"name": s.pop("kind", "prefix"), **s} for s in map(dict, info["warm_start"])]
+        names = {s["name"] for s in records}
+        strategy = {"window": "sliding", "lengthscale": "coarse-to-fine", "prefix": "growing"}
+        info["warm_start"] = next((v for k, v in strategy.items() if k in names), "none")
+        stages += records
     return {**data, "info": info, "motion": "translational", "stages": stages}
 
 
