@@ -13,6 +13,7 @@ from typing import Any
 
 import click
 
+from casmag.cli.sweep import sweep_command
 from casmag.cli.tools import (
     EXIT_BAD_INPUT,
     EXIT_SOLVER_FAILED,
@@ -29,7 +30,6 @@ from casmag.cli.tools import (
     with_evaluation,
 )
 from casmag.errors import CasmagError
-from casmag.experiments.sweep import sweep_command
 
 
 @click.group(cls=CasmagGroup, context_settings={"help_option_names": ["-h", "--help"]})
