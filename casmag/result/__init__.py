@@ -19,6 +19,7 @@ import numpy as np
 
 from casmag.errors import DataError
 from casmag.result.evaluation import evaluate_result
+from casmag.result.metrics import rmse_and_max
 from casmag.result.outdir import save_atomic
 from casmag.result.verdict import verdict
 
@@ -119,6 +120,38 @@ class Result:
     def trusted(self) -> bool:
         """Solved, and the verdict found nothing against the estimate (casmag.result.verdict)."""
         return bool(self.verdict and self.verdict["trusted"])
+
+    @classmethod
+    def odometry_only(
+        cls,
+        motion: str,
+        info: dict[str, Any],
+        P: np.ndarray,
+        P_true: np.ndarray | None,
+        arrays: dict[str, Any] | None = None,
+        **fields: Any,
+    ) -> Result:
+        """The dead reckoning P as the result, no solve (status ``Odometry_Only``): its
+        errors before and after are the same; ``arrays`` and ``fields`` add the rest."""
+        e = (None, None) if P_true is None else rmse_and_max(P, P_true)
+        return cls(
+            motion=motion,
+            info=info,
+            status="Odometry_Only",
+            success=True,
+            iterations=0,
+            build_seconds=0.0,
+            solve_seconds=0.0,
+            rmse_before=e[0],
+            max_before=e[1],
+            rmse_after=e[0],
+            max_after=e[1],
+            hyperparameters=fields.pop("hyperparameters", {}),
+            cost_blocks={},
+            cost_per_iteration=[],
+            arrays={"P_odometry": P, "P_estimate": P, "P_true": P_true, **(arrays or {})},
+            **fields,
+        )
 
     def stages_named(self, name: str) -> list[dict[str, Any]]:
         """The records in ``stages`` with this name (e.g. ``gp_slam``: every pass)."""

@@ -37,7 +37,6 @@ from casmag.problem.spec import (
 )
 from casmag.result import Result
 from casmag.result.evaluation import anchor_info
-from casmag.result.metrics import rmse_and_max
 from casmag.result.verdict import revisit_pairs
 from casmag.solver.api import solve
 from casmag.solver.multisession import (
@@ -244,12 +243,10 @@ def odometry_only(problem: Problem, data: Dataset, reason: str) -> Result:
         var = problem.spec.model.anchor.sigma**2 + sigma_o**2 * k + (sigma_b * k) ** 2
         u = PositionUncertainty(var[:, None, None] * np.eye(data.dim))
         summary = u.summary(P, data.P_true)
-    before = after = (None, None)
-    if data.P_true is not None:
-        before = after = rmse_and_max(P, data.P_true)
     hyper = problem.assumed_hyperparameters
-    return Result(
-        info={
+    return Result.odometry_only(
+        "translational",
+        {
             "name": problem.name,
             "source": problem.source,
             "n_samples": data.n_samples,
@@ -258,32 +255,15 @@ def odometry_only(problem: Problem, data: Dataset, reason: str) -> Result:
             "casmag": __version__,
             "versions": versions(),
         },
-        status="Odometry_Only",
-        success=True,
-        iterations=0,
-        build_seconds=0.0,
-        solve_seconds=0.0,
-        rmse_before=before[0],
-        max_before=before[1],
-        rmse_after=after[0],
-        max_after=after[1],
+        P,
+        data.P_true,
+        arrays={"Y": data.Y, "P_cov": None if u is None else u.cov},
         hyperparameters=hyper,
         hyperparameters_initial=dict(hyper),
-        odometry_bias=None,
         odometry_bias_true=None
         if data.bias_true is None
         else [float(v) for v in np.ravel(data.bias_true)],
-        cost_blocks={},
-        cost_per_iteration=[],
-        constraint_violation_per_iteration=[],
         uncertainty=summary,
-        arrays={
-            "P_odometry": P,
-            "P_estimate": P,
-            "P_true": data.P_true,
-            "Y": data.Y,
-            "P_cov": None if u is None else u.cov,
-        },
     )
 
 
@@ -684,29 +664,14 @@ def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
     p0 = P_true[0] if known else np.zeros(2)
     psi0 = float(rec.yaw_true[0]) if known and rec.yaw_true is not None else 0.0
     P, psi = dead_reckon_planar(rec.increments, np.asarray(p0, dtype=float), psi0)
-    errors = (None, None) if P_true is None else rmse_and_max(P, P_true)
     heading = None
     if P_true is not None and rec.yaw_true is not None:
         wrapped = np.angle(np.exp(1j * (psi - rec.yaw_true)))
         heading = float(np.degrees(np.sqrt(np.mean(wrapped**2))))
-    name = Path(rec.path).stem
-    return Result(
-        motion="planar",
-        status="Odometry_Only",
-        success=True,
-        iterations=0,
-        build_seconds=0.0,
-        solve_seconds=0.0,
-        rmse_before=errors[0],
-        max_before=errors[1],
-        rmse_after=errors[0],
-        max_after=errors[1],
-        details={"heading_rms_deg_before": heading, "heading_rms_deg_after": heading},
-        hyperparameters={},
-        cost_blocks={},
-        cost_per_iteration=[],
-        info={
-            "name": name,
+    return Result.odometry_only(
+        "planar",
+        {
+            "name": Path(rec.path).stem,
             "samples": int(rec.n_samples),
             "num_basis": 0,
             "anchor": {
@@ -721,13 +686,13 @@ def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
             "casmag": __version__,
             "versions": versions(),
         },
+        P,
+        P_true,
         arrays={
             "t": rec.t,
-            "P_odometry": P,
             "psi_odometry": psi,
-            "P_estimate": P,
             "psi_estimate": psi,
-            "P_true": P_true,
             "psi_true": rec.yaw_true if P_true is not None else None,
         },
+        details={"heading_rms_deg_before": heading, "heading_rms_deg_after": heading},
     )
