@@ -18,15 +18,11 @@ from casmag.data.dipoles import Dipole, DipoleField, earth_field, moment_for
 from casmag.data.imusim import exact_increments, simulate_imu
 from casmag.errors import ProblemError
 from casmag.gp.reduced_rank import Domain, HilbertBasis
-from casmag.model.imu import (
-    SCHEDULE_MARGIN,
-    GaussNewtonBuilder,
-    add_reduced_rank_map,
-    averaged_magnetometer,
-    gauss_newton_for,
-    imu_rotation_function,
-    solve_imu,
-)
+from casmag.model.builder import Pose, Rotation
+from casmag.model.imu import SCHEDULE_MARGIN, averaged_magnetometer, solve_imu
+from casmag.model.knots import Knots
+from casmag.model.rotated import add_rotated_map, imu_rotation_function, rotated_gauss_newton
+from casmag.nlp import NLPBuilder
 from casmag.problem.imu import load_imu_problem
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -149,13 +145,14 @@ def _rotated_map_problem(kernel, rng, residual, mode="exact"):
     fit exactly when ``residual`` is 0, else carry that much noise."""
     n = 6
     basis = HilbertBasis(Domain(np.zeros(3), np.array([0.5, 0.5, 0.4])), 20)
-    b = GaussNewtonBuilder()
+    b = NLPBuilder()
     P = b.variable("P", (n, 3))
     D = b.variable("D", (n, 3))
     RNOM = b.parameter("RNOM", (n, 9))
-    rot = imu_rotation_function()
-    add_reduced_rank_map(b, basis, kernel, P, D, RNOM, rot, n, 3)
-    _, gn = gauss_newton_for(b, basis, kernel, rot, n, 3, "D", "RNOM", mode=mode)
+    rot = Rotation(imu_rotation_function(), D, "D", RNOM, "RNOM")
+    pose = Pose(P, n, 3, "P", None, Knots(n, 1), rot)
+    add_rotated_map(b, basis, kernel, pose)
+    _, gn = rotated_gauss_newton(b, basis, kernel, pose, mode=mode)
     x = ca.vertcat(*[ca.vec(s) for s in b._x.symbols])
     p = ca.vertcat(*[ca.vec(s) for s in b._p.symbols])
     vals = {

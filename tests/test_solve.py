@@ -8,7 +8,7 @@ from problem_files import TRANSLATIONAL
 
 import casmag
 from casmag.data.simulate import simulate_problem, spiral
-from casmag.model.translational import cached_nlp
+from casmag.model.builder import cached_slam
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEM_FILES = TRANSLATIONAL
@@ -69,10 +69,10 @@ def test_noise_free_with_bias_removes_the_drift():
 
 def test_build_once_reused_across_seeds():
     base = {"simulation": {"trajectory": {"samples": 13, "step": 0.047}}}  # a structure of its own
-    before = cached_nlp.cache_info()
+    before = cached_slam.cache_info()
     r1 = casmag.solve(casmag.load_problem({"seed": 1, **base}))
     r2 = casmag.solve(casmag.load_problem({"seed": 2, **base}))
-    info = cached_nlp.cache_info()
+    info = cached_slam.cache_info()
     assert info.misses - before.misses == 1 and info.hits - before.hits == 1
     assert r1.success and r2.success
     assert not np.allclose(r1.arrays["Y"], r2.arrays["Y"])

@@ -10,6 +10,7 @@ import pytest
 import casmag
 from casmag.data.simulate import simulate_problem
 from casmag.errors import ProblemError
+from casmag.model.builder import BUILDS, cached_slam
 from casmag.result.metrics import rmse_and_max
 from casmag.solver import sliding
 
@@ -69,10 +70,10 @@ def drifting():
     with the number of window NLPs built meanwhile."""
     problem = _spiral()
     data = simulate_problem(problem)
-    sliding.window_nlp.cache_clear()
-    before = sliding.BUILDS["window"]
+    cached_slam.cache_clear()
+    before = BUILDS["translational_window"]
     sm = sliding.fixed_lag_smoother(problem, data)
-    return problem, data, sm, sliding.BUILDS["window"] - before
+    return problem, data, sm, BUILDS["translational_window"] - before
 
 
 def test_one_window_nlp_serves_every_window_and_the_map_is_counted_once(drifting):

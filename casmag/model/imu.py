@@ -1,5 +1,5 @@
-"""Tightly-coupled IMU and magnetometer GP-SLAM (paper Eq. 1-3 and 6), and planar odometry
-with heading, as CasADi NLPs built with :class:`casmag.nlp.NLPBuilder`.
+"""Tightly-coupled IMU and magnetometer GP-SLAM (paper Eq. 1-3 and 6): the IMU motion model
+(:class:`ImuMotion`, a plug-in of casmag.model.builder) and its staged solve.
 
 IMU model. States at keyframes k = 0..K-1 (every n-th IMU sample): position p_k, velocity
 v_k, orientation q_k = qbar_k (1, d_k / 2) / |.| with a nominal qbar_k (a parameter) and a
@@ -37,11 +37,8 @@ field carries position information at all; when it does not (a homogeneous field
 result is the IMU-only adjustment (``model.gp.homogeneous``).
 
 Hessian: Gauss-Newton for the imu and magnetometer residuals (the magnetometer's dense map
-blocks formed with numpy in :class:`RotatedFieldGaussNewton`, optionally with its
-second-order terms, which make it exact), CasADi's exact Hessian for all other blocks.
-
-Planar model (:func:`solve_planar`): states (x, y, psi) per sample, inputs (dfwd, dleft,
-dyaw), a heading-rate bias (constant or random walk) and y = Rz(psi)^T (m(x) + c).
+blocks formed with numpy in casmag.model.rotated.RotatedFieldGaussNewton, optionally with
+its second-order terms, which make it exact), CasADi's exact Hessian for all other blocks.
 """
 
 from __future__ import annotations
@@ -65,12 +62,18 @@ from casmag.gp.hyper import FieldEvidence, HyperEstimate, estimate_hyperparamete
 from casmag.gp.hyper import field_evidence as _field_evidence
 from casmag.gp.kernels import FIELD_DIM, field_covariance, get_kernel
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
-from casmag.model.exact import add_exact_prior
+from casmag.model.builder import FieldModel, MotionModel, NoField, Pose, Rotation, cached_slam
+from casmag.model.field import ExactField, ReducedRankField
 from casmag.model.knots import Knots
-from casmag.model.rrmap import HessianCallback, curvature_terms, field_and_jacobians, make_basis
+from casmag.model.rotated import (
+    RotatedFieldGaussNewton,
+    imu_rotation_function,
+    ridge_weights,
+    whiten,
+)
+from casmag.model.rrmap import make_basis
 from casmag.nlp import NLP, STALLED, NLPBuilder, Solution
 from casmag.problem.imu import HYPER_SECONDS, ImuProblem, load_imu_problem
-from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.windowing import continues, grow
@@ -116,408 +119,6 @@ GROW_MISFIT = 2.0
 #: ``curvature: auto`` adds the magnetometer's second-order terms when the field's standard
 #: deviation per component is below this many sigma_m (``casmag.problem.imu.ImuGPSpec``).
 CURVATURE_BELOW = 5.0
-
-
-# --------------------------------------------------------------------------- builder
-class GaussNewtonBuilder(NLPBuilder):
-    """An :class:`NLPBuilder` whose least-squares blocks can each get a Gauss-Newton Hessian.
-
-    ``residual(name, r)`` adds the block 0.5 |r|^2 and remembers r; at build time IPOPT's
-    ``hess_lag`` is the exact CasADi Hessian of the other blocks plus J^T J of each residual
-    block (sparse, symbolic) plus the numpy Gauss-Newton callbacks given. The IMU residuals
-    need it: their exact Hessian is indefinite in the weakly determined drift directions,
-    and IPOPT's inertia correction then stalls (measured: 90 iterations at a cost plateau).
-    """
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.residuals: dict[str, ca.MX] = {}
-
-    def residual(self, name: str, r: ca.MX) -> None:
-        self.residuals[name] = ca.vec(r)
-        self.cost(name, 0.5 * ca.sumsqr(r))
-
-    def build_gauss_newton(
-        self, solver: SolverSpec, name: str, callbacks: dict[str, ca.Function] | None = None
-    ) -> NLP:
-        """Build with Gauss-Newton Hessians for the residual blocks and the callback's
-        block (by name, one at most); solver.hessian ``exact`` or ``limited-memory`` uses
-        IPOPT's usual Hessian for everything instead (callbacks unused)."""
-        callbacks = callbacks or {}
-        if len(callbacks) > 1:
-            raise ValueError("one Gauss-Newton callback at most")
-        if solver.hessian not in ("auto", "gauss-newton"):
-            return self.build(solver, name=name)
-        return self.build(
-            solver,
-            name=name,
-            gauss_newton=next(iter(callbacks.items()), None),
-            residuals=self.residuals,
-        )
-
-
-# --------------------------------------------------------------------------- rotations
-def imu_rotation_function() -> ca.Function:
-    """SX (d (3), rnom (9, column-major 3x3)) -> R = Rnom R(1, d / 2) (3, 3)."""
-    d, rnom = ca.SX.sym("d", 3), ca.SX.sym("rnom", 9)
-    R = ca.mtimes(ca.reshape(rnom, 3, 3), sd.ca_rotmat(sd.ca_gibbs(d)))
-    return ca.Function("imu_rotation", [d, rnom], [R])
-
-
-def planar_rotation_function() -> ca.Function:
-    """SX (psi (1), empty (0)) -> Rz(psi) (3, 3)."""
-    psi, aux = ca.SX.sym("psi"), ca.SX.sym("aux", 0)
-    c, s = ca.cos(psi), ca.sin(psi)
-    R = ca.vertcat(ca.horzcat(c, -s, 0), ca.horzcat(s, c, 0), ca.horzcat(0, 0, 1))
-    return ca.Function("planar_rotation", [psi, aux], [R])
-
-
-# --------------------------------------------------------------------------- Gauss-Newton
-@dataclass(frozen=True)
-class RotatedMapLayout:
-    """Where the magnetometer block's unknowns and data sit in the NLP's x and p vectors.
-
-    pos: (n, d) indices in x of each sample's position; rot: (n, r) indices in x of its
-    orientation unknowns; aux: (n, a) indices in p of its orientation parameters (the
-    nominal rotation), a may be 0; W, c: offsets of the map weights and the constant field
-    (None without one) in x; sigma_m: offset in p."""
-
-    n_x: int
-    n_p: int
-    pos: np.ndarray
-    pos_nominal: np.ndarray | None  # (n, d) indices in p added to x[pos] (error state)
-    rot: np.ndarray
-    aux: np.ndarray
-    W: int
-    c: int | None
-    sigma_m: int
-    Y: int | None = None
-    sigma_f: int | None = None  # with lengthscale: offsets in p; the x entries at W are then
-    lengthscale: int | None = None  # whitened weights V, map weights sqrt(S) V
-
-
-class RotatedFieldGaussNewton(HessianCallback):
-    """Gauss-Newton Hessian (upper triangle, not scaled by lam_f) of
-
-        0.5 sum_k |(y_k - R(o_k)^T (m(p_k) + c)) / sigma_m|^2
-
-    for a reduced-rank map m (``se`` or ``curl_free``). Per sample, the residual's Jacobian
-    with respect to its local unknowns (position and orientation) is L_k = -[R^T dm/dp,
-    d(R^T u)/do] / sigma_m; the weight block is that of the unrotated map (R R^T = I); the
-    sparsity pattern is fixed at construction and values are filled with numpy.
-
-    In mode ``exact``, and in mode ``hybrid`` once the block's cost stalls
-    (:class:`casmag.model.rrmap.HessianCallback`), the second-order terms are added: with
-    lam = -(y - R^T u) / sigma_m^2 and F(o, u) = lam . (R(o)^T u), the blocks F_oo, F_ou,
-    F_ou dm/dp and F_ou dm/dw (u = m + c is linear in w and c), the position-weight block
-    sum_b (R lam)_b d^2 m_b / dp dw and the field's own curvature in position
-    sum_b (R lam)_b d^2 m_b / dp dp (third derivatives of the basis for curl-free): the
-    block's exact Hessian. Measured on the homogeneous outdoor problem (one loop): 59
-    iterations without these terms (linear convergence along the accelerometer-bias/tilt
-    direction), 12 with CasADi's exact Hessian. In a strongly varying field the terms slow
-    the first iterations (rectangle: over 90 iterations with them from the start) but
-    Gauss-Newton alone converges only linearly near the solution (spiral seed 3: 150
-    iterations at a 3-5 % fall of the dual infeasibility per iteration), hence ``hybrid``
-    Hessian."""
-
-    #: hybrid: the exact terms once the block's cost falls by less than 1 % between
-    #: evaluations. At 20 % (the translational map's switch) they came in while still far
-    #: from the solution on weakly determined problems: handwriting seed 1, first prefix (31
-    #: keyframes, no revisit), 133 iterations against 16 at 1 % (every solve of that run
-    #: at most 37, 73 s against 138 s); spiral seed 3 11 + 16 against 13 + 28 iterations.
-    SWITCH = 0.01
-
-    def __init__(
-        self,
-        name: str,
-        basis: HilbertBasis,
-        kernel: str,
-        rotation: ca.Function,
-        layout: RotatedMapLayout,
-        mode: str = "hybrid",
-    ):
-        ca.Callback.__init__(self)
-        self.set_mode(mode)
-        self.basis, self.kernel, self.lay = basis, kernel, layout
-        self.n, self.d = layout.pos.shape
-        self.r = layout.rot.shape[1]
-        M = basis.num_basis
-        self.n_w = M * FIELD_DIM if kernel == "se" else M
-        o = ca.SX.sym("o", self.r)
-        aux = ca.SX.sym("aux", layout.aux.shape[1])
-        u = ca.SX.sym("u", 3)
-        R = rotation(o, aux)
-        Rtu = ca.mtimes(R.T, u)
-        self._rot = ca.Function("rot_jac", [o, aux, u], [ca.vec(R), ca.vec(ca.jacobian(Rtu, o))])
-        self._rot_map = self._rot.map(self.n)
-        lam = ca.SX.sym("lam", 3)
-        Hf = ca.hessian(ca.dot(lam, Rtu), ca.vertcat(o, u))[0]
-        r = self.r
-        self._curv = ca.Function(
-            "rot_curvature", [o, aux, u, lam], [ca.vec(Hf[:r, :r]), ca.vec(Hf[:r, r:])]
-        ).map(self.n)
-        self._pattern()
-        self.construct(name, {})
-
-    def _pattern(self) -> None:
-        lay, _n, M = self.lay, self.n, self.basis.num_basis
-        local = np.hstack([lay.pos, lay.rot])  # (n, nl)
-        nl = local.shape[1]
-        rows: list[np.ndarray] = []
-        cols: list[np.ndarray] = []
-
-        def add(r: Any, c: Any) -> None:
-            r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
-            rows.append(np.minimum(r, c).ravel())
-            cols.append(np.maximum(r, c).ravel())
-
-        for i in range(nl):
-            for j in range(i, nl):
-                add(local[:, i], local[:, j])
-        widx = lay.W + np.arange(self.n_w)
-        for i in range(nl):
-            add(local[:, i][:, None], widx[None, :])
-        iu = np.triu_indices(M)
-        if self.kernel == "se":
-            for b in range(FIELD_DIM):
-                add(lay.W + b * M + iu[0], lay.W + b * M + iu[1])
-        else:
-            add(lay.W + iu[0], lay.W + iu[1])
-        if lay.c is not None:
-            for b in range(FIELD_DIM):
-                for i in range(nl):
-                    add(local[:, i], lay.c + b)
-                add(widx, lay.c + b)
-                add(np.array([lay.c + b]), np.array([lay.c + b]))
-        self._set_pattern(np.concatenate(rows), np.concatenate(cols), lay.n_x, lay.n_p)
-        self._nl = nl
-
-    def _position_weight_curvature(
-        self, P: np.ndarray, mu: np.ndarray, w: np.ndarray
-    ) -> list[np.ndarray]:
-        """sum_b mu_b d^2 m_b / dp_j dw for each position axis j: (n, n_w) each."""
-        n, d = P.shape
-        if self.kernel == "se":
-            grads = self.basis.grad_phi(P)  # (n, D, M)
-            return [(mu[:, :, None] * grads[:, j, :][:, None, :]).reshape(n, -1) for j in range(d)]
-        H = self.basis.second_derivatives(P)
-        return [
-            sum(mu[:, b][:, None] * H[(min(b, j), max(b, j))] for b in range(FIELD_DIM))
-            for j in range(d)
-        ]
-
-    def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """The Hessian entries in the order of the pattern's triplets."""
-        lay, n, d, M = self.lay, self.n, self.d, self.basis.num_basis
-        P = x[lay.pos] if lay.pos_nominal is None else x[lay.pos] + p[lay.pos_nominal]
-        o = x[lay.rot]
-        aux = p[lay.aux] if lay.aux.shape[1] else np.zeros((n, 0))
-        w = x[lay.W : lay.W + self.n_w]
-        scale = np.ones(self.n_w)  # dW/dV per weight entry
-        if lay.sigma_f is not None and lay.lengthscale is not None:
-            S = self.basis.prior_variances(
-                self.kernel, float(p[lay.sigma_f]), float(p[lay.lengthscale])
-            )
-            scale = np.tile(np.sqrt(S), self.n_w // M)
-            w = w * scale
-        c = x[lay.c : lay.c + 3] if lay.c is not None else np.zeros(3)
-        inv = 1.0 / float(p[lay.sigma_m])
-        m, A, D = field_and_jacobians(self.basis, self.kernel, P, w)
-        Rv, Jv = self._rot_map(o.T, aux.T, (m + c).T)
-        R = np.asarray(Rv).T.reshape(n, 3, 3, order="F")  # R[k] = R_k
-        Jo = np.asarray(Jv).T.reshape(n, 3, self.r, order="F")
-        Jp = np.einsum("kba,kbj->kaj", R, D)  # R^T dm/dp
-        L = -inv * np.concatenate([Jp, Jo], axis=2)  # (n, 3, nl)
-        # Coefficients of du/d(w, c) in the local-map blocks: -R L / sigma (Gauss-Newton)
-        # plus F_ou (second order, orientation rows only).
-        G = -inv * np.einsum("kab,kbl->kal", R, L)
-        nl = self._nl
-        S = np.zeros((n, nl, nl))
-        exact = False
-        if self.mode != "gauss-newton":
-            Y = p[lay.Y : lay.Y + 3 * n].reshape(n, 3, order="F")
-            e = Y - np.einsum("kba,kb->ka", R, m + c)
-            exact = self._use_exact(0.5 * float(np.sum(e**2)) * inv * inv)
-            lam = -e * inv * inv
-        else:
-            self._use_exact(0.0)
-        if exact:
-            Foo, Fou = self._curv(o.T, aux.T, (m + c).T, lam.T)
-            Foo = np.asarray(Foo).T.reshape(n, self.r, self.r, order="F")
-            Fou = np.asarray(Fou).T.reshape(n, self.r, 3, order="F")
-            S[:, d:, d:] = Foo
-            S[:, d:, :d] = np.einsum("kib,kbj->kij", Fou, D)
-            S[:, :d, d:] = np.transpose(S[:, d:, :d], (0, 2, 1))
-            G[:, :, d:] += np.transpose(Fou, (0, 2, 1))
-            mu = np.einsum("kab,kb->ka", R, lam)  # dF/du = R lam
-            cross = self._position_weight_curvature(P, mu, w)
-            # The field's own curvature in position: sum_b mu_b d^2 m_b / dp dp (third
-            # derivatives of the basis for curl-free).
-            s2, _ = curvature_terms(self.basis, self.kernel, P, w, mu)
-            for (a, b), v in s2.items():
-                S[:, a, b] += v
-                if a != b:
-                    S[:, b, a] += v
-        out = []
-        for i in range(nl):
-            for j in range(i, nl):
-                out.append(np.einsum("ka,ka->k", L[:, :, i], L[:, :, j]) + S[:, i, j])
-        for i in range(nl):
-            if self.kernel == "se":
-                blk = G[:, :, i][:, :, None] * A[0][:, None, :]  # (n, 3, M): column b M + j
-                blk = blk.reshape(n, -1)
-            else:
-                blk = sum(G[:, b, i][:, None] * A[b] for b in range(FIELD_DIM))
-            if exact and i < d:
-                blk = blk + cross[i]
-            out.append(blk * scale)
-        iu = np.triu_indices(M)
-        inv2 = inv * inv
-        sm = scale[:M]  # the same per basis function for every field component
-        if self.kernel == "se":
-            H = (A[0].T @ A[0]) * inv2 * np.outer(sm, sm)
-            out.extend([H[iu]] * FIELD_DIM)
-        else:
-            H = sum(a.T @ a for a in A) * inv2 * np.outer(sm, sm)
-            out.append(H[iu])
-        if lay.c is not None:
-            for b in range(FIELD_DIM):
-                for i in range(nl):
-                    out.append(G[:, b, i])
-                if self.kernel == "se":
-                    v = np.zeros(self.n_w)
-                    v[b * M : (b + 1) * M] = A[0].sum(axis=0) * inv2
-                else:
-                    v = A[b].sum(axis=0) * inv2
-                out.append(v * scale)
-                out.append(np.array([n * inv2]))
-        return np.concatenate([np.ravel(v) for v in out])
-
-
-# --------------------------------------------------------------------------- map blocks
-def add_reduced_rank_map(
-    b: NLPBuilder,
-    basis: HilbertBasis,
-    kernel: str,
-    P: ca.MX,
-    O: ca.MX,
-    AUX: ca.MX | None,
-    rotation: ca.Function,
-    n: int,
-    dim: int,
-) -> tuple[ca.MX, ca.MX]:
-    """Weights, constant field and the blocks ``magnetometer``, ``gp_prior``,
-    ``constant_field_prior`` for a rotated magnetometer. The unknown named ``W`` holds the
-    whitened weights V (map weights sqrt(S) V, S the prior variances). Returns (W, c) with
-    W the map weights (an expression)."""
-    M = basis.num_basis
-    # Whitened weights V (the unknowns): W = sqrt(S) V, so the GP prior is 0.5 |V|^2. With
-    # W itself, the prior variances S span 6 orders of magnitude and IPOPT's gradient test
-    # stalls on the high-frequency weights (handwriting: max |dJ/dW| 0.026 at S = 1.4e-8,
-    # 3.9e-6 in whitened units) while the solution no longer moves.
-    V = b.variable("W", (M, FIELD_DIM) if kernel == "se" else (M, 1))
-    c = b.variable("c", (FIELD_DIM, 1))
-    Y = b.parameter("Y", (n, FIELD_DIM))
-    sigma_m = b.parameter("sigma_m", (1, 1))
-    sigma_f = b.parameter("sigma_f", (1, 1))
-    ell = b.parameter("lengthscale", (1, 1))
-    sigma_lin = b.parameter("sigma_lin", (1, 1))
-    fieldf = basis.field_sx(kernel, position_dim=dim)
-    x, y, sig = ca.SX.sym("x", dim), ca.SX.sym("y", FIELD_DIM), ca.SX.sym("sigma_m")
-    o = ca.SX.sym("o", O.shape[1])
-    n_aux = 0 if AUX is None else AUX.shape[1]
-    aux = ca.SX.sym("aux", n_aux)
-    S = basis.prior_variances(kernel, sigma_f, ell)
-    W = V * ca.repmat(ca.sqrt(S), 1, V.shape[1])
-    w_sx, c_sx = ca.SX.sym("w", *W.shape), ca.SX.sym("c", FIELD_DIM)
-    R = rotation(o, aux)
-    e = (y - ca.mtimes(R.T, fieldf(x, w_sx, c_sx))) / sig
-    resid = ca.Function("rotated_mag_residual", [x, o, aux, y, w_sx, c_sx, sig], [e])
-    aux_arg = AUX.T if AUX is not None else ca.MX(0, n)
-    E = resid.map(n, "serial")(P.T, O.T, aux_arg, Y.T, W, c, sigma_m)
-    b.cost("magnetometer", 0.5 * ca.sumsqr(E))
-    b.cost("gp_prior", 0.5 * ca.sumsqr(V))
-    b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
-    return W, c
-
-
-def gauss_newton_for(
-    b: NLPBuilder,
-    basis: HilbertBasis,
-    kernel: str,
-    rotation: ca.Function,
-    n: int,
-    dim: int,
-    rot_name: str,
-    aux_name: str | None,
-    mode: str = "hybrid",
-    pos_name: str = "P",
-    nominal_name: str | None = None,
-) -> tuple[str, RotatedFieldGaussNewton]:
-    n_x, n_p = b.sizes
-    r = 3 if rot_name == "D" else 1
-    k = np.arange(n)
-    pos = np.column_stack([b.offset(pos_name) + a * n + k for a in range(dim)])
-    pos_nominal = (
-        None
-        if nominal_name is None
-        else np.column_stack([b.offset(nominal_name, "p") + a * n + k for a in range(dim)])
-    )
-    rot = np.column_stack([b.offset(rot_name) + a * n + k for a in range(r)])
-    if aux_name is None:
-        aux = np.zeros((n, 0), dtype=np.int64)
-    else:
-        aux = np.column_stack([b.offset(aux_name, "p") + a * n + k for a in range(9)])
-    layout = RotatedMapLayout(
-        n_x=n_x,
-        n_p=n_p,
-        pos=pos,
-        pos_nominal=pos_nominal,
-        rot=rot,
-        aux=aux,
-        W=b.offset("W"),
-        c=b.offset("c"),
-        sigma_m=b.offset("sigma_m", "p"),
-        Y=b.offset("Y", "p"),
-        sigma_f=b.offset("sigma_f", "p"),
-        lengthscale=b.offset("lengthscale", "p"),
-    )
-    return "magnetometer", RotatedFieldGaussNewton(
-        "rotated_mag_gauss_newton", basis, kernel, rotation, layout, mode
-    )
-
-
-def ridge_weights(
-    basis: HilbertBasis,
-    kernel: str,
-    P: np.ndarray,
-    M_local: np.ndarray,
-    c0: np.ndarray,
-    sigma_m: float,
-    sigma_f: float,
-    lengthscale: float,
-) -> np.ndarray:
-    """Posterior mean of the map weights given the field samples M_local (N, 3) in the
-    local frame at positions P (N, d), with the constant c0 removed."""
-    S = basis.prior_variances(kernel, sigma_f, lengthscale)
-    Mb = basis.num_basis
-    zero = np.zeros(Mb * FIELD_DIM if kernel == "se" else Mb)
-    _, A, _ = field_and_jacobians(basis, kernel, P, zero)
-    Rr = M_local - c0
-    if kernel == "se":
-        G = A[0].T @ A[0] / sigma_m**2 + np.diag(1.0 / S)
-        return np.linalg.solve(G, A[0].T @ Rr / sigma_m**2)
-    G = sum(a.T @ a for a in A) / sigma_m**2 + np.diag(1.0 / S)
-    rhs = sum(A[q].T @ Rr[:, q] for q in range(FIELD_DIM)) / sigma_m**2
-    return np.linalg.solve(G, rhs).reshape(-1, 1)
-
-
-def whiten(
-    basis: HilbertBasis, kernel: str, sigma_f: float, lengthscale: float, W: np.ndarray
-) -> np.ndarray:
-    """Map weights W (M, k) -> the NLP's whitened weights V = W / sqrt(S) (same shape)."""
-    S = basis.prior_variances(kernel, sigma_f, lengthscale)
-    return W / np.sqrt(S)[:, None]
 
 
 # --------------------------------------------------------------------------- IMU NLP
@@ -643,120 +244,116 @@ def imu_nominal_terms(
     }
 
 
-def build_imu(s: ImuStructure) -> NLP:
-    """Build the IMU (GP-SLAM or IMU-only) NLP of a structure (use :func:`cached_imu_nlp`)."""
-    b = GaussNewtonBuilder()
-    K, n = s.K, s.n
-    dP = b.variable("dP", (K, 3))
-    dV = b.variable("dV", (K, 3))
-    D = b.variable("D", (K, 3))
-    Kb = K if s.bias == "random_walk" else 1
-    BW = b.variable("BW", (Kb, 3))
-    BA = b.variable("BA", (Kb, 3))
-    # The nominal trajectory and what the residual needs of it (imu_nominal_terms).
-    RNOM = b.parameter("RNOM", (K, 9))
-    PNOM = b.parameter("PNOM", (K, 3))
-    VNOM = b.parameter("VNOM", (K, 3))
-    nom = {
-        name: b.parameter(name, (K - 1, w))
-        for name, w in (
-            ("BBAR", 6), ("IMU_Y", 6), ("IMU_E0", 6), ("IMU_J", 54), ("QRES", 4), ("RREL_T", 9)
-        )
-    }  # fmt: skip
-    LINV = b.parameter("LINV", (K - 1, 81))
-    p0, v0 = b.parameter("p0", (1, 3)), b.parameter("v0", (1, 3))
-    sig = {
-        k: b.parameter(k, (1, 1))
-        for k in ("sigma_p0", "sigma_v0", "sigma_tilt", "sigma_yaw", "sigma_bw0", "sigma_ba0")
-    }
-    if s.bias == "random_walk":
-        BWi, BAi = BW[:-1, :], BA[:-1, :]
-    else:
-        BWi, BAi = ca.repmat(BW, K - 1, 1), ca.repmat(BA, K - 1, 1)
-    resid = imu_residual_function().map(K - 1, "serial")
-    E = resid(
-        dP[:-1, :].T, dV[:-1, :].T, D[:-1, :].T, dP[1:, :].T, dV[1:, :].T, D[1:, :].T,
-        BWi.T, BAi.T, nom["BBAR"].T, nom["IMU_Y"].T, nom["IMU_E0"].T, nom["IMU_J"].T,
-        nom["QRES"].T, nom["RREL_T"].T, RNOM[:-1, :].T, LINV.T, n * s.T,
-    )  # fmt: skip
-    P = PNOM + dP  # absolute positions for the map and the priors (weakly curved there)
-    if s.imu_hessian == "exact":
-        b.cost("imu", 0.5 * ca.sumsqr(E))
-    else:
-        b.residual("imu", E)
-    if s.bias == "random_walk":
-        rw_w, rw_a = b.parameter("sigma_walk_w", (1, 1)), b.parameter("sigma_walk_a", (1, 1))
-        dt = n * s.T
-        b.cost(
-            "bias_walk",
-            0.5 * ca.sumsqr((BW[1:, :] - BW[:-1, :]) / (rw_w * np.sqrt(dt)))
-            + 0.5 * ca.sumsqr((BA[1:, :] - BA[:-1, :]) / (rw_a * np.sqrt(dt))),
-        )
-    b.cost(
-        "bias_prior",
-        0.5 * ca.sumsqr(BW[0, :] / sig["sigma_bw0"]) + 0.5 * ca.sumsqr(BA[0, :] / sig["sigma_ba0"]),
-    )
-    # Error of the first orientation against the known one, as a small rotation in the
-    # local (world) frame (tilt: x, y; yaw: z): of qnom_0 (1, d_0 / 2) q0^-1. Against q0
-    # itself, not the nominal, which moves to each stage's estimate.
-    QNOM0, Q0 = b.parameter("QNOM0", (1, 4)), b.parameter("q0", (1, 4))
-    eps = sd.ca_rotation_residual(
-        sd.ca_quat_mul(sd.ca_quat_mul(QNOM0.T, sd.ca_gibbs(D[0, :].T)), sd.ca_quat_conj(Q0.T))
-    )
-    b.cost(
-        "initial_state",
-        0.5 * ca.sumsqr((dP[0, :] + (PNOM[0, :] - p0)) / sig["sigma_p0"])
-        + 0.5 * ca.sumsqr((dV[0, :] + (VNOM[0, :] - v0)) / sig["sigma_v0"])
-        + 0.5 * ca.sumsqr(eps[0:2] / sig["sigma_tilt"])
-        + 0.5 * (eps[2] / sig["sigma_yaw"]) ** 2,
-    )
-    if s.zero_position:
-        sz = b.parameter("sigma_zero", (1, 1))
-        if s.zero_centre == "free":
-            centre = b.variable("zero_centre", (1, 3))
+@dataclass(frozen=True)
+class ImuMotion(MotionModel):
+    """The IMU model at K keyframes, n IMU intervals of T s apart: error-state unknowns
+    dP, dV, D about a nominal trajectory, biases BW, BA (per keyframe or constant), the
+    blocks ``imu`` (a residual: Gauss-Newton, or CasADi's exact Hessian with
+    ``imu_hessian: exact``), ``bias_walk``, ``bias_prior``, ``initial_state`` and
+    ``zero_position``; the field is read in the body frame R = Rnom R(1, D / 2)."""
+
+    K: int
+    n: int
+    T: float
+    bias: str = "random_walk"
+    zero_position: bool = False
+    zero_centre: str = "start"
+    imu_hessian: str = "gauss-newton"
+    name = "imu"
+
+    def declare(self, b: NLPBuilder) -> Pose:
+        K, n = self.K, self.n
+        dP = b.variable("dP", (K, 3))
+        dV = b.variable("dV", (K, 3))
+        D = b.variable("D", (K, 3))
+        Kb = K if self.bias == "random_walk" else 1
+        BW = b.variable("BW", (Kb, 3))
+        BA = b.variable("BA", (Kb, 3))
+        # The nominal trajectory and what the residual needs of it (imu_nominal_terms).
+        RNOM = b.parameter("RNOM", (K, 9))
+        PNOM = b.parameter("PNOM", (K, 3))
+        VNOM = b.parameter("VNOM", (K, 3))
+        nom = {
+            name: b.parameter(name, (K - 1, w))
+            for name, w in (
+                ("BBAR", 6), ("IMU_Y", 6), ("IMU_E0", 6), ("IMU_J", 54), ("QRES", 4), ("RREL_T", 9)
+            )
+        }  # fmt: skip
+        LINV = b.parameter("LINV", (K - 1, 81))
+        p0, v0 = b.parameter("p0", (1, 3)), b.parameter("v0", (1, 3))
+        sig = {
+            k: b.parameter(k, (1, 1))
+            for k in ("sigma_p0", "sigma_v0", "sigma_tilt", "sigma_yaw", "sigma_bw0", "sigma_ba0")
+        }
+        if self.bias == "random_walk":
+            BWi, BAi = BW[:-1, :], BA[:-1, :]
         else:
-            centre = p0
-        b.cost("zero_position", 0.5 * ca.sumsqr((P - ca.repmat(centre, K, 1)) / sz))
-    solver = SolverSpec.model_validate_json(s.solver)
-    rotation = imu_rotation_function()
-    if s.form == "none":
-        return b.build_gauss_newton(solver, name="casmag_imu_only")
-    if s.form == "exact":
-        # Field = constant c (Earth's) + a GP variation F at the keyframes; without c the GP
-        # prior would reward spreading the positions to decorrelate Earth's field.
-        Mf = b.variable("M", (K, FIELD_DIM))
-        c = b.variable("c", (FIELD_DIM, 1))
-        Y = b.parameter("Y", (K, FIELD_DIM))
-        sigma_m = b.parameter("sigma_m", (1, 1))
-        sigma_f = b.parameter("sigma_f", (1, 1))
-        ell = b.parameter("lengthscale", (1, 1))
-        sigma_lin = b.parameter("sigma_lin", (1, 1))
-        d, rn, m_, y_ = ca.SX.sym("d", 3), ca.SX.sym("rn", 9), ca.SX.sym("m", 3), ca.SX.sym("y", 3)
-        sg, c_ = ca.SX.sym("s"), ca.SX.sym("c", 3)
-        e = (y_ - ca.mtimes(rotation(d, rn).T, m_ + c_)) / sg
-        f = ca.Function("mag_exact", [d, rn, m_, c_, y_, sg], [e]).map(K, "serial")
-        b.residual("magnetometer", f(D.T, RNOM.T, Mf.T, c, Y.T, sigma_m))
-        b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
-        del sigma_f, ell  # read by the prior from p
-        # Every symbol is declared: the numpy prior (casmag.model.exact) sees the full vectors.
-        gp = add_exact_prior(
-            b, get_kernel(s.kernel), Knots(K, 1), 3, s.jitter, positions="dP", dead_reckoning="PNOM"
+            BWi, BAi = ca.repmat(BW, K - 1, 1), ca.repmat(BA, K - 1, 1)
+        resid = imu_residual_function().map(K - 1, "serial")
+        E = resid(
+            dP[:-1, :].T, dV[:-1, :].T, D[:-1, :].T, dP[1:, :].T, dV[1:, :].T, D[1:, :].T,
+            BWi.T, BAi.T, nom["BBAR"].T, nom["IMU_Y"].T, nom["IMU_E0"].T, nom["IMU_J"].T,
+            nom["QRES"].T, nom["RREL_T"].T, RNOM[:-1, :].T, LINV.T, n * self.T,
+        )  # fmt: skip
+        P = PNOM + dP  # absolute positions for the map and the priors (weakly curved there)
+        if self.imu_hessian == "exact":
+            b.cost("imu", 0.5 * ca.sumsqr(E))
+        else:
+            b.residual("imu", E)
+        if self.bias == "random_walk":
+            rw_w, rw_a = b.parameter("sigma_walk_w", (1, 1)), b.parameter("sigma_walk_a", (1, 1))
+            dt = n * self.T
+            b.cost(
+                "bias_walk",
+                0.5 * ca.sumsqr((BW[1:, :] - BW[:-1, :]) / (rw_w * np.sqrt(dt)))
+                + 0.5 * ca.sumsqr((BA[1:, :] - BA[:-1, :]) / (rw_a * np.sqrt(dt))),
+            )
+        b.cost(
+            "bias_prior",
+            0.5 * ca.sumsqr(BW[0, :] / sig["sigma_bw0"])
+            + 0.5 * ca.sumsqr(BA[0, :] / sig["sigma_ba0"]),
         )
-        if solver.hessian == "exact":
-            return b.build(solver, name="casmag_imu_exact", gauss_newton=gp)
-        return b.build_gauss_newton(solver, name="casmag_imu_exact", callbacks=dict([gp]))
-    basis = s.hilbert_basis()
-    add_reduced_rank_map(b, basis, s.kernel, P, D, RNOM, rotation, K, 3)
-    block, gn = gauss_newton_for(
-        b, basis, s.kernel, rotation, K, 3, "D", "RNOM", pos_name="dP", nominal_name="PNOM"
-    )
-    return b.build_gauss_newton(solver, name="casmag_imu_rr", callbacks={block: gn})
+        # Error of the first orientation against the known one, as a small rotation in the
+        # local (world) frame (tilt: x, y; yaw: z): of qnom_0 (1, d_0 / 2) q0^-1. Against q0
+        # itself, not the nominal, which moves to each stage's estimate.
+        QNOM0, Q0 = b.parameter("QNOM0", (1, 4)), b.parameter("q0", (1, 4))
+        eps = sd.ca_rotation_residual(
+            sd.ca_quat_mul(sd.ca_quat_mul(QNOM0.T, sd.ca_gibbs(D[0, :].T)), sd.ca_quat_conj(Q0.T))
+        )
+        b.cost(
+            "initial_state",
+            0.5 * ca.sumsqr((dP[0, :] + (PNOM[0, :] - p0)) / sig["sigma_p0"])
+            + 0.5 * ca.sumsqr((dV[0, :] + (VNOM[0, :] - v0)) / sig["sigma_v0"])
+            + 0.5 * ca.sumsqr(eps[0:2] / sig["sigma_tilt"])
+            + 0.5 * (eps[2] / sig["sigma_yaw"]) ** 2,
+        )
+        if self.zero_position:
+            sz = b.parameter("sigma_zero", (1, 1))
+            if self.zero_centre == "free":
+                centre = b.variable("zero_centre", (1, 3))
+            else:
+                centre = p0
+            b.cost("zero_position", 0.5 * ca.sumsqr((P - ca.repmat(centre, K, 1)) / sz))
+        rotation = Rotation(imu_rotation_function(), D, "D", RNOM, "RNOM")
+        return Pose(P, K, 3, "dP", "PNOM", Knots(K, 1), rotation)
 
 
-@lru_cache(maxsize=8)
+def imu_field(s: ImuStructure) -> FieldModel:
+    """The field model of an IMU structure: none (the IMU-only adjustment), the exact GP at
+    the keyframes or the reduced-rank map, each with Earth's field as a constant (without
+    it the GP prior would reward spreading the positions to decorrelate Earth's field)."""
+    if s.form == "none":
+        return NoField()
+    if s.form == "exact":
+        return ExactField(s.kernel, s.jitter, constant_field=True)
+    # MUMPS's own ordering: the IMU solves were measured with it (METIS not measured here).
+    return ReducedRankField(s.kernel, s.basis, constant_field=True, metis=False)
+
+
 def cached_imu_nlp(s: ImuStructure) -> NLP:
     """The built NLP for a structure, built once per process."""
-    return build_imu(s)
+    motion = ImuMotion(s.K, s.n, s.T, s.bias, s.zero_position, s.zero_centre, s.imu_hessian)
+    return cached_slam(motion, imu_field(s), s.solver)
 
 
 # --------------------------------------------------------------------------- IMU solve

@@ -1,14 +1,13 @@
 """The planar odometry-with-heading model of ``casmag slam`` on a recording with
 ``dfwd,dleft,dyaw`` columns: states (x, y, psi) per sample, a heading-rate bias (constant or
 a random walk) and a reduced-rank map read in the body frame, y = Rz(psi)^T (m(x) + c),
-as one CasADi NLP solved by IPOPT (:func:`solve_planar`, :func:`solve_planar_recording`).
-Its map block and Gauss-Newton Hessian are the IMU model's (casmag.model.imu) with a
-rotation about z."""
+as one CasADi NLP solved by IPOPT (:func:`solve_planar`, :func:`solve_planar_recording`):
+:class:`PlanarMotion` with the reduced-rank field model read through a rotation about z
+(casmag.model.field, casmag.model.rotated), put together by casmag.model.builder."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -21,19 +20,14 @@ from casmag.errors import DataError
 from casmag.gp.fieldmap import map_arrays, unwhitened
 from casmag.gp.hyper import estimate_hyperparameters
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
-from casmag.model.imu import (
-    GaussNewtonBuilder,
-    Progress,
-    add_reduced_rank_map,
-    gauss_newton_for,
-    planar_rotation_function,
-    ridge_weights,
-    whiten,
-)
+from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
+from casmag.model.field import ReducedRankField
+from casmag.model.imu import Progress
+from casmag.model.knots import Knots
+from casmag.model.rotated import planar_rotation_function, ridge_weights, whiten
 from casmag.model.rrmap import make_basis
-from casmag.nlp import NLP, lowest_cost
+from casmag.nlp import NLP, NLPBuilder, lowest_cost
 from casmag.problem.imu import PlanarOptions
-from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.windowing import grow, stage_lengths
@@ -64,73 +58,78 @@ class PlanarStructure:
     def hilbert_basis(self) -> HilbertBasis:
         return cached_basis(self.basis)
 
-
-def build_planar(s: PlanarStructure) -> NLP:
-    """The planar GP-SLAM NLP: states (x, y, psi) per sample, heading-rate bias, reduced-rank
-    map, magnetometer y = Rz(psi)^T (m(x) + c)."""
-    b = GaussNewtonBuilder()
-    n = s.n
-    P = b.variable("P", (n, 2))
-    psi = b.variable("psi", (n, 1))
-    nb = n - 1 if s.bias == "random_walk" else 1
-    bias = b.variable("bias", (nb, 1))
-    U = b.parameter("U", (n - 1, 3))  # dfwd, dleft, dyaw
-    dt = b.parameter("dt", (n - 1, 1))
-    sig = {
-        k: b.parameter(k, (1, 1))
-        for k in ("sigma_disp", "sigma_dyaw", "sigma_bias0", "sigma_anchor", "sigma_psi0")
-    }
-    anchor = b.parameter("anchor", (1, 3))
-    p, p1, ps, ps1 = ca.SX.sym("p", 2), ca.SX.sym("p1", 2), ca.SX.sym("psi"), ca.SX.sym("psi1")
-    u, bb, h, sd_, sy = (
-        ca.SX.sym("u", 3),
-        ca.SX.sym("b"),
-        ca.SX.sym("dt"),
-        ca.SX.sym("sd"),
-        ca.SX.sym("sy"),
-    )
-    c, s_ = ca.cos(ps), ca.sin(ps)
-    step = ca.vertcat(c * u[0] - s_ * u[1], s_ * u[0] + c * u[1])
-    r = ca.vertcat((p1 - p - step) / sd_, (ps1 - ps - (u[2] - bb * h)) / sy)
-    f = ca.Function("planar_step", [p, p1, ps, ps1, u, bb, h, sd_, sy], [r]).map(n - 1, "serial")
-    B = bias if s.bias == "random_walk" else ca.repmat(bias, n - 1, 1)
-    E = f(
-        P[:-1, :].T,
-        P[1:, :].T,
-        psi[:-1].T,
-        psi[1:].T,
-        U.T,
-        B.T,
-        dt.T,
-        sig["sigma_disp"],
-        sig["sigma_dyaw"],
-    )
-    b.residual("odometry", E)
-    if s.bias == "random_walk":
-        walk = b.parameter("bias_walk", (1, 1))
-        b.cost("bias_walk", 0.5 * ca.sumsqr((bias[1:] - bias[:-1]) / (walk * ca.sqrt(dt[:-1]))))
-    b.cost("bias_prior", 0.5 * (bias[0] / sig["sigma_bias0"]) ** 2)
-    b.cost(
-        "anchor",
-        0.5 * ca.sumsqr((P[0, :] - anchor[0, :2]) / sig["sigma_anchor"])
-        + 0.5 * ((psi[0] - anchor[0, 2]) / sig["sigma_psi0"]) ** 2,
-    )
-    basis = s.hilbert_basis()
-    rotation = planar_rotation_function()
-    add_reduced_rank_map(b, basis, s.kernel, P, psi, None, rotation, n, 2)
-    mode = "exact" if s.curvature else "gauss-newton"
-    block, gn = gauss_newton_for(b, basis, s.kernel, rotation, n, 2, "psi", None, mode)
-    solver = SolverSpec.model_validate_json(s.solver)
-    if solver.linear_solver == "mumps" and "mumps_pivot_order" not in solver.ipopt:
-        # METIS, as for the translational map's arrow: the same iterates, 2.2 instead of
-        # 2.7 s per iteration on a 747-sample handheld recording (752 basis functions).
-        solver = solver.model_copy(update={"ipopt": {**solver.ipopt, "mumps_pivot_order": 5}})
-    return b.build_gauss_newton(solver, name="casmag_planar", callbacks={block: gn})
+    def field(self) -> ReducedRankField:
+        """The reduced-rank map with a constant field; with ``curvature`` its Hessian
+        callback carries the second-order terms from the start (exact), else Gauss-Newton."""
+        mode = "exact" if self.curvature else "gauss-newton"
+        return ReducedRankField(self.kernel, self.basis, constant_field=True, curvature=mode)
 
 
-@lru_cache(maxsize=4)
+@dataclass(frozen=True)
+class PlanarMotion(MotionModel):
+    """States (x, y, psi) per sample: the odometry residual of the body-frame increments
+    (dfwd, dleft, dyaw) turned by the heading, a heading-rate bias (``constant`` or a
+    ``random_walk``) with its prior, the known start; the field is read in the body frame
+    y = Rz(psi)^T m(p)."""
+
+    n: int
+    bias: str = "constant"
+    name = "planar"
+
+    def declare(self, b: NLPBuilder) -> Pose:
+        n = self.n
+        P = b.variable("P", (n, 2))
+        psi = b.variable("psi", (n, 1))
+        nb = n - 1 if self.bias == "random_walk" else 1
+        bias = b.variable("bias", (nb, 1))
+        U = b.parameter("U", (n - 1, 3))  # dfwd, dleft, dyaw
+        dt = b.parameter("dt", (n - 1, 1))
+        sig = {
+            k: b.parameter(k, (1, 1))
+            for k in ("sigma_disp", "sigma_dyaw", "sigma_bias0", "sigma_anchor", "sigma_psi0")
+        }
+        anchor = b.parameter("anchor", (1, 3))
+        walk = b.parameter("bias_walk", (1, 1)) if self.bias == "random_walk" else None
+        p, p1, ps, ps1 = ca.SX.sym("p", 2), ca.SX.sym("p1", 2), ca.SX.sym("psi"), ca.SX.sym("psi1")
+        u, bb, h, sd_, sy = (
+            ca.SX.sym("u", 3),
+            ca.SX.sym("b"),
+            ca.SX.sym("dt"),
+            ca.SX.sym("sd"),
+            ca.SX.sym("sy"),
+        )
+        c, s_ = ca.cos(ps), ca.sin(ps)
+        step = ca.vertcat(c * u[0] - s_ * u[1], s_ * u[0] + c * u[1])
+        r = ca.vertcat((p1 - p - step) / sd_, (ps1 - ps - (u[2] - bb * h)) / sy)
+        f = ca.Function("planar_step", [p, p1, ps, ps1, u, bb, h, sd_, sy], [r])
+        B = bias if self.bias == "random_walk" else ca.repmat(bias, n - 1, 1)
+        E = f.map(n - 1, "serial")(
+            P[:-1, :].T,
+            P[1:, :].T,
+            psi[:-1].T,
+            psi[1:].T,
+            U.T,
+            B.T,
+            dt.T,
+            sig["sigma_disp"],
+            sig["sigma_dyaw"],
+        )
+        b.residual("odometry", E)
+        if walk is not None:
+            b.cost("bias_walk", 0.5 * ca.sumsqr((bias[1:] - bias[:-1]) / (walk * ca.sqrt(dt[:-1]))))
+        b.cost("bias_prior", 0.5 * (bias[0] / sig["sigma_bias0"]) ** 2)
+        b.cost(
+            "anchor",
+            0.5 * ca.sumsqr((P[0, :] - anchor[0, :2]) / sig["sigma_anchor"])
+            + 0.5 * ((psi[0] - anchor[0, 2]) / sig["sigma_psi0"]) ** 2,
+        )
+        rotation = Rotation(planar_rotation_function(), psi, "psi")
+        return Pose(P, n, 2, "P", None, Knots(n, 1), rotation)
+
+
 def cached_planar_nlp(s: PlanarStructure) -> NLP:
-    return build_planar(s)
+    """The planar model with the structure's reduced-rank map, built once per process."""
+    return cached_slam(PlanarMotion(s.n, s.bias), s.field(), s.solver)
 
 
 def dead_reckon_planar(U: np.ndarray, p0: np.ndarray, psi0: float, bias_dt: Any = 0.0) -> tuple:

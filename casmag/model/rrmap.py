@@ -43,7 +43,8 @@ class MapLayout:
     """Where the map's unknowns and the data sit in the NLP's x and p vectors.
 
     C: offset of the knot corrections (K, d) in x, column-major (casmag.model.knots; the positions
-    are P = Q + A C); Q, Y: offsets of the dead-reckoned positions (N, d) and of the
+    are P = Q + A C); Q, Y: offsets of the dead-reckoned positions (N, d) (None: the
+    positions are A C, the variables themselves with one knot per sample) and of the
     magnetometer samples (N, 3) in p, column-major; W: offset of
     weights (SE: (M, 3) column-major, curl-free: (M,)); c: offset of the constant field or
     None; sigma_m: offset of sigma_m in p.
@@ -52,7 +53,7 @@ class MapLayout:
     n_x: int
     n_p: int
     C: int
-    Q: int
+    Q: int | None
     Y: int
     W: int
     c: int | None
@@ -147,7 +148,10 @@ class MapModel:
         kn, d, lay = self.knots, self.dim, self.lay
         N = kn.n
         C = x[lay.C : lay.C + kn.count * d].reshape(kn.count, d, order="F")
-        Q = p[lay.Q : lay.Q + N * d].reshape(N, d, order="F")
+        if lay.Q is None:
+            Q = np.zeros((N, d))
+        else:
+            Q = p[lay.Q : lay.Q + N * d].reshape(N, d, order="F")
         w = x[lay.W : lay.W + self.n_w]
         c = x[lay.c : lay.c + FIELD_DIM] if lay.c is not None else np.zeros(FIELD_DIM)
         Y = p[lay.Y : lay.Y + N * FIELD_DIM].reshape(N, FIELD_DIM, order="F")

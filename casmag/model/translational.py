@@ -15,13 +15,14 @@ log sigma_f, log l. Named cost blocks (negative log-densities):
 - ``bias_prior``: 0.5 |b / sigma_b|^2, when a bias prior is set
 
 Data and fixed settings are NLP parameters, so one build serves every seed and every value
-of a fixed hyperparameter; the build is cached by the problem's structure.
+of a fixed hyperparameter; the build is cached by the problem's structure. The NLP is
+:class:`TranslationalMotion` with the structure's field model (casmag.model.field), put
+together by the one builder (casmag.model.builder).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any
 
 import casadi as ca
@@ -33,20 +34,12 @@ from casmag.gp.fieldmap import field_at, reduced_rank_std
 from casmag.gp.hyper import estimate_conditional
 from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
-from casmag.model.exact import add_exact_prior
+from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam
+from casmag.model.field import HYPERPARAMETERS, ExactField, ReducedRankField
 from casmag.model.knots import Knots
-from casmag.model.rrmap import (
-    GaussNewtonHessian,
-    MagnetometerCost,
-    MapLayout,
-    MapModel,
-    field_and_jacobians,
-    make_basis,
-)
+from casmag.model.rrmap import field_and_jacobians, make_basis
 from casmag.nlp import NLP, NLPBuilder, Solution, lowest_cost
-from casmag.problem.spec import Problem, SolverSpec
-
-HYPERPARAMETERS = ("sigma_f", "lengthscale", "sigma_m")
+from casmag.problem.spec import Problem
 
 
 @dataclass(frozen=True)
@@ -113,128 +106,71 @@ class Structure:
     def sessions(self) -> int:
         return len(self.starts)
 
+    def motion(self) -> TranslationalMotion:
+        return TranslationalMotion(
+            self.n,
+            self.dim,
+            self.knot_every,
+            self.starts,
+            self.estimate_bias,
+            "sigma" if self.bias_prior else "none",
+        )
 
-def _hyper(builder: NLPBuilder, name: str, estimated: bool) -> ca.MX:
-    """A positive hyperparameter: exp of a variable when estimated, else a parameter."""
-    if estimated:
-        return ca.exp(builder.variable(f"log_{name}", (1, 1)))
-    return builder.parameter(name, (1, 1))
-
-
-def _first(P: ca.MX, s: Structure) -> ca.MX:
-    """(S, d) first position of each session."""
-    return P[0, :] if s.sessions == 1 else P[list(s.starts), :]
-
-
-def build_translational(s: Structure) -> NLP:
-    """Build the translational GP-SLAM NLP for a structure (use :func:`cached_nlp`)."""
-    b = NLPBuilder()
-    knots = s.knots
-    C = b.variable("C", (knots.count, s.dim))
-    S = s.sessions
-    bias = b.variable("bias", (S, s.dim)) if s.estimate_bias else ca.MX.zeros(S, s.dim)
-    sigma_f, ell, sigma_m = (_hyper(b, h, h in s.estimate) for h in HYPERPARAMETERS)
-
-    Q = b.parameter("Q", (s.n, s.dim))
-    Y = b.parameter("Y", (s.n, FIELD_DIM))
-    anchor = b.parameter("anchor", (S, s.dim))
-    sigma_o = b.parameter("sigma_o", (1, 1))
-    sigma_a = b.parameter("sigma_anchor", (1, 1))
-
-    P = Q + (C if s.knot_every == 1 else ca.mtimes(knots.casadi_matrix(), C))
-    b.cost("odometry", knots.odometry_cost(C, bias, sigma_o))
-    if s.form == "reduced_rank":
-        return _build_reduced_rank(b, s, P, bias, anchor, sigma_f, ell, sigma_a)
-    M = b.variable("M", (s.n, FIELD_DIM))
-    sigma_b = b.parameter("sigma_bias", (1, 1)) if s.bias_prior else None
-    b.cost("magnetometer", 0.5 * ca.sumsqr((Y - M) / sigma_m))
-    # Every variable and parameter is declared: the numpy prior blocks see the full vectors.
-    kernel = get_kernel(s.kernel)
-    gp = add_exact_prior(b, kernel, s.knots, s.dim, s.jitter, s.estimate, s.logdet)
-    b.cost("anchor", 0.5 * ca.sumsqr((_first(P, s) - anchor) / sigma_a))
-    if s.bias_prior:
-        b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
-    solver = SolverSpec.model_validate_json(s.solver)
-    return b.build(solver, name="casmag_translational", gauss_newton=gp)
+    def field(self) -> FieldModel:
+        if self.form == "reduced_rank":
+            return ReducedRankField(self.kernel, self.basis, self.estimate, self.constant_field)
+        return ExactField(self.kernel, self.jitter, self.estimate, self.logdet)
 
 
-def add_map_magnetometer(
-    b: NLPBuilder,
-    basis: HilbertBasis,
-    kernel: str,
-    knots: Knots,
-    dim: int,
-    constant_field: bool,
-    name: str = "magnetometer",
-) -> MapModel:
-    """Add the reduced-rank map's magnetometer block (a numpy callback, casmag.model.rrmap) as
-    cost ``magnetometer``, reading C, W (and c) from the variables and Q, Y, sigma_m from the
-    parameters already declared on ``b``; declare every symbol first. Returns the model the
-    Hessian callback needs."""
-    n_x, n_p = b.sizes
-    model = MapModel(
-        basis,
-        kernel,
-        knots,
-        dim,
-        MapLayout(
-            n_x=n_x,
-            n_p=n_p,
-            C=b.offset("C"),
-            Q=b.offset("Q", "p"),
-            Y=b.offset("Y", "p"),
-            W=b.offset("W"),
-            c=b.offset("c") if constant_field else None,
-            sigma_m=b.offset("sigma_m", "p"),
-        ),
-    )
-    mag = b.retain(MagnetometerCost(name, model))
-    b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
-    return model
+@dataclass(frozen=True)
+class TranslationalMotion(MotionModel):
+    """Positions P = Q + A C: the dead reckoning Q (parameter) plus corrections C at knots
+    (casmag.model.knots), a per-session odometry bias (when estimated), the blocks
+    ``odometry``, ``anchor`` (each session's first position) and ``bias_prior``:
+    ``sigma`` (zero mean, ``sigma_bias``) or ``gaussian`` (``bias_mean``,
+    ``bias_precision``: a window's prior carried from the earlier windows)."""
 
+    n: int
+    dim: int
+    knot_every: int = 1
+    starts: tuple[int, ...] = (0,)
+    estimate_bias: bool = False
+    bias_prior: str = "none"  # "none", "sigma" or "gaussian"
+    name = "translational"
 
-def _build_reduced_rank(
-    b: NLPBuilder,
-    s: Structure,
-    P: ca.MX,
-    bias: ca.MX,
-    anchor: ca.MX,
-    sigma_f: ca.MX,
-    ell: ca.MX,
-    sigma_a: ca.MX,
-) -> NLP:
-    """Reduced-rank map: weights W (SE, (M, 3)) or w (curl-free, (M, 1)), optional constant
-    field c. The magnetometer block, its gradient and its Hessian are numpy callbacks
-    (casmag.model.rrmap) over the samples, which keeps the build O(1) in N."""
-    basis = s.hilbert_basis()
-    M = basis.num_basis
-    W = b.variable("W", (M, FIELD_DIM) if s.kernel == "se" else (M, 1))
-    c = b.variable("c", (FIELD_DIM, 1)) if s.constant_field else None
-    sigma_lin = b.parameter("sigma_lin", (1, 1)) if s.constant_field else None
-    sigma_b = b.parameter("sigma_bias", (1, 1)) if s.bias_prior else None
-    # Every variable and parameter is declared: the numpy blocks see the full vectors.
-    model = add_map_magnetometer(b, basis, s.kernel, s.knots, s.dim, s.constant_field)
-    S = basis.prior_variances(s.kernel, sigma_f, ell)  # (M, 1)
-    n_cols = W.shape[1]
-    b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2 / ca.repmat(S, 1, n_cols))))
-    if {"sigma_f", "lengthscale"} & set(s.estimate):
-        b.cost("gp_logdet", 0.5 * n_cols * ca.sum1(ca.log(S)))
-    if s.constant_field:
-        b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
-    b.cost("anchor", 0.5 * ca.sumsqr((_first(P, s) - anchor) / sigma_a))
-    if s.bias_prior:
-        b.cost("bias_prior", 0.5 * ca.sumsqr(bias / sigma_b))
-    solver = SolverSpec.model_validate_json(s.solver)
-    if solver.linear_solver == "mumps" and "mumps_pivot_order" not in solver.ipopt:
-        # METIS keeps the dense knot-weight border from filling the knot chain: one
-        # factorisation of a 4,000-knot x 650-weight arrow took 1.35 s against 7.0 s with
-        # MUMPS's default ordering (and AMD, AMF, PORD, QAMD).
-        solver = solver.model_copy(update={"ipopt": {**solver.ipopt, "mumps_pivot_order": 5}})
-    gn = None
-    if solver.hessian != "limited-memory":
-        mode = {"auto": "hybrid"}.get(solver.hessian, solver.hessian)
-        gn = ("magnetometer", GaussNewtonHessian("mag_hessian", model, mode=mode))
-    return b.build(solver, name="casmag_translational_rr", gauss_newton=gn)
+    @property
+    def knots(self) -> Knots:
+        return Knots(self.n, self.knot_every, self.starts)
+
+    def declare(self, b: NLPBuilder) -> Pose:
+        knots, S = self.knots, len(self.starts)
+        C = b.variable("C", (knots.count, self.dim))
+        bias = b.variable("bias", (S, self.dim)) if self.estimate_bias else ca.MX.zeros(S, self.dim)
+        Q = b.parameter("Q", (self.n, self.dim))
+        own = {
+            "bias": bias,
+            "anchor": b.parameter("anchor", (S, self.dim)),
+            "sigma_o": b.parameter("sigma_o", (1, 1)),
+            "sigma_anchor": b.parameter("sigma_anchor", (1, 1)),
+        }
+        if self.bias_prior == "sigma":
+            own["sigma_bias"] = b.parameter("sigma_bias", (1, 1))
+        elif self.bias_prior == "gaussian":
+            own["bias_mean"] = b.parameter("bias_mean", (S, self.dim))
+            own["bias_precision"] = b.parameter("bias_precision", (self.dim, self.dim))
+        P = Q + (C if self.knot_every == 1 else ca.mtimes(knots.casadi_matrix(), C))
+        b.cost("odometry", knots.odometry_cost(C, bias, own["sigma_o"]))
+        return Pose(P, self.n, self.dim, "C", "Q", knots, own=own)
+
+    def close(self, b: NLPBuilder, pose: Pose) -> None:
+        own, P = pose.own, pose.positions
+        first = P[0, :] if len(self.starts) == 1 else P[list(self.starts), :]
+        b.cost("anchor", 0.5 * ca.sumsqr((first - own["anchor"]) / own["sigma_anchor"]))
+        if self.bias_prior == "sigma":
+            b.cost("bias_prior", 0.5 * ca.sumsqr(own["bias"] / own["sigma_bias"]))
+        elif self.bias_prior == "gaussian":
+            db = own["bias"] - own["bias_mean"]
+            b.cost("bias_prior", 0.5 * ca.mtimes(ca.mtimes(db, own["bias_precision"]), db.T))
 
 
 def initial_weights(
@@ -345,10 +281,9 @@ def field_std_on_grid(
     return std, np.full_like(std, np.sqrt(var0))
 
 
-@lru_cache(maxsize=8)
 def cached_nlp(structure: Structure) -> NLP:
     """The built NLP for a structure, built once per process."""
-    return build_translational(structure)
+    return cached_slam(structure.motion(), structure.field(), structure.solver)
 
 
 def parameters_and_guess(

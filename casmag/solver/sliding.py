@@ -62,26 +62,21 @@ the basin of the position unknowns.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any
 
-import casadi as ca
 import numpy as np
 
 from casmag.data.simulate import Dataset
 from casmag.errors import ProblemError
 from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.model.builder import cached_slam
+from casmag.model.field import HYPERPARAMETERS, WindowField
 from casmag.model.knots import Knots
-from casmag.model.rrmap import (
-    GaussNewtonHessian,
-    field_and_jacobians,
-    make_basis,
-)
+from casmag.model.rrmap import field_and_jacobians, make_basis
 from casmag.model.translational import (
-    HYPERPARAMETERS,
     Structure,
-    add_map_magnetometer,
+    TranslationalMotion,
     cached_nlp,
     field_estimate,
     initial_weights,
@@ -89,8 +84,8 @@ from casmag.model.translational import (
     positions,
     solve_translational,
 )
-from casmag.nlp import NLP, NLPBuilder, Solution
-from casmag.problem.spec import Problem, SolverSpec
+from casmag.nlp import NLP, Solution
+from casmag.problem.spec import Problem
 from casmag.solver.windowing import continued
 
 ACCEPTED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded")
@@ -154,6 +149,23 @@ class WindowStructure:
     def hilbert_basis(self) -> HilbertBasis:
         return cached_basis(self.basis)
 
+    def motion(self) -> TranslationalMotion:
+        """The translational model of one window: one session, the bias (when estimated)
+        under the Gaussian carried from the earlier windows."""
+        bias_prior = "gaussian" if self.estimate_bias else "none"
+        return TranslationalMotion(
+            self.n, self.dim, self.knot_every, (0,), self.estimate_bias, bias_prior
+        )
+
+    def field(self) -> WindowField:
+        return WindowField(
+            self.kernel,
+            self.basis,
+            constant_field=self.constant_field,
+            prior_shape=self.prior_shape,
+            shared_prior=self.shared_prior,
+        )
+
     @property
     def prior_shape(self) -> tuple[int, int]:
         """Shape of the prior's unknowns Z: W (M, 3) when shared, else the stacked
@@ -165,56 +177,9 @@ class WindowStructure:
         return (n_w + (FIELD_DIM if self.constant_field else 0), 1)
 
 
-BUILDS = {"window": 0}
-"""How many window NLPs this process has built (tests check that windows share one)."""
-
-
-@lru_cache(maxsize=4)
 def window_nlp(s: WindowStructure) -> NLP:
     """The window NLP for a structure, built once per process."""
-    BUILDS["window"] += 1
-    return _build_window(s)
-
-
-def _build_window(s: WindowStructure) -> NLP:
-    b = NLPBuilder()
-    knots = Knots(s.n, s.knot_every)
-    basis = s.hilbert_basis()
-    M = basis.num_basis
-    C = b.variable("C", (knots.count, s.dim))
-    bias = b.variable("bias", (1, s.dim)) if s.estimate_bias else ca.MX.zeros(1, s.dim)
-    W = b.variable("W", (M, FIELD_DIM) if s.kernel == "se" else (M, 1))
-    c = b.variable("c", (FIELD_DIM, 1)) if s.constant_field else None
-    Q = b.parameter("Q", (s.n, s.dim))
-    b.parameter("Y", (s.n, FIELD_DIM))
-    anchor = b.parameter("anchor", (1, s.dim))
-    sigma_o = b.parameter("sigma_o", (1, 1))
-    sigma_a = b.parameter("sigma_anchor", (1, 1))
-    b.parameter("sigma_m", (1, 1))
-    n_r, n_c = s.prior_shape
-    mu = b.parameter("map_mean", (n_r, n_c))
-    Lam = b.parameter("map_precision", (n_r, n_r))
-    bias_mean = b.parameter("bias_mean", (1, s.dim))
-    bias_prec = b.parameter("bias_precision", (s.dim, s.dim))
-    model = add_map_magnetometer(
-        b, basis, s.kernel, knots, s.dim, s.constant_field, "window_magnetometer"
-    )
-    b.cost("odometry", knots.odometry_cost(C, bias, sigma_o))
-    Z = W if s.shared_prior else ca.vertcat(ca.vec(W), *([c] if c is not None else []))
-    R = Z - mu
-    b.cost("map_prior", 0.5 * ca.sum1(ca.sum2(R * ca.mtimes(Lam, R))))
-    b.cost("anchor", 0.5 * ca.sumsqr((Q[0, :] + C[0, :] - anchor) / sigma_a))
-    if s.estimate_bias:
-        db = bias - bias_mean
-        b.cost("bias_prior", 0.5 * ca.mtimes(ca.mtimes(db, bias_prec), db.T))
-    solver = SolverSpec.model_validate_json(s.solver)
-    if solver.linear_solver == "mumps" and "mumps_pivot_order" not in solver.ipopt:
-        solver = solver.model_copy(update={"ipopt": {**solver.ipopt, "mumps_pivot_order": 5}})
-    gn = None
-    if solver.hessian != "limited-memory":
-        mode = {"auto": "hybrid", "exact": "exact"}.get(solver.hessian, "gauss-newton")
-        gn = ("magnetometer", GaussNewtonHessian("window_mag_hessian", model, mode=mode))
-    return b.build(solver, name="casmag_window", gauss_newton=gn)
+    return cached_slam(s.motion(), s.field(), s.solver)
 
 
 def prior_design(s: WindowStructure, P: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
