@@ -20,6 +20,9 @@ import numpy as np
 from casmag import interrupt
 from casmag.problem.spec import SolverSpec
 
+#: A solve's progress callback: (iteration, cost, max-norm of the step, seconds).
+Progress = Callable[[int, float, float, float], None]
+
 #: IPOPT's status when :meth:`NLP.solve` with ``stop_when_stalled`` stopped it.
 STALLED = "User_Requested_Stop"
 #: Stalled: the objective changed by at most this fraction of max(1, |f|) over

@@ -72,14 +72,12 @@ from casmag.model.rotated import (
     whiten,
 )
 from casmag.model.rrmap import make_basis
-from casmag.nlp import NLP, STALLED, NLPBuilder, Solution
+from casmag.nlp import NLP, STALLED, NLPBuilder, Progress, Solution
 from casmag.problem.imu import HYPER_SECONDS, ImuProblem, load_imu_problem
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.windowing import continues, grow
 from casmag.versions import __version__, versions
-
-Progress = Callable[[int, float, float, float], None]
 
 #: Hessian of the imu block in the GP-SLAM stage (which starts near the optimum).
 IMU_HESSIAN_SLAM = "gauss-newton"

@@ -22,11 +22,10 @@ from casmag.gp.hyper import estimate_hyperparameters
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
 from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
 from casmag.model.field import ReducedRankField
-from casmag.model.imu import Progress
 from casmag.model.knots import Knots
 from casmag.model.rotated import planar_rotation_function, ridge_weights, whiten
 from casmag.model.rrmap import make_basis
-from casmag.nlp import NLP, NLPBuilder, lowest_cost
+from casmag.nlp import NLP, NLPBuilder, Progress, lowest_cost
 from casmag.problem.imu import PlanarOptions
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
