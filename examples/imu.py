@@ -8,7 +8,7 @@ GP-SLAM), with the errors of every stage and the verdict on the estimate.
 import sys
 import tempfile
 
-from casmag.model.imu import solve_imu
+from casmag.solver.imu import solve_imu
 
 problem = {
     "seed": 11,

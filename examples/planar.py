@@ -8,8 +8,8 @@ arrays: a simulated walk in a room with four magnetic dipoles, solved with three
 import numpy as np
 
 from casmag.data.imusim import dipole_field, simulate_planar
-from casmag.model.planar import solve_planar
 from casmag.problem.imu import load_planar_options
+from casmag.solver.planar import solve_planar
 
 # Earth's field (1 a.u., inclination 67 deg, declination 2 deg) and four dipoles [m, a.u. m^3]
 field = dipole_field(

@@ -163,3 +163,41 @@ def test_no_test_module_imports_another():
                 names = [node.module]
             offenders += [f"{path.name}: {n}" for n in names if n.split(".")[0] in test_modules]
     assert offenders == []
+
+
+#: The pipeline's layers, first to last: a module imports only from its own layer or an
+#: earlier one (casmag's top-level modules, such as errors and strapdown, are the base).
+#: gp comes before data because the simulations draw fields from the GP and the clock
+#: search uses its likelihood; result before solver because the solvers build a Result;
+#: report reads the experiments' sweep manifests.
+LAYERS = ("problem", "gp", "data", "nlp", "model", "result", "solver", "experiments", "report")
+#: The command line, the API reference writer and the package's public API may import anything.
+TOP = ("cli", "apidocs", "casmag")
+
+
+def _layer(module: str) -> int:
+    parts = module.split(".")
+    if module == "casmag" or parts[1] in TOP:
+        return len(LAYERS) + 1
+    return LAYERS.index(parts[1]) + 1 if parts[1] in LAYERS else 0
+
+
+def layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    """Imports that run back up the pipeline (a later layer imported by an earlier one)."""
+    return sorted(
+        f"{src} -> {dst}"
+        for src, dsts in graph.items()
+        for dst in dsts
+        if _layer(dst) > _layer(src) and not (dst == "casmag" and _layer(src) >= 8)
+    )
+
+
+def test_imports_follow_the_pipeline():
+    """problem -> gp -> data -> nlp -> model -> result -> solver -> experiments -> report:
+    the model layer never imports a solve strategy, the problem layer never a data module."""
+    assert layer_violations(import_graph(PACKAGE)) == []
+
+
+def test_an_import_back_up_the_pipeline_is_found():
+    graph = {"casmag.model.imu": {"casmag.solver.windowing"}, "casmag.solver.api": {"casmag.nlp"}}
+    assert layer_violations(graph) == ["casmag.model.imu -> casmag.solver.windowing"]

@@ -19,11 +19,12 @@ from casmag.data.imusim import exact_increments, simulate_imu
 from casmag.errors import ProblemError
 from casmag.gp.reduced_rank import Domain, HilbertBasis
 from casmag.model.builder import Pose, Rotation
-from casmag.model.imu import SCHEDULE_MARGIN, averaged_magnetometer, solve_imu
+from casmag.model.imu import averaged_magnetometer
 from casmag.model.knots import Knots
 from casmag.model.rotated import add_rotated_map, imu_rotation_function, rotated_gauss_newton
 from casmag.nlp import NLPBuilder
 from casmag.problem.imu import load_imu_problem
+from casmag.solver.imu import SCHEDULE_MARGIN, solve_imu
 
 ROOT = Path(__file__).resolve().parents[1]
 IMU_FILES = sorted((ROOT / "problems/imu").glob("*.yaml"))
@@ -133,6 +134,11 @@ def test_bad_problem_is_one_line_naming_the_field(override, field, reason):
 
 
 def test_handwriting_letters_are_checked():
+    """The problem layer's alphabet is exactly the letters the simulation has strokes for."""
+    from casmag.data import imusim
+    from casmag.problem.imu import HANDWRITING_LETTERS
+
+    assert HANDWRITING_LETTERS == "".join(sorted(imusim._GLYPHS))
     data = _tiny()
     data["simulation"]["scenario"] = {"kind": "handwriting", "word": "maq"}
     with pytest.raises(ProblemError, match=r"simulation\.scenario\.handwriting.*'q'"):
@@ -315,7 +321,7 @@ def test_field_evidence_tells_a_homogeneous_field(moment, homogeneous):
     """A rectangle traced twice at 10 Hz, magnetometer noise 0.004: Earth's field alone is
     homogeneous (no position information); a dipole 0.3 m away whose field varies by
     about 0.01 (2.5 sigma) over the path is not."""
-    from casmag.model.imu import field_evidence
+    from casmag.solver.imu import field_evidence
 
     rng = np.random.default_rng(8)
     s = np.linspace(0, 2 * 1.6, 320) % 1.6  # rectangle 0.5 x 0.3 m, perimeter 1.6 m
@@ -368,7 +374,7 @@ def test_homogeneous_field_keeps_the_imu_only_adjustment(tmp_path):
 @pytest.mark.parametrize("kernel", ["curl_free", "se"])
 def test_coarser_hyperparameters_keep_the_field_variance(kernel):
     from casmag.gp.kernels import get_kernel
-    from casmag.model.imu import _coarser
+    from casmag.solver.imu import _coarser
 
     hyper = {"sigma_f": 0.03, "lengthscale": 0.1, "sigma_m": 0.004}
     c = _coarser(kernel, hyper, 4.0)
@@ -484,7 +490,8 @@ def test_planar_recording_with_heading_rate_bias(tmp_path):
     back: GP-SLAM recovers the bias and cuts the position and heading errors."""
     from casmag.data.imusim import simulate_planar
     from casmag.data.recording import write_recording
-    from casmag.model.planar import PlanarOptions, solve_planar_recording
+    from casmag.problem.imu import PlanarOptions
+    from casmag.solver.planar import solve_planar_recording
 
     field = planar_room_field()
     d = simulate_planar(1, field, size=(2.0, 1.5), loops=2, heading_bias_deg=0.5, disp_noise=0.002)
@@ -504,8 +511,8 @@ def test_planar_starts_keep_the_lowest_cost():
     (three loops, seed 1): cost 262.4 and RMSE after / before 0.34 from the dead reckoning,
     254.1 and 0.18 from either biased start."""
     from casmag.data.imusim import simulate_planar
-    from casmag.model.planar import solve_planar
     from casmag.problem.imu import load_planar_options
+    from casmag.solver.planar import solve_planar
 
     field = planar_room_field()
     d = simulate_planar(1, field, size=(2.0, 1.5), loops=3, heading_bias_deg=0.5, disp_noise=0.002)
@@ -534,7 +541,7 @@ def test_wrong_basin_is_flagged_only_when_the_truth_start_costs_less(
     reaches a lower MAP cost (stubbed here; the real re-solve is what solve_imu runs), with
     the evidence in result.json, the reason on stderr and exit code 3; with the same cost
     from the truth (no position information to find) it is not flagged."""
-    import casmag.model.imu as imuslam
+    import casmag.solver.imu as imuslam
 
     monkeypatch.setattr(imuslam, "WRONG_BASIN_RATIO", 0.0)
     seen = {}

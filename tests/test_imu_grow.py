@@ -7,9 +7,9 @@ from small_problems import tiny_imu as _tiny
 
 from casmag import strapdown as sd
 from casmag.errors import ProblemError
-from casmag.model import imu as imuslam
-from casmag.model.imu import ImuSolveStage, continue_start, grow_sizes, solve_imu
 from casmag.problem.imu import load_imu_problem
+from casmag.solver import imu as imuslam
+from casmag.solver.imu import ImuSolveStage, continue_start, grow_sizes, solve_imu
 
 
 @pytest.mark.parametrize(

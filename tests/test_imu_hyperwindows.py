@@ -9,14 +9,9 @@ from casmag import strapdown as sd
 from casmag.data.dipoles import Dipole, DipoleField, earth_field
 from casmag.errors import ProblemError
 from casmag.gp.hyper import estimate_hyperparameters
-from casmag.model.imu import (
-    ImuSolveStage,
-    Keyframes,
-    _hyperparameters,
-    hyper_windows,
-    short_windows,
-)
+from casmag.model.imu import Keyframes
 from casmag.problem.imu import HYPER_WINDOW, HYPER_WINDOWS, load_imu_problem
+from casmag.solver.imu import ImuSolveStage, _hyperparameters, hyper_windows, short_windows
 
 
 def test_default_windows_and_the_short_ones():

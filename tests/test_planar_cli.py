@@ -173,8 +173,8 @@ def test_a_worse_local_optimum_is_flagged_by_the_solve_from_the_truth(loops, see
     MAP cost is 257.7 against 266.2 (RMSE 0.016 m): ``wrong_basin``, not trusted. Two loops,
     seed 2 (ratio 0.54): the truth start finds no lower cost, so the model's optimum itself
     is that far (one revisit is a weak loop closure) and no flag is raised."""
-    from casmag.model.planar import TRUTH_START_RATIO, solve_planar
     from casmag.problem.imu import load_planar_options
+    from casmag.solver.planar import TRUTH_START_RATIO, solve_planar
 
     d = simulate_planar(
         seed, planar_room_field(), size=(2.0, 1.5), loops=loops, heading_bias_deg=BIAS_DEG,

@@ -130,7 +130,7 @@ def test_planar_results_draw_their_map_with_its_std(tmp_path):
     from small_problems import planar_room_field
 
     from casmag.data.imusim import simulate_planar
-    from casmag.model.planar import solve_planar
+    from casmag.solver.planar import solve_planar
 
     d = simulate_planar(4, planar_room_field(), size=(2.0, 1.5), loops=1, disp_noise=0.002)
     r = solve_planar(d.U[:, 0], d.U[:, 1], d.U[:, 2], d.Y, t=d.t, truth={"P": d.P, "psi": d.psi})
@@ -141,8 +141,8 @@ def test_planar_results_draw_their_map_with_its_std(tmp_path):
 
 
 def test_imu_results_draw_their_map_at_the_path_height(tmp_path):
-    from casmag.model.imu import solve_imu
     from casmag.problem.imu import load_imu_problem
+    from casmag.solver.imu import solve_imu
 
     problem = load_imu_problem("problems/imu/spiral.yaml", ["simulation.scenario.turns=1"])
     r = solve_imu(problem)

@@ -43,9 +43,9 @@ def test_every_motion_model_gives_one_result_class_loaded_back_by_one_reader(tmp
     from small_problems import planar_room_field
 
     from casmag.data.imusim import simulate_planar
-    from casmag.model.imu import solve_imu
-    from casmag.model.planar import solve_planar
     from casmag.problem.imu import load_imu_problem
+    from casmag.solver.imu import solve_imu
+    from casmag.solver.planar import solve_planar
 
     d = simulate_planar(4, planar_room_field(), size=(2.0, 1.5), loops=1, disp_noise=0.002)
     planar = solve_planar(*d.U.T, d.Y, t=d.t, truth={"P": d.P, "psi": d.psi})

@@ -156,7 +156,6 @@ _GLYPHS: dict[str, list[tuple[float, float]]] = {
         (0.6, 0.0),
     ],
 }
-HANDWRITING_LETTERS = "".join(sorted(_GLYPHS))
 
 
 def handwriting_path(word: str, height: float, passes: int, lift: float) -> np.ndarray:

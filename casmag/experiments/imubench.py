@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from casmag.model.imu import solve_imu
 from casmag.problem.imu import load_imu_problem
+from casmag.solver.imu import solve_imu
 from casmag.versions import versions
 
 #: Iterations one IPOPT solve may take for a run to count as converged.

@@ -4,7 +4,7 @@ A sweep is planned from a problem file or a table file (``problems/paper/table*.
 problem file plus rows of overrides, matched to the paper's published rows by key), the seeds
 and an optional grid of ``key.path=v1,v2`` values. The problem file is translational or IMU
 (``casmag.problem.spec.document_kind``): every run is one :func:`casmag.solve` or
-:func:`casmag.model.imu.solve_imu` and is saved with its result's ``save`` under
+:func:`casmag.solver.imu.solve_imu` and is saved with its result's ``save`` under
 ``OUT/<row>/seed-<seed>/``; ``OUT/sweep.json`` records what the sweep is (kind, rows, labels,
 overrides, seeds), which is all the report needs.
 
@@ -42,7 +42,6 @@ from pydantic import Field, ValidationError
 from casmag import interrupt
 from casmag.errors import CasmagError, DataError, ProblemError, one_line
 from casmag.interrupt import Interrupted
-from casmag.model.imu import solve_imu
 from casmag.problem.imu import ImuProblem, load_imu_problem
 from casmag.problem.paper import TABLES
 from casmag.problem.spec import (
@@ -58,6 +57,7 @@ from casmag.problem.spec import (
 from casmag.result import Result
 from casmag.result.outdir import save_atomic
 from casmag.solver.api import solve
+from casmag.solver.imu import solve_imu
 
 MANIFEST = "sweep.json"
 MANIFEST_FORMAT = "casmag-sweep/1"

@@ -22,7 +22,6 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from casmag.data.imusim import HANDWRITING_LETTERS
 from casmag.errors import ProblemError
 from casmag.problem.spec import (
     SolverSpec,
@@ -36,6 +35,9 @@ from casmag.problem.spec import (
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegativeFloat = Annotated[float, Field(ge=0)]
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+#: The letters a handwriting scenario can write: those casmag.data.imusim has strokes for.
+HANDWRITING_LETTERS = "acegmnsx"
 
 
 # --------------------------------------------------------------------------- scenarios
@@ -83,6 +85,8 @@ class HandwritingScenario(_Motion):
 
     @model_validator(mode="after")
     def _letters(self) -> HandwritingScenario:
+        # The letters casmag.data.imusim has strokes for (tests/test_imu.py checks the two
+        # agree): the problem layer checks a word before any data module is imported.
 
         bad = sorted(set(self.word) - set(HANDWRITING_LETTERS))
         if not self.word or bad:
@@ -211,7 +215,7 @@ class ImuGPSpec(Strict):
 
     curvature (true, false or auto): the magnetometer's second-order terms in orientation
     and position-weight on top of its Gauss-Newton Hessian
-    (``casmag.model.imu.RotatedFieldGaussNewton``): true always (``exact``), false never
+    (``casmag.model.rotated.RotatedFieldGaussNewton``): true always (``exact``), false never
     (``gauss-newton``); ``auto``: always when the field varies little (sigma_f / l below 5
     sigma_m for curl-free, sigma_f below 5 sigma_m for se); otherwise ``hybrid``:
     Gauss-Newton while the magnetometer cost falls fast and the exact terms once it falls by
@@ -221,7 +225,7 @@ class ImuGPSpec(Strict):
     one (a softer magnetometer first widens the basin of the global optimum).
 
     homogeneous: what to do when the field turns out to carry no position information
-    (``casmag.model.imu.field_evidence``: the windowed marginal likelihood of a field with
+    (``casmag.solver.imu.field_evidence``: the windowed marginal likelihood of a field with
     spatial structure does not beat a constant field by the BIC penalty of its two extra
     hyperparameters). ``imu_only`` (default): the result is the IMU-only adjustment (the
     GP-SLAM pass is still reported, as ``gp_slam_map``); ``keep``: the GP-SLAM estimate.
@@ -251,11 +255,11 @@ class ImuGPSpec(Strict):
     hyperparameters and sigma_m. It runs when the anneal schedule's final solve failed or
     its MAP cost per magnetometer component (``misfit``) is above ``refit_misfit`` (0: run
     both always), and is kept when its final MAP cost is lower by more than
-    ``casmag.model.imu.SCHEDULE_MARGIN``; both are recorded under ``details.schedules``.
+    ``casmag.solver.imu.SCHEDULE_MARGIN``; both are recorded under ``details.schedules``.
 
     fallback_grow: prefix fractions of a third schedule (null: none), run when the
     schedule kept so far failed or fits clearly badly (misfit above
-    ``casmag.model.imu.GROW_MISFIT``): the anneal factors on each growing prefix (as ``grow``
+    ``casmag.solver.imu.GROW_MISFIT``): the anneal factors on each growing prefix (as ``grow``
     with ``grow_anneal``), from the IMU-only adjustment, kept by the same rule.
 
     hyper_window, hyper_windows: keyframes per window of the windowed marginal likelihood

@@ -64,9 +64,10 @@ class Result:
     field evidence; see :data:`DETAILS`); ``uncertainty`` (sigma_mean, sigma_max [m], NEES
     against the truth, or ``error``); ``warnings`` (casmag.data.checks: ``check``, ``column``,
     ``reason``); ``flags``: what the model's own checks raised against the estimate, each
-    ``{"name", "reason", "evidence"}`` (casmag.model.planar, casmag.model.imu); ``evaluation``: the
-    errors again after an optional alignment to the truth (casmag.result.evaluation); ``verdict``:
-    whether the estimate can be trusted, the reasons and the checks (casmag.result.verdict).
+    ``{"name", "reason", "evidence"}`` (casmag.solver.planar, casmag.solver.imu);
+    ``evaluation``: the errors again after an optional alignment to the truth
+    (casmag.result.evaluation); ``verdict``: whether the estimate can be trusted, the
+    reasons and the checks (casmag.result.verdict).
 
     Arrays (N samples or keyframes, d = 2 or 3 dimensions, a G x G map grid; absent or None
     when not computed): ``t`` (N,) [s]; ``P_odometry`` (the dead reckoning),
@@ -221,7 +222,7 @@ class Result:
 #: keyframes; ``biases`` (``gyro`` [deg/s] and ``acc`` [m/s^2], each ``truth``,
 #: ``imu_only``, ``gp_slam``: per-axis means over the run, the paper's Table 6);
 #: ``failed_stage`` (None, ``imu_only`` or ``gp_slam``); ``map_decision`` (``map``,
-#: ``homogeneous: IMU only`` or ``none``); ``field_evidence`` (casmag.model.imu.FieldEvidence);
+#: ``homogeneous: IMU only`` or ``none``); ``field_evidence`` (casmag.gp.hyper.FieldEvidence);
 #: ``hyperparameters_source``; ``schedules`` (each GP-SLAM schedule tried, its cost and
 #: whether it was kept).
 DETAILS = {

@@ -17,8 +17,8 @@ so in their titles. The checks:
   nothing about an estimate whose map absorbed the path's error (real sequence 1: 0.08,
   RMSE no better than the dead reckoning).
 - ``flags``: what a model's own checks raised (IMU problems: ``wrong_basin``,
-  ``worse_than_imu_only``, see casmag.model.imu; planar recordings with truth:
-  ``wrong_basin``, see casmag.model.planar).
+  ``worse_than_imu_only``, see casmag.solver.imu; planar recordings with truth:
+  ``wrong_basin``, see casmag.solver.planar).
 - ``revisits`` (no truth needed): the share of samples of the estimated path that come back
   within :data:`REVISIT_RADIUS` lengthscales of another sample after at least
   :data:`REVISIT_SEPARATION` lengthscales of path between them. Where the path never

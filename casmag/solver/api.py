@@ -14,7 +14,6 @@ from casmag.data.imusim import ImuData
 from casmag.data.simulate import Dataset, simulate_problem
 from casmag.errors import ProblemError
 from casmag.gp.fieldmap import grid_over
-from casmag.model.imu import solve_imu
 from casmag.model.translational import (
     HYPERPARAMETERS,
     field_estimate,
@@ -28,6 +27,7 @@ from casmag.problem.spec import Problem, document_kind, load_problem, read_yaml
 from casmag.result import Result
 from casmag.result.evaluation import anchor_info
 from casmag.result.metrics import rmse_and_max
+from casmag.solver.imu import solve_imu
 from casmag.solver.sliding import solve_coarse_to_fine, solve_sliding
 from casmag.solver.uncertainty import (
     NotPositiveDefinite,
@@ -49,7 +49,7 @@ def solve(
 
     problem: a Problem, a YAML path or a dictionary (validated with :func:`load_problem`).
     A problem of the IMU model (an ImuProblem, or a file or dictionary whose keys say so,
-    casmag.problem.spec.document_kind) is solved by :func:`casmag.model.imu.solve_imu` (a Result
+    casmag.problem.spec.document_kind) is solved by :func:`casmag.solver.imu.solve_imu` (a Result
     with ``motion`` imu); a table file or a real-data problem file is refused naming its
     entry point.
     data: the data set to use; simulated from the problem (with its seed) when omitted.

@@ -21,7 +21,7 @@ from casmag.data.recording import Recording, read_recording
 from casmag.data.simulate import Dataset
 from casmag.errors import DataError, ProblemError
 from casmag.gp.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
-from casmag.model.planar import dead_reckon_planar, solve_planar_recording
+from casmag.model.planar import dead_reckon_planar
 from casmag.problem.imu import (
     PLANAR_WARM_START_KEYS,
     load_planar_options,
@@ -46,6 +46,7 @@ from casmag.solver.multisession import (
     solve_two_starts,
     stack,
 )
+from casmag.solver.planar import solve_planar_recording
 from casmag.solver.uncertainty import PositionUncertainty
 from casmag.versions import __version__, versions
 
@@ -619,7 +620,7 @@ def slam_planar(
     mag_lag: float | None = None,
 ) -> Result:
     """A planar recording (``dfwd,dleft,dyaw``) with the planar model and a heading-rate
-    bias (:func:`casmag.model.planar.solve_planar_recording`). Settings from the problem file's
+    bias (:func:`casmag.solver.planar.solve_planar_recording`). Settings from the problem file's
     ``model``/``solver`` sections and ``model.KEY=...`` overrides
     (:class:`casmag.problem.imu.PlanarModelSpec`). A constant magnetometer carries no
     position information: the result is the dead reckoning, status ``Odometry_Only``
@@ -657,7 +658,7 @@ def slam_planar(
 def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
     """The planar dead reckoning as the result of a recording whose magnetometer is constant
     (status ``Odometry_Only``, the reason in ``info.fallback``), started where
-    :func:`casmag.model.planar.solve_planar` starts: the first true pose, else (or with
+    :func:`casmag.solver.planar.solve_planar` starts: the first true pose, else (or with
     ``anchor`` ``origin``) the origin."""
     P_true = None if rec.P_true is None else rec.P_true[:, :2]
     known = P_true is not None and anchor == "truth"
