@@ -152,9 +152,10 @@ def test_no_test_module_imports_another():
     """Shared helpers live in conftest.py and the helper modules (small_problems,
     problem_files), never in a test module another test file imports."""
     tests = Path(__file__).resolve().parent
-    test_modules = {p.stem for p in tests.glob("test_*.py")}
+    test_modules = {p.stem for p in tests.rglob("test_*.py")}
+    assert len(test_modules) > 40, sorted(test_modules)  # the subfolders were read
     offenders = []
-    for path in sorted(tests.glob("*.py")):
+    for path in sorted(tests.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             names = []
             if isinstance(node, ast.Import):
@@ -163,6 +164,16 @@ def test_no_test_module_imports_another():
                 names = [node.module]
             offenders += [f"{path.name}: {n}" for n in names if n.split(".")[0] in test_modules]
     assert offenders == []
+
+
+def test_tests_mirror_the_package():
+    """Each test module sits in the folder of the casmag subpackage it tests (tests/model
+    for casmag/model, ...); only tests of the package as a whole sit at the top."""
+    tests = Path(__file__).resolve().parent
+    folders = {p.parent.name for p in tests.rglob("test_*.py") if p.parent != tests}
+    packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists()}
+    assert folders <= packages, sorted(folders - packages)
+    assert not list(tests.rglob("__init__.py"))  # test modules are found by their own name
 
 
 #: The pipeline's layers, first to last: a module imports only from its own layer or an

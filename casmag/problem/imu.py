@@ -85,7 +85,7 @@ class HandwritingScenario(_Motion):
 
     @model_validator(mode="after")
     def _letters(self) -> HandwritingScenario:
-        # The letters casmag.data.imusim has strokes for (tests/test_imu.py checks the two
+        # The letters casmag.data.imusim has strokes for (tests/solver/test_imu.py checks the two
         # agree): the problem layer checks a word before any data module is imported.
 
         bad = sorted(set(self.word) - set(HANDWRITING_LETTERS))

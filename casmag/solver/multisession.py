@@ -10,16 +10,16 @@ Each session's odometry is integrated only within the session (casmag.data.simul
 ``starts``; casmag.model.knots keeps one chain per session).
 
 Solving all sessions at once from their dead reckoning can end in a poor local optimum: on a
-synthetic pair (a spiral with loops and a straight line across it, tests/test_multisession.py)
-the hybrid Hessian stopped at a cost of 20,985 against 134 at the truth. So sessions are
-added one at a time (:func:`solve_sessions`): the session whose dead reckoning revisits
-itself most comes first (:func:`revisit_fraction`, computable without truth), and every
-later stage starts from the previous stage's trajectories plus the new session's dead
-reckoning. On that pair this reached the truth's optimum in 6 iterations for the last stage.
-Long sessions (more than 2 x FIRST_PREFIX samples) are also tried from growing prefixes,
-and the start with the lower MAP cost is kept (:func:`solve_two_starts`, :func:`_add_session`):
-on the real field neither start is right every time, and the cost told them apart in every
-case measured (README, Measured: real field).
+synthetic pair (a spiral with loops and a straight line across it,
+tests/solver/test_multisession.py) the hybrid Hessian stopped at a cost of 20,985 against
+134 at the truth. So sessions are added one at a time (:func:`solve_sessions`): the session
+whose dead reckoning revisits itself most comes first (:func:`revisit_fraction`, computable
+without truth), and every later stage starts from the previous stage's trajectories plus the
+new session's dead reckoning. On that pair this reached the truth's optimum in 6 iterations
+for the last stage. Long sessions (more than 2 x FIRST_PREFIX samples) are also tried from
+growing prefixes, and the start with the lower MAP cost is kept (:func:`solve_two_starts`,
+:func:`_add_session`): on the real field neither start is right every time, and the cost
+told them apart in every case measured (README, Measured: real field).
 
 ``casmag slam REC1.csv REC2.csv ... --out DIR`` runs it with the single-recording defaults
 (casmag.solver.recslam.recording_problem on the stacked data) and reports every session's errors in

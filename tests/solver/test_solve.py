@@ -10,7 +10,7 @@ import casmag
 from casmag.data.simulate import simulate_problem, spiral
 from casmag.model.builder import cached_slam
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PROBLEM_FILES = TRANSLATIONAL
 
 

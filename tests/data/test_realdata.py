@@ -28,7 +28,7 @@ from casmag.data.simulate import simulate_problem
 from casmag.errors import DataError
 from casmag.solver.recslam import slam
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SHARED = ROOT.parent / "shared" / "data" / "magnetic-data" / "invensense"
 needs_shared = pytest.mark.skipif(
     not (SHARED / "1-time.csv").is_file(),

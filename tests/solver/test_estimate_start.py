@@ -14,7 +14,7 @@ from casmag.gp.hyper import estimate_conditional, negative_log_marginal, select_
 from casmag.model.translational import Structure, estimate_start, parameters_and_guess
 from casmag.problem.spec import load_problem
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BASE = ROOT / "problems" / "paper" / "base.yaml"
 
 

@@ -12,7 +12,7 @@ from casmag.data.simulate import simulate_problem
 from casmag.gp.kernels import FIELD_DIM
 from casmag.model.translational import Structure, cached_nlp, parameters_and_guess
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _small(kernel, constant=True, n=10, knot_every=1, hessian="auto"):

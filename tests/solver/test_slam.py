@@ -14,7 +14,7 @@ from casmag.data.simulate import simulate_problem
 from casmag.model.knots import Knots
 from casmag.solver.windowing import continued, stage_lengths
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _walk(samples=900, seed=3):

@@ -9,7 +9,7 @@ import pytest
 from casmag.experiments.truthstart import main, markdown, solve_both, summarise
 from casmag.problem.spec import read_yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _run(seed: int, a: float, b: float, ok: bool = True) -> dict:

@@ -16,7 +16,7 @@ from casmag.cli.main import main
 from casmag.interrupt import Interrupted
 from casmag.result.outdir import MARKER, OutputError, check_output_dir, save_atomic
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BASE = ROOT / "problems/paper/base.yaml"
 TINY = ["--set", "simulation.trajectory.samples=12"]
 

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from casmag.cli.main import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BASE = ROOT / "problems/paper/base.yaml"
 TINY = ["--set", "simulation.trajectory.samples=12"]
 

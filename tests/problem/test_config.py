@@ -11,7 +11,7 @@ from problem_files import TRANSLATIONAL
 from casmag import Problem, load_problem
 from casmag.errors import ProblemError
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+REPO_ROOT = Path(__file__).resolve().parents[2]
 PROBLEM_FILES = TRANSLATIONAL
 
 

@@ -12,7 +12,7 @@ from casmag.cli.main import main
 from casmag.data.checks import model_warnings, recording_warnings
 from casmag.data.recording import read_recording, write_recording
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "magnetic-data" / "invensense"
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "data" / "magnetic-data" / "invensense"
 
 
 def _walk(n=400, hz=10.0, speed=0.5, seed=0):

@@ -22,7 +22,7 @@ from casmag.cli.main import main
 from casmag.data.recording import write_recording
 from casmag.result.outdir import MARKER
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BASE = ROOT / "problems/paper/base.yaml"
 TINY = ["--set", "simulation.trajectory.samples=12"]
 
@@ -403,7 +403,7 @@ def test_imu_and_planar_refuse_solver_keys_they_ignore(tmp_path, override):
     assert res.exit_code == 2
     _one_line(res, f"--set: {key}: casmag imu does not use")
     if key == "solver.warm_start.strategy":
-        return  # the planar model's growing prefixes read it (tests/test_planar_cli.py)
+        return  # the planar model's growing prefixes read it (tests/cli/test_planar_cli.py)
     planar = _recording(tmp_path / "planar.csv", motion="planar")
     res = _run(["slam", planar, "--out", tmp_path / "o2", "--set", override])
     assert res.exit_code == 2

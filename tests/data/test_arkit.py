@@ -23,7 +23,7 @@ from casmag.data.realdata import (
 from casmag.data.recording import read_recording
 from casmag.errors import DataError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ARKIT = ROOT.parent / "shared" / "data" / "arkit"
 needs_arkit = pytest.mark.skipif(
     not (ARKIT / "square.mat").is_file(),

@@ -19,7 +19,7 @@ from casmag.experiments.sweep import (
 )
 from casmag.problem.paper import TABLES
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BASE = ROOT / "problems/paper/base.yaml"
 TABLE_FILES = sorted((ROOT / "problems/paper").glob("table*.yaml"))
 TINY = ["--set", "simulation.trajectory.samples=12"]

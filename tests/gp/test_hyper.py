@@ -8,7 +8,7 @@ import pytest
 from casmag.data.simulate import draw_field
 from casmag.gp.hyper import estimate_hyperparameters, negative_log_marginal, select_windows
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "magnetic-data" / "invensense"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "magnetic-data" / "invensense"
 
 
 def _walk(n, rng):

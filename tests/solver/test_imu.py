@@ -26,7 +26,7 @@ from casmag.nlp import NLPBuilder
 from casmag.problem.imu import load_imu_problem
 from casmag.solver.imu import SCHEDULE_MARGIN, solve_imu
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 IMU_FILES = sorted((ROOT / "problems/imu").glob("*.yaml"))
 
 

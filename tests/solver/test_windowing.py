@@ -14,7 +14,7 @@ from casmag.model.builder import BUILDS, cached_slam
 from casmag.result.metrics import rmse_and_max
 from casmag.solver import sliding
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BASE = ROOT / "problems/paper/base.yaml"
 AUTO_SPIRAL = 12
 """The automatic window on the Table 5 spiral (casmag.solver.sliding.auto_window)."""

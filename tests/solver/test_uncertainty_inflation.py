@@ -22,7 +22,7 @@ from casmag.solver.uncertainty import (
     residual_inflation,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _ar1(n: int, phi: float, sd: float, rng: np.random.Generator, cols: int = 3) -> np.ndarray:

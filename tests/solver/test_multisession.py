@@ -20,7 +20,7 @@ from casmag.problem.spec import load_problem
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.multisession import revisit_fraction, session_order, solve_sessions, split, stack
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_knots_keep_one_chain_per_session():

@@ -23,7 +23,7 @@ from casmag.experiments.sweep import load_sweep
 from casmag.problem.imu import load_imu_problem, load_planar_options
 from casmag.problem.spec import load_problem
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SETTINGS = settings(
     derandomize=True,
     max_examples=120,
