@@ -14,6 +14,7 @@ from casmag.data.imusim import ImuData
 from casmag.data.simulate import Dataset, simulate_problem
 from casmag.errors import ProblemError
 from casmag.gp.fieldmap import grid_over
+from casmag.model.field import left_map_box
 from casmag.model.translational import (
     HYPERPARAMETERS,
     field_estimate,
@@ -134,6 +135,11 @@ def solve(
         "casadi": ca.__version__,
         "versions": versions(),
     }
+    flags = []
+    if sol.success and structure.basis is not None:
+        box = left_map_box(structure.basis[0], structure.basis[1], P_est)
+        if box is not None:
+            flags.append(box)
     initial = problem.assumed_hyperparameters
     start = sol.stats.get("estimate_start")
     if start is not None:  # the joint MAP's start of its estimated hyperparameters
@@ -143,6 +149,7 @@ def solve(
         info=info,
         status=sol.status,
         success=sol.success,
+        flags=flags,
         iterations=sol.iterations,
         build_seconds=nlp.build_seconds,
         solve_seconds=sol.solve_seconds,

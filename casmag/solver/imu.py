@@ -30,6 +30,7 @@ from casmag.gp.hyper import FieldEvidence, HyperEstimate, estimate_hyperparamete
 from casmag.gp.hyper import field_evidence as _field_evidence
 from casmag.gp.kernels import FIELD_DIM, field_covariance, get_kernel
 from casmag.gp.reduced_rank import cached_basis
+from casmag.model.field import left_map_box
 from casmag.model.imu import (
     ImuStructure,
     Keyframes,
@@ -879,6 +880,10 @@ def solve_imu(
         flag = _estimate_flag(problem, data, errors, slam_map, res)
         if flag is not None:
             flags.append(flag)
+        basis = (slam_map.field_model or {}).get("basis")
+        box = None if basis is None else left_map_box(basis[0], basis[1], slam_map.P)
+        if box is not None:
+            flags.append(box)
 
     def mean_bias(st: ImuSolveStage | None, which: str) -> list[float] | None:
         if st is None:

@@ -16,6 +16,7 @@ from casmag.errors import DataError
 from casmag.gp.fieldmap import map_arrays, unwhitened
 from casmag.gp.hyper import estimate_hyperparameters
 from casmag.gp.reduced_rank import HilbertBasis
+from casmag.model.field import left_map_box
 from casmag.model.planar import (
     PlanarStructure,
     cached_planar_nlp,
@@ -230,6 +231,10 @@ def solve_planar(
             flag = _wrong_basin(sol, true_start, truth["P"], ratio)
             if flag is not None:
                 flags.append(flag)
+    if sol.success:
+        box = left_map_box(basis.domain.center, basis.domain.half_width, sol.x["P"])
+        if box is not None:
+            flags.append(box)
     before = after = (None, None)
     hb_deg = ha_deg = None
     if truth is not None:
