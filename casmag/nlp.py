@@ -413,6 +413,9 @@ class NLP:
                 self.progress.start(None, False)
         seconds = time.perf_counter() - t0
         stats = self.solver.stats()
+        dropped = getattr(self.keep[1], "dropped", None) if self.keep is not None else None
+        if dropped:  # a tiled map's samples that moved beyond its Hessian's pattern
+            stats["hessian_terms_dropped"] = int(max(dropped))
         xopt = np.asarray(out["x"]).ravel()
         iters = stats.get("iterations", {})
         return Solution(

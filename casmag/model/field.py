@@ -6,6 +6,9 @@
   path) with an optional constant field; read in the map frame through the knot-interpolated
   positions (numpy blocks of casmag.model.rrmap, O(1) to build in the samples) or through
   the pose's rotation (casmag.model.rotated).
+- :class:`TiledField`: the curl-free map as a blend of reduced-rank potentials on a grid of
+  tiles (casmag.gp.tiles): each sample touches the tiles around it, so the Hessian grows
+  with the tiles the path visits, not with the area of one box (map frame).
 - :class:`WindowField`: the reduced-rank map of one window of the fixed-lag smoother, whose
   prior is the Gaussian carried from the earlier windows (casmag.solver.sliding).
 - :class:`casmag.model.builder.NoField`: no map.
@@ -16,7 +19,7 @@ model gives it, so every motion model gets every field model.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,10 +28,12 @@ import numpy as np
 
 from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.gp.tiles import TiledBasis, TileGrid, cached_tiles
 from casmag.model.builder import FieldModel, HessianPart, Pose
 from casmag.model.exact import add_exact_prior
 from casmag.model.rotated import add_rotated_map, rotated_gauss_newton
 from casmag.model.rrmap import GaussNewtonHessian, MagnetometerCost, MapLayout, MapModel
+from casmag.model.tiledmap import TiledGaussNewton, TiledMapModel
 from casmag.nlp import NLPBuilder
 from casmag.problem.spec import SolverSpec
 
@@ -78,6 +83,35 @@ def left_map_box(
             "box_half_width": [float(v) for v in half_width],
         },
     }
+
+
+def map_frame_block(
+    b: NLPBuilder,
+    pose: Pose,
+    constant_field: bool,
+    name: str,
+    make: Callable[[MapLayout], MapModel],
+) -> MapModel:
+    """The map-frame magnetometer block (a numpy callback, casmag.model.rrmap) reading the
+    knot corrections, the weights ``W`` (and ``c``) from x and the dead reckoning, Y and
+    sigma_m from p: every symbol is declared before it. ``make`` builds the block's model
+    (the global basis or the tiles) on the layout."""
+    b.parameter("Y", (pose.n, FIELD_DIM))
+    n_x, n_p = b.sizes
+    layout = MapLayout(
+        n_x=n_x,
+        n_p=n_p,
+        C=b.offset(pose.variable),
+        Q=None if pose.nominal is None else b.offset(pose.nominal, "p"),
+        Y=b.offset("Y", "p"),
+        W=b.offset("W"),
+        c=b.offset("c") if constant_field else None,
+        sigma_m=b.offset("sigma_m", "p"),
+    )
+    model = make(layout)
+    mag = b.retain(MagnetometerCost(name, model))
+    b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
+    return model
 
 
 def with_metis(solver: SolverSpec) -> SolverSpec:
@@ -203,25 +237,10 @@ class ReducedRankField(FieldModel):
         return W, c
 
     def _magnetometer(self, b: NLPBuilder, basis: HilbertBasis, pose: Pose, name: str) -> MapModel:
-        """The map-frame magnetometer block (a numpy callback) reading the knot corrections,
-        the weights (and c) from x and the dead reckoning, Y and sigma_m from p: every symbol
-        is declared before it."""
-        b.parameter("Y", (pose.n, FIELD_DIM))
-        n_x, n_p = b.sizes
-        layout = MapLayout(
-            n_x=n_x,
-            n_p=n_p,
-            C=b.offset(pose.variable),
-            Q=None if pose.nominal is None else b.offset(pose.nominal, "p"),
-            Y=b.offset("Y", "p"),
-            W=b.offset("W"),
-            c=b.offset("c") if self.constant_field else None,
-            sigma_m=b.offset("sigma_m", "p"),
-        )
-        model = MapModel(basis, self.kernel, pose.knots, pose.dim, layout)
-        mag = b.retain(MagnetometerCost(name, model))
-        b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
-        return model
+        return map_frame_block(
+            b, pose, self.constant_field, name,
+            lambda layout: MapModel(basis, self.kernel, pose.knots, pose.dim, layout),
+        )  # fmt: skip
 
     @staticmethod
     def _hessian(solver: SolverSpec, model: MapModel, name: str) -> HessianPart | None:
@@ -257,3 +276,45 @@ class WindowField(ReducedRankField):
         R = Z - mu
         b.cost("map_prior", 0.5 * ca.sum1(ca.sum2(R * ca.mtimes(Lam, R))))
         return self._hessian(solver, model, "window_mag_hessian")
+
+
+@dataclass(frozen=True)
+class TiledField(FieldModel):
+    """A tiled map (casmag.gp.tiles, casmag.model.tiledmap): the curl-free field of a blend
+    of reduced-rank potentials on a grid of tiles, weights ``W`` (m, T) (one column per
+    tile), a constant field ``c`` when ``constant_field``. Read in the map frame; its
+    magnetometer block's Hessian is Gauss-Newton, sparse in the tiles (``home``: each
+    sample's nearest grid point when the NLP was built, which fixes the knot-weight
+    pattern). Hyperparameters are parameters."""
+
+    grid: TileGrid
+    home: tuple[int, ...]
+    constant_field: bool = False
+    metis: bool = True
+    name = "tiled"
+
+    def tiles(self) -> TiledBasis:
+        return cached_tiles(self.grid)
+
+    def solver(self, solver: SolverSpec) -> SolverSpec:
+        return with_metis(solver) if self.metis else solver
+
+    def declare(self, b: NLPBuilder, pose: Pose, solver: SolverSpec) -> HessianPart | None:
+        if pose.rotation is not None:
+            raise ValueError("the tiled map is read in the map frame (translational motion)")
+        tiles = self.tiles()
+        sigma_f, ell, _ = (hyperparameter(b, h, False) for h in HYPERPARAMETERS)
+        W = b.variable("W", (tiles.per_tile, tiles.num_tiles))
+        c = b.variable("c", (FIELD_DIM, 1)) if self.constant_field else None
+        sigma_lin = b.parameter("sigma_lin", (1, 1)) if c is not None else None
+        model = map_frame_block(
+            b, pose, self.constant_field, "magnetometer",
+            lambda layout: TiledMapModel(tiles, pose.knots, pose.dim, layout),
+        )  # fmt: skip
+        S = tiles.basis.prior_variances("curl_free", sigma_f, ell)  # (m, 1)
+        b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2) / S))
+        if c is not None:
+            b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
+        if solver.hessian == "limited-memory":
+            return None
+        return ("magnetometer", TiledGaussNewton("tiled_mag_hessian", model, self.home))

@@ -28,16 +28,20 @@ from typing import Any
 import casadi as ca
 import numpy as np
 import scipy.linalg
+import scipy.sparse
+import scipy.sparse.linalg
 
 from casmag.data.simulate import Dataset
 from casmag.gp.fieldmap import field_at, reduced_rank_std
 from casmag.gp.hyper import estimate_conditional
 from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.gp.tiles import TileGrid
 from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam
-from casmag.model.field import HYPERPARAMETERS, ExactField, ReducedRankField
+from casmag.model.field import HYPERPARAMETERS, ExactField, ReducedRankField, TiledField
 from casmag.model.knots import Knots
 from casmag.model.rrmap import field_and_jacobians, make_basis
+from casmag.model.tiledmap import home_points, tile_grid
 from casmag.nlp import NLP, NLPBuilder, Solution, lowest_cost
 from casmag.problem.spec import Problem
 
@@ -60,22 +64,24 @@ class Structure:
     constant_field: bool = False
     knot_every: int = 1
     starts: tuple[int, ...] = (0,)  # first sample of each session (casmag.solver.multisession)
+    tiles: TileGrid | None = None  # form "tiled": the grid around the initial positions
+    home: tuple[int, ...] = ()  # form "tiled": each sample's nearest grid point there
 
     @classmethod
     def of(cls, problem: Problem, data: Dataset, positions: np.ndarray | None = None) -> Structure:
         """The structure of a problem on a data set; a reduced-rank map's box is fitted
         around ``positions`` (default: the dead reckoning)."""
         m = problem.spec.model
-        basis = None
+        basis, tiles, home = None, None, ()
+        X0 = data.dead_reckoning() if positions is None else positions
         if m.gp.form == "reduced_rank":
             hb = make_basis(
-                problem.assumed_kernel,
-                data.dead_reckoning() if positions is None else positions,
-                problem.assumed_lengthscale,
-                m.gp.num_basis,
-                m.gp.margin,
+                problem.assumed_kernel, X0, problem.assumed_lengthscale, m.gp.num_basis, m.gp.margin
             )
             basis = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
+        elif m.gp.form == "tiled":
+            tiles = tile_grid(X0, problem.assumed_lengthscale, m.gp.tile_spacing, m.gp.margin)
+            home = home_points(tiles, X0)
         return cls(
             n=data.n_samples,
             dim=data.dim,
@@ -93,6 +99,8 @@ class Structure:
             constant_field=m.gp.sigma_lin is not None,
             knot_every=m.trajectory.knot_every,
             starts=tuple(int(i) for i in data.starts),
+            tiles=tiles,
+            home=home,
         )
 
     def hilbert_basis(self) -> HilbertBasis:
@@ -119,6 +127,9 @@ class Structure:
     def field(self) -> FieldModel:
         if self.form == "reduced_rank":
             return ReducedRankField(self.kernel, self.basis, self.estimate, self.constant_field)
+        if self.form == "tiled":
+            assert self.tiles is not None
+            return TiledField(self.tiles, self.home, self.constant_field)
         return ExactField(self.kernel, self.jitter, self.estimate, self.logdet)
 
 
@@ -198,6 +209,29 @@ def initial_weights(
     return np.linalg.solve(G, rhs).reshape(-1, 1)
 
 
+def initial_tile_weights(
+    s: Structure,
+    P: np.ndarray,
+    Y: np.ndarray,
+    sigma_m: float,
+    sigma_f: float,
+    lengthscale: float,
+    c0: np.ndarray,
+) -> np.ndarray:
+    """:func:`initial_weights` for the tiled map, (m, T): the same ridge fit with the
+    sparse design matrix, by conjugate gradients preconditioned with the diagonal (its
+    normal matrix holds one block per pair of neighbouring tiles; a direct factor of it
+    would fill in)."""
+    tiles = TiledField(s.tiles, s.home).tiles()
+    A = tiles.design(P)
+    S = np.tile(tiles.prior_variances(sigma_f, lengthscale), tiles.num_tiles)
+    G = (A.T @ A) / sigma_m**2 + scipy.sparse.diags(1.0 / S)
+    rhs = A.T @ (Y - c0).ravel(order="F") / sigma_m**2
+    pre = scipy.sparse.diags(1.0 / G.diagonal())
+    w, _ = scipy.sparse.linalg.cg(G, rhs, rtol=1e-8, maxiter=1000, M=pre)
+    return w.reshape(tiles.num_tiles, tiles.per_tile).T
+
+
 def positions(s: Structure, sol: Solution, dead_reckoning: np.ndarray) -> np.ndarray:
     """(N, d) estimated positions: the dead reckoning plus the knot corrections."""
     return s.knots.positions(dead_reckoning, sol.x["C"])
@@ -205,6 +239,8 @@ def positions(s: Structure, sol: Solution, dead_reckoning: np.ndarray) -> np.nda
 
 def field_estimate(s: Structure, sol: Solution, P: np.ndarray) -> np.ndarray:
     """(N, 3) estimated field at the estimated positions P."""
+    if s.form == "tiled":
+        return field_on_grid(s, sol, {}, P, 0.0, P)
     if s.form != "reduced_rank":
         return sol.x["M"]
     basis = s.hilbert_basis()
@@ -223,8 +259,11 @@ def field_on_grid(
     """(G, 3) estimated field at grid points (G, d): the reduced-rank map itself, or for the
     exact GP the posterior mean given the estimated field at the estimated positions P,
     K(grid, P) K(P, P)^-1 m."""
-    if s.form == "reduced_rank":
-        m = field_at(s.hilbert_basis(), s.kernel, grid, sol.x["W"])
+    if s.form in ("reduced_rank", "tiled"):
+        if s.form == "tiled":
+            m = TiledField(s.tiles, s.home).tiles().field(grid, sol.x["W"].T)
+        else:
+            m = field_at(s.hilbert_basis(), s.kernel, grid, sol.x["W"])
         return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
     kernel = get_kernel(s.kernel)
     M = sol.x["M"]
@@ -256,7 +295,9 @@ def field_std_on_grid(
     informs the map. Reduced rank: from the weights' posterior precision
     A^T A / sigma_m^2 + diag(1 / S) (the constant field left out: every sample informs it);
     exact GP: k(x, x) - k(x, P) (K + sigma_m^2 I)^-1 k(P, x). None for an exact GP above
-    EXACT_STD_MAX_SAMPLES samples."""
+    EXACT_STD_MAX_SAMPLES samples or a tiled map (not yet computed there)."""
+    if s.form == "tiled":
+        return None
     if s.form == "reduced_rank":
         return reduced_rank_std(s.hilbert_basis(), s.kernel, hyper, P, grid)
     sf, ell, sm = hyper["sigma_f"], hyper["lengthscale"], hyper["sigma_m"]
@@ -319,11 +360,10 @@ def parameters_and_guess(
         C0 = s.knots.fit(Q, initial_positions)
         P0 = s.knots.positions(Q, C0)
     x0: dict[str, Any] = {"C": C0}
-    if s.form == "reduced_rank":
+    if s.form in ("reduced_rank", "tiled"):
         c0 = data.Y.mean(axis=0) if s.constant_field else np.zeros(FIELD_DIM)
-        x0["W"] = initial_weights(
-            s, P0, data.Y, hyper["sigma_m"], hyper["sigma_f"], hyper["lengthscale"], c0
-        )
+        fit = initial_weights if s.form == "reduced_rank" else initial_tile_weights
+        x0["W"] = fit(s, P0, data.Y, hyper["sigma_m"], hyper["sigma_f"], hyper["lengthscale"], c0)
         if s.constant_field:
             x0["c"] = c0.reshape(-1, 1)
             params["sigma_lin"] = m.gp.sigma_lin

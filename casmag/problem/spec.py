@@ -113,8 +113,12 @@ class SimulationSpec(Strict):
 class GPSpec(Strict):
     """GP prior on the field. ``null`` hyperparameters take the simulation's true values.
 
-    form: ``exact`` (dense kernel matrix over the samples, paper Eq. 6) or ``reduced_rank``
-    (Hilbert-space basis on a box around the initial trajectory, casmag.model.rrmap).
+    form: ``exact`` (dense kernel matrix over the samples, paper Eq. 6), ``reduced_rank``
+    (Hilbert-space basis on a box around the initial trajectory, casmag.model.rrmap) or
+    ``tiled`` (curl-free only: reduced-rank potentials on a grid of tiles blended smoothly,
+    casmag.gp.tiles; each sample touches the tiles around it, for areas much larger than
+    the lengthscale). tile_spacing: the tiles' grid spacing [m] (null: 4 l); margin is then
+    how far beyond the initial trajectory the tiles reach.
     num_basis, margin: reduced-rank basis size and box margin [m] (null: frequencies up to
     5 / l, margin 3 l). sigma_lin: prior standard deviation of a constant field added to the
     reduced-rank map (null: no constant term).
@@ -124,7 +128,7 @@ class GPSpec(Strict):
     including it made positions no more accurate and the solve about 2.5 times slower.
     """
 
-    form: Literal["exact", "reduced_rank"] = "exact"
+    form: Literal["exact", "reduced_rank", "tiled"] = "exact"
     kernel: KernelName | None = None
     sigma_f: PositiveFloat | None = None
     lengthscale: PositiveFloat | None = None
@@ -133,6 +137,7 @@ class GPSpec(Strict):
     num_basis: Annotated[int, Field(ge=1, le=20_000)] | None = None
     margin: PositiveFloat | None = None
     sigma_lin: PositiveFloat | None = None
+    tile_spacing: PositiveFloat | None = None
 
 
 class MagnetometerModelSpec(Strict):
@@ -386,8 +391,10 @@ class ProblemSpec(Strict):
     @model_validator(mode="after")
     def _consistent(self) -> ProblemSpec:
         gp = self.model.gp
-        if self.solver.hessian == "gauss-newton" and gp.form != "reduced_rank":
-            raise ValueError("solver.hessian: gauss-newton needs model.gp.form: reduced_rank")
+        if self.solver.hessian == "gauss-newton" and gp.form == "exact":
+            raise ValueError(
+                "solver.hessian: gauss-newton needs model.gp.form: reduced_rank or tiled"
+            )
         kernel = gp.kernel or self.simulation.field.kernel
         field = self.simulation.field
         if field.method == "fourier" and field.kernel == "div_free":
@@ -417,7 +424,14 @@ class ProblemSpec(Strict):
                     f"{_bytes(have)} of memory; use simulation.field.method: fourier or fewer "
                     "samples"
                 )
-        if gp.form == "reduced_rank" and {"sigma_f", "lengthscale"} & set(self.model.estimate):
+        if gp.form == "tiled" and kernel != "curl_free":
+            raise ValueError("model.gp.form: tiled needs model.gp.kernel: curl_free")
+        if gp.form == "tiled" and self.solver.warm_start.strategy == "sliding":
+            raise ValueError(
+                "solver.warm_start.strategy: sliding carries the reduced-rank map "
+                "(model.gp.form: reduced_rank), not the tiled one"
+            )
+        if gp.form != "exact" and {"sigma_f", "lengthscale"} & set(self.model.estimate):
             # Weights the data leave free drive 0.5 w^2 / S + 0.5 log S to -inf as S -> 0:
             # the joint MAP over weights and hyperparameters is unbounded.
             raise ValueError(

@@ -226,6 +226,12 @@ def _uncertainty(
     if solved.n_samples != P_est.shape[0]:
         return None, None, None
 
+    if structure.form == "tiled":
+        return (
+            {"error": "not computed: the tiled map's Laplace covariance is not implemented"},
+            None,
+            None,
+        )
     if nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
         reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
         return {"error": f"not computed: {reason}"}, None, None
