@@ -391,6 +391,78 @@ class HessianCallback(ca.Callback):
         return 0
 
 
+class Pattern:
+    """Upper-triangle (row, col) triplets of a Hessian block, collected in the order the
+    values will come."""
+
+    def __init__(self) -> None:
+        self.rows: list[np.ndarray] = []
+        self.cols: list[np.ndarray] = []
+
+    def add(self, r: Any, c: Any) -> None:
+        r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
+        self.rows.append(np.minimum(r, c).ravel())
+        self.cols.append(np.maximum(r, c).ravel())
+
+    def knot_chain(self, cidx: list[np.ndarray]) -> None:
+        """The knot block A^T diag(s) A of positions interpolated between neighbouring
+        knots: (j, j) and (j, j+1) within an axis; across two axes also (j+1, j). ``cidx``:
+        the knot columns of each axis. Values: :func:`knot_chain_values`."""
+        d = len(cidx)
+        for a in range(d):
+            for b in range(a, d):
+                self.add(cidx[a], cidx[b])
+                self.add(cidx[a][:-1], cidx[b][1:])
+                if b > a:
+                    self.add(cidx[a][1:], cidx[b][:-1])
+
+    def constant_field(self, cidx: list[np.ndarray], widx: np.ndarray, c: int) -> None:
+        """The constant field's rows: with the knots, the weights ``widx`` and itself.
+        Values: :func:`constant_field_values`."""
+        for b in range(FIELD_DIM):
+            for a in range(len(cidx)):
+                self.add(cidx[a], c + b)
+            self.add(widx, c + b)
+            self.add(np.array([c + b]), np.array([c + b]))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.concatenate(self.rows), np.concatenate(self.cols)
+
+
+def knot_chain_values(
+    knots: Knots, s_pp: dict[tuple[int, int], np.ndarray], d: int, scale: float
+) -> list[np.ndarray]:
+    """Values of :meth:`Pattern.knot_chain`: A^T diag(s) A by bincount (diagonal and first
+    off-diagonals), s_pp[a, b] (N,) the per-sample products of the position Jacobians."""
+    left, alpha, K = knots.left, knots.alpha, knots.count
+    out = []
+    for a in range(d):
+        for b in range(a, d):
+            s = s_pp[a, b]
+            diag = np.bincount(left, (1 - alpha) ** 2 * s, K) + np.bincount(
+                left + 1, alpha**2 * s, K
+            )
+            off = np.bincount(left, (1 - alpha) * alpha * s, K - 1)
+            out += [diag * scale, off * scale]
+            if b > a:
+                out.append(off * scale)
+    return out
+
+
+def constant_field_values(
+    c_knot: np.ndarray, c_w: np.ndarray, n: int, scale: float
+) -> list[np.ndarray]:
+    """Values of :meth:`Pattern.constant_field`: c_knot (3, d, K) and c_w (3, n_w) the
+    sums of the position and weight Jacobians per component, n samples."""
+    out = []
+    for b in range(FIELD_DIM):
+        for a in range(c_knot.shape[1]):
+            out.append(c_knot[b, a] * scale)
+        out.append(np.ravel(c_w[b]) * scale)
+        out.append(np.array([n * scale]))
+    return out
+
+
 class GaussNewtonHessian(HessianCallback):
     """Hessian of 0.5 sum_k |(y_k - m(p_k)) / sigma_m|^2 (upper triangle): Gauss-Newton
     J^T J, plus the residual-curvature terms (:func:`curvature_terms`) in mode ``exact``, or
@@ -427,40 +499,23 @@ class GaussNewtonHessian(HessianCallback):
     def _pattern(self) -> None:
         K, d, M, lay = self.knots.count, self.dim, self.basis.num_basis, self.lay
         j = np.arange(K)
-        rows, cols = [], []
+        pat = Pattern()
         cidx = [lay.C + a * K + j for a in range(d)]  # (K,) each
-
-        def add(r: np.ndarray, c: np.ndarray) -> None:
-            r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
-            rows.append(np.minimum(r, c).ravel())
-            cols.append(np.maximum(r, c).ravel())
-
-        # knot-knot: (j, j) and (j, j+1) within a dimension; across two dimensions also
-        # (j+1, j)
-        for a in range(d):
-            for b in range(a, d):
-                add(cidx[a], cidx[b])
-                add(cidx[a][:-1], cidx[b][1:])
-                if b > a:
-                    add(cidx[a][1:], cidx[b][:-1])
+        pat.knot_chain(cidx)
         # knot-weight border
         widx = lay.W + np.arange(self.n_w)
         for a in range(d):
-            add(cidx[a][:, None], widx[None, :])
+            pat.add(cidx[a][:, None], widx[None, :])
         # weight-weight
         iu = np.triu_indices(M)
         if self.kernel == "se":
             for c in range(FIELD_DIM):
-                add(lay.W + c * M + iu[0], lay.W + c * M + iu[1])
+                pat.add(lay.W + c * M + iu[0], lay.W + c * M + iu[1])
         else:
-            add(lay.W + iu[0], lay.W + iu[1])
+            pat.add(lay.W + iu[0], lay.W + iu[1])
         if lay.c is not None:
-            for b in range(FIELD_DIM):
-                for a in range(d):
-                    add(cidx[a], lay.c + b)
-                add(widx, lay.c + b)
-                add(np.array([lay.c + b]), np.array([lay.c + b]))
-        self._set_pattern(np.concatenate(rows), np.concatenate(cols), lay.n_x, lay.n_p)
+            pat.constant_field(cidx, widx, lay.c)
+        self._set_pattern(*pat.arrays(), lay.n_x, lay.n_p)
 
     def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The Gauss-Newton entries in the order of the pattern's triplets."""
@@ -478,7 +533,7 @@ class GaussNewtonHessian(HessianCallback):
             exact = self._use_exact(0.5 * cost * inv2)
         else:
             exact = self._use_exact(0.0)
-        left, alpha = kn.left, kn.alpha
+        left = kn.left
         A = kn.matrix
         pairs = [(a, b) for a in range(d) for b in range(a, d)]
         s_pp = {ab: np.empty(N) for ab in pairs}
@@ -516,24 +571,10 @@ class GaussNewtonHessian(HessianCallback):
                         c_w[b, b * M : (b + 1) * M] += Aw[0].sum(axis=0)
                     else:
                         c_w[b] += Aw[b].sum(axis=0)
-        out = []
-        # knot-knot: A^T diag(s) A, i.e. diagonal and first off-diagonals by bincount
-        for a, b in pairs:
-            s = s_pp[a, b]
-            diag = np.bincount(left, (1 - alpha) ** 2 * s, K) + np.bincount(
-                left + 1, alpha**2 * s, K
-            )
-            off = np.bincount(left, (1 - alpha) * alpha * s, K - 1)
-            out += [diag * inv2, off * inv2]
-            if b > a:
-                out.append(off * inv2)
+        out = knot_chain_values(kn, s_pp, d, inv2)
         out += [blk * inv2 for blk in border]
         iu = np.triu_indices(M)
         out.extend([G[iu] * inv2] * (FIELD_DIM if self.kernel == "se" else 1))
         if c_knot is not None:
-            for b in range(FIELD_DIM):
-                for a in range(d):
-                    out.append(c_knot[b, a] * inv2)
-                out.append(c_w[b] * inv2)
-                out.append(np.array([N * inv2]))
+            out += constant_field_values(c_knot, c_w, N, inv2)
         return np.concatenate([np.ravel(v) for v in out])

@@ -30,7 +30,14 @@ from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.reduced_rank import Domain, default_num_basis
 from casmag.gp.tiles import TiledBasis, TileGrid
 from casmag.model.knots import Knots
-from casmag.model.rrmap import HessianCallback, MapLayout, MapModel
+from casmag.model.rrmap import (
+    HessianCallback,
+    MapLayout,
+    MapModel,
+    Pattern,
+    constant_field_values,
+    knot_chain_values,
+)
 
 #: Tile spacing h, margin of a tile's basis box beyond the tile's support and the box's
 #: half-depth in z for planar positions, all in lengthscales, and the basis' frequencies up
@@ -183,39 +190,22 @@ class TiledGaussNewton(HessianCallback):
     def _pattern(self) -> None:
         K, d, lay = self.knots.count, self.dim, self.lay
         m, T = self.tiles.per_tile, self.tiles.num_tiles
-        j = np.arange(K)
-        rows, cols = [], []
-        cidx = [lay.C + a * K + j for a in range(d)]
-
-        def add(r: np.ndarray, c: np.ndarray) -> None:
-            r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
-            rows.append(np.minimum(r, c).ravel())
-            cols.append(np.maximum(r, c).ravel())
-
-        for a in range(d):
-            for b in range(a, d):
-                add(cidx[a], cidx[b])
-                add(cidx[a][:-1], cidx[b][1:])
-                if b > a:
-                    add(cidx[a][1:], cidx[b][:-1])
+        pat = Pattern()
+        cidx = [lay.C + a * K + np.arange(K) for a in range(d)]
+        pat.knot_chain(cidx)
         wm = np.arange(m)
         bd = self._border
         for a in range(d):  # (pair, weight) order
-            add((lay.C + a * K + bd.knot)[:, None], (lay.W + bd.tile[:, None] * m + wm[None, :]))
+            pat.add((lay.C + a * K + bd.knot)[:, None], lay.W + bd.tile[:, None] * m + wm)
         iu = np.triu_indices(m)
         for t1, t2 in self._pairs:  # pair after pair, row-major within the block
             if t1 == t2:
-                add(lay.W + t1 * m + iu[0], lay.W + t1 * m + iu[1])
+                pat.add(lay.W + t1 * m + iu[0], lay.W + t1 * m + iu[1])
             else:
-                add(lay.W + t1 * m + wm[:, None], lay.W + t2 * m + wm[None, :])
+                pat.add(lay.W + t1 * m + wm[:, None], lay.W + t2 * m + wm[None, :])
         if lay.c is not None:
-            widx = lay.W + np.arange(T * m)
-            for b in range(FIELD_DIM):
-                for a in range(d):
-                    add(cidx[a], lay.c + b)
-                add(widx, lay.c + b)
-                add(np.array([lay.c + b]), np.array([lay.c + b]))
-        self._set_pattern(np.concatenate(rows), np.concatenate(cols), lay.n_x, lay.n_p)
+            pat.constant_field(cidx, lay.W + np.arange(T * m), lay.c)
+        self._set_pattern(*pat.arrays(), lay.n_x, lay.n_p)
 
     def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         kn, d, lay = self.knots, self.dim, self.lay
@@ -286,24 +276,11 @@ class TiledGaussNewton(HessianCallback):
                         ok = ids[:, o] >= 0
                         np.add.at(c_w[b], ids[ok, o], J[ok, o, b])
         self.dropped.append(dropped)
-        out = []
-        for a, b in pairs:
-            s = s_pp[a, b]
-            diag = np.bincount(left, (1 - alpha) ** 2 * s, K) + np.bincount(
-                left + 1, alpha**2 * s, K
-            )
-            off = np.bincount(left, (1 - alpha) * alpha * s, K - 1)
-            out += [diag * inv2, off * inv2]
-            if b > a:
-                out.append(off * inv2)
+        out = knot_chain_values(kn, s_pp, d, inv2)
         out += [border[:, a, :] * inv2 for a in range(d)]
         iu = np.triu_indices(m)
         for i, (t1, t2) in enumerate(self._pairs):
             out.append((WW[i][iu] if t1 == t2 else WW[i]) * inv2)
         if c_knot is not None:
-            for b in range(FIELD_DIM):
-                for a in range(d):
-                    out.append(c_knot[b, a] * inv2)
-                out.append(c_w[b] * inv2)
-                out.append(np.array([N * inv2]))
+            out += constant_field_values(c_knot, c_w.reshape(FIELD_DIM, -1), N, inv2)
         return np.concatenate([np.ravel(v) for v in out])

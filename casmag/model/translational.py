@@ -194,7 +194,19 @@ def initial_weights(
     c0: np.ndarray,
 ) -> np.ndarray:
     """Ridge fit of the map weights to the data at the initial positions (the posterior mean
-    of the weights given P): (A^T A / sigma_m^2 + diag(1 / S))^-1 A^T (y - c0) / sigma_m^2."""
+    of the weights given P): (A^T A / sigma_m^2 + diag(1 / S))^-1 A^T (y - c0) / sigma_m^2.
+    For the tiled map, (m, T), by conjugate gradients preconditioned with the diagonal (the
+    normal matrix holds one block per pair of neighbouring tiles; a direct factor of it
+    would fill in)."""
+    if s.form == "tiled":
+        tiles = TiledField(s.tiles, s.home).tiles()
+        A_t = tiles.design(P)
+        S_t = np.tile(tiles.prior_variances(sigma_f, lengthscale), tiles.num_tiles)
+        G_t = (A_t.T @ A_t) / sigma_m**2 + scipy.sparse.diags(1.0 / S_t)
+        rhs_t = A_t.T @ (Y - c0).ravel(order="F") / sigma_m**2
+        pre = scipy.sparse.diags(1.0 / G_t.diagonal())
+        w, _ = scipy.sparse.linalg.cg(G_t, rhs_t, rtol=1e-8, maxiter=1000, M=pre)
+        return w.reshape(tiles.num_tiles, tiles.per_tile).T
     basis = s.hilbert_basis()
     S = basis.prior_variances(s.kernel, sigma_f, lengthscale)
     M = basis.num_basis
@@ -207,29 +219,6 @@ def initial_weights(
     G = sum(a.T @ a for a in A) / sigma_m**2 + np.diag(1.0 / S)
     rhs = sum(A[q].T @ R[:, q] for q in range(FIELD_DIM)) / sigma_m**2
     return np.linalg.solve(G, rhs).reshape(-1, 1)
-
-
-def initial_tile_weights(
-    s: Structure,
-    P: np.ndarray,
-    Y: np.ndarray,
-    sigma_m: float,
-    sigma_f: float,
-    lengthscale: float,
-    c0: np.ndarray,
-) -> np.ndarray:
-    """:func:`initial_weights` for the tiled map, (m, T): the same ridge fit with the
-    sparse design matrix, by conjugate gradients preconditioned with the diagonal (its
-    normal matrix holds one block per pair of neighbouring tiles; a direct factor of it
-    would fill in)."""
-    tiles = TiledField(s.tiles, s.home).tiles()
-    A = tiles.design(P)
-    S = np.tile(tiles.prior_variances(sigma_f, lengthscale), tiles.num_tiles)
-    G = (A.T @ A) / sigma_m**2 + scipy.sparse.diags(1.0 / S)
-    rhs = A.T @ (Y - c0).ravel(order="F") / sigma_m**2
-    pre = scipy.sparse.diags(1.0 / G.diagonal())
-    w, _ = scipy.sparse.linalg.cg(G, rhs, rtol=1e-8, maxiter=1000, M=pre)
-    return w.reshape(tiles.num_tiles, tiles.per_tile).T
 
 
 def positions(s: Structure, sol: Solution, dead_reckoning: np.ndarray) -> np.ndarray:
@@ -362,8 +351,9 @@ def parameters_and_guess(
     x0: dict[str, Any] = {"C": C0}
     if s.form in ("reduced_rank", "tiled"):
         c0 = data.Y.mean(axis=0) if s.constant_field else np.zeros(FIELD_DIM)
-        fit = initial_weights if s.form == "reduced_rank" else initial_tile_weights
-        x0["W"] = fit(s, P0, data.Y, hyper["sigma_m"], hyper["sigma_f"], hyper["lengthscale"], c0)
+        x0["W"] = initial_weights(
+            s, P0, data.Y, hyper["sigma_m"], hyper["sigma_f"], hyper["lengthscale"], c0
+        )
         if s.constant_field:
             x0["c"] = c0.reshape(-1, 1)
             params["sigma_lin"] = m.gp.sigma_lin
