@@ -21,6 +21,7 @@ evaluation, and the solve's statistics carry the largest count
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -284,3 +285,22 @@ class TiledGaussNewton(HessianCallback):
         if c_knot is not None:
             out += constant_field_values(c_knot, c_w.reshape(FIELD_DIM, -1), N, inv2)
         return np.concatenate([np.ravel(v) for v in out])
+
+
+def left_map_tiles(tiles: TiledBasis, P: np.ndarray) -> dict[str, Any] | None:
+    """The ``left_map_tiles`` flag of an estimate with positions P (n, d) whose grid cell
+    lacks a corner tile (None when every position has all of them): the tiles were laid
+    within ``model.gp.margin`` of the initial trajectory, and beyond them the blend is not
+    whole, so the field there is not the GP model's. Needs no truth."""
+    out = ~tiles.inside(np.asarray(P, dtype=float))
+    if not out.any():
+        return None
+    return {
+        "name": "left_map_tiles",
+        "reason": (
+            f"{int(out.sum())} of {P.shape[0]} estimated positions lie where the tiled map "
+            "lacks a tile (laid around the initial trajectory): the map there is not the GP "
+            "model, so the estimate there is an artefact of the approximation"
+        ),
+        "evidence": {"positions_outside": int(out.sum()), "positions": int(P.shape[0])},
+    }

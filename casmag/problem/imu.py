@@ -28,6 +28,7 @@ from casmag.problem.spec import (
     Strict,
     as_overrides,
     parse_override,
+    problem_name,
     read_yaml,
     validate_spec,
 )
@@ -406,9 +407,7 @@ class ImuProblem:
 
     @property
     def name(self) -> str:
-        if self.spec.name:
-            return self.spec.name
-        return Path(self.source).stem if self.source != "<dict>" else "imu"
+        return problem_name(self.spec.name, self.source, "imu")
 
     @property
     def substeps(self) -> int:

@@ -466,6 +466,14 @@ def _bytes(n: float) -> str:
 
 
 # --------------------------------------------------------------------------- resolved values
+def problem_name(name: str | None, source: str, default: str) -> str:
+    """A problem's name: its ``name`` key, else its file's stem, else ``default`` (a
+    problem built in Python)."""
+    if name:
+        return name
+    return Path(source).stem if source != "<dict>" else default
+
+
 @dataclass(frozen=True)
 class Problem:
     """A validated problem: the spec plus where it came from.
@@ -478,9 +486,7 @@ class Problem:
 
     @property
     def name(self) -> str:
-        if self.spec.name:
-            return self.spec.name
-        return Path(self.source).stem if self.source != "<dict>" else "problem"
+        return problem_name(self.spec.name, self.source, "problem")
 
     @property
     def assumed_kernel(self) -> str:

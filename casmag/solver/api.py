@@ -14,7 +14,9 @@ from casmag.data.imusim import ImuData
 from casmag.data.simulate import Dataset, simulate_problem
 from casmag.errors import ProblemError
 from casmag.gp.fieldmap import grid_over
+from casmag.gp.tiles import cached_tiles
 from casmag.model.field import left_map_box
+from casmag.model.tiledmap import left_map_tiles
 from casmag.model.translational import (
     HYPERPARAMETERS,
     field_estimate,
@@ -140,6 +142,17 @@ def solve(
         box = left_map_box(structure.basis[0], structure.basis[1], P_est)
         if box is not None:
             flags.append(box)
+    if structure.tiles is not None:
+        tiles = cached_tiles(structure.tiles)
+        info["tiles"] = {
+            "tiles": tiles.num_tiles,
+            "per_tile": tiles.per_tile,
+            "spacing": structure.tiles.spacing,
+            "hessian_terms_dropped": int(sol.stats.get("hessian_terms_dropped", 0)),
+        }
+        outside = left_map_tiles(tiles, P_est) if sol.success else None
+        if outside is not None:
+            flags.append(outside)
     initial = problem.assumed_hyperparameters
     start = sol.stats.get("estimate_start")
     if start is not None:  # the joint MAP's start of its estimated hyperparameters

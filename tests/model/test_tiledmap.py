@@ -8,7 +8,7 @@ import casmag
 from casmag.data.simulate import simulate_problem
 from casmag.model.builder import build_slam
 from casmag.model.field import TiledField
-from casmag.model.tiledmap import home_points, tile_grid
+from casmag.model.tiledmap import home_points, left_map_tiles, tile_grid
 from casmag.model.translational import TranslationalMotion, solve_translational
 from casmag.problem.spec import SolverSpec
 
@@ -130,3 +130,15 @@ def test_tiled_map_locates_like_the_exact_gp():
 def test_tiled_problem_errors(document, reason):
     with pytest.raises(casmag.ProblemError, match=reason):
         casmag.load_problem({"seed": 1, **document})
+
+
+def test_left_map_tiles_flag():
+    """Positions where the map lacks a corner tile are flagged, with the count."""
+    rng = np.random.default_rng(3)
+    P0 = np.cumsum(rng.normal(scale=0.15, size=(N, 2)), axis=0)
+    tiles = TiledField(tile_grid(P0, ELL), ()).tiles()
+    assert left_map_tiles(tiles, P0) is None
+    far = np.vstack([P0, P0[-1] + 10.0])
+    flag = left_map_tiles(tiles, far)
+    assert flag["name"] == "left_map_tiles"
+    assert flag["evidence"] == {"positions_outside": 1, "positions": N + 1}
