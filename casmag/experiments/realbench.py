@@ -43,11 +43,11 @@ from pydantic import Field, model_validator
 from casmag.data.realdata import Protocol, convert, load_sequence
 from casmag.data.recording import read_recording, write_recording
 from casmag.errors import CasmagError, DataError
-from casmag.model.translational import solve_translational
 from casmag.problem.spec import Strict, validate_spec
 from casmag.result.evaluation import evaluate_result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.recslam import recording_problem, slam, slam_sessions
+from casmag.solver.translational import solve_translational
 
 DATA_HINT = "../shared/data/magnetic-data/invensense (see ../shared/data/README.md)"
 

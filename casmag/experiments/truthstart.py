@@ -30,9 +30,9 @@ import numpy as np
 from casmag.data.simulate import simulate_problem
 from casmag.errors import CasmagError
 from casmag.experiments.sweep import default_jobs, load_sweep, local_map
-from casmag.model.translational import solve_translational
 from casmag.problem.spec import load_problem
 from casmag.result.metrics import rmse_and_max
+from casmag.solver.translational import solve_translational
 
 #: Relative cost difference under which two solves count as the same optimum.
 SAME_COST = 1e-6

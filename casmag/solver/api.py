@@ -15,15 +15,13 @@ from casmag.data.simulate import Dataset, simulate_problem
 from casmag.errors import ProblemError
 from casmag.gp.fieldmap import grid_over
 from casmag.gp.tiles import cached_tiles
-from casmag.model.field import left_map_box
+from casmag.model.field import HYPERPARAMETERS, left_map_box
 from casmag.model.tiledmap import left_map_tiles
 from casmag.model.translational import (
-    HYPERPARAMETERS,
     field_estimate,
     field_on_grid,
     field_std_on_grid,
     parameters_and_guess,
-    solve_translational,
 )
 from casmag.problem.imu import ImuProblem, load_imu_problem
 from casmag.problem.spec import Problem, document_kind, load_problem, read_yaml
@@ -32,6 +30,7 @@ from casmag.result.evaluation import anchor_info
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.imu import solve_imu
 from casmag.solver.sliding import solve_coarse_to_fine, solve_sliding
+from casmag.solver.translational import solve_translational
 from casmag.solver.uncertainty import (
     NotPositiveDefinite,
     magnetometer_correction,

@@ -34,12 +34,12 @@ from typing import Any
 import numpy as np
 
 from casmag.data.simulate import Dataset
-from casmag.model.translational import solve_translational
 from casmag.nlp import lowest_cost
 from casmag.problem.spec import Problem
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.api import solve
+from casmag.solver.translational import solve_translational
 from casmag.solver.uncertainty import PositionUncertainty
 from casmag.solver.windowing import Stage, solve_growing, stage_lengths
 

@@ -82,10 +82,10 @@ from casmag.model.translational import (
     initial_weights,
     parameters_and_guess,
     positions,
-    solve_translational,
 )
 from casmag.nlp import NLP, Solution
 from casmag.problem.spec import Problem
+from casmag.solver.translational import solve_translational
 from casmag.solver.windowing import continued
 
 ACCEPTED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded")

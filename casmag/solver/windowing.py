@@ -27,9 +27,10 @@ from typing import Any, TypeVar
 import numpy as np
 
 from casmag.data.simulate import Dataset
-from casmag.model.translational import Structure, solve_translational
+from casmag.model.translational import Structure
 from casmag.nlp import NLP, Solution
 from casmag.problem.spec import Problem
+from casmag.solver.translational import solve_translational
 
 
 @dataclass(frozen=True)
@@ -104,7 +105,7 @@ def solve_growing(
 ) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure, Dataset, list[Stage]]:
     """Solve with growing prefixes. Returns the final stage's solution, NLP,
     hyperparameters, field and structure as
-    :func:`casmag.model.translational.solve_translational` does (``sol.x["bias"]`` is the
+    :func:`casmag.solver.translational.solve_translational` does (``sol.x["bias"]`` is the
     total per-step bias), the data set the final stage solved (increments with the earlier
     stages' bias removed) and the stages."""
     ws = problem.spec.solver.warm_start

@@ -9,8 +9,9 @@ from casmag.data.simulate import simulate_problem
 from casmag.model.builder import build_slam
 from casmag.model.field import TiledField
 from casmag.model.tiledmap import home_points, left_map_tiles, tile_grid
-from casmag.model.translational import TranslationalMotion, solve_translational
+from casmag.model.translational import TranslationalMotion
 from casmag.problem.spec import SolverSpec
+from casmag.solver.translational import solve_translational
 
 N = 40
 ELL = 0.3

@@ -11,8 +11,9 @@ from casmag.data.simulate import draw_field, simulate_problem
 from casmag.errors import ProblemError
 from casmag.experiments.sweep import _fingerprint
 from casmag.gp.hyper import estimate_conditional, negative_log_marginal, select_windows
-from casmag.model.translational import Structure, estimate_start, parameters_and_guess
+from casmag.model.translational import Structure, parameters_and_guess
 from casmag.problem.spec import load_problem
+from casmag.solver.translational import estimate_start
 
 ROOT = Path(__file__).resolve().parents[2]
 BASE = ROOT / "problems" / "paper" / "base.yaml"

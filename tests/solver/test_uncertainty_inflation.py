@@ -14,7 +14,8 @@ from small_problems import tiny_walk
 
 import casmag
 from casmag.data.simulate import simulate_problem
-from casmag.model.translational import parameters_and_guess, solve_translational
+from casmag.model.translational import parameters_and_guess
+from casmag.solver.translational import solve_translational
 from casmag.solver.uncertainty import (
     autocorrelation_time,
     magnetometer_correction,
