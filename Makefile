@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-scale bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -128,6 +128,9 @@ bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences x 2 drifts + 2 
 
 bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
 	$(PY) -m casmag.experiments.bench scale --out results/bench
+
+bench-area: $(STAMP) ## Same walk (10k samples) over 6x6, 20x20, 50x70 m, dipole field: one box vs tiles; results/bench/area.json, .png (hours)
+	$(PY) -m casmag.experiments.bench area --out results/bench
 
 bench-exact: $(STAMP) ## Exact GP against reduced rank, N = 100..500; replaces those rows of results/bench/scale.json
 	$(PY) -m casmag.experiments.bench exact --out results/bench

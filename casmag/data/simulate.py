@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from casmag.data.dipoles import Dipole, DipoleField, moment_for
 from casmag.gp.kernels import FIELD_DIM, field_covariance, get_kernel
 from casmag.problem.spec import Problem, SimulationSpec, TrajectorySpec
 
@@ -184,6 +185,47 @@ def fourier_field(
     raise ValueError(f"fourier fields support se and curl_free, not {kernel_name!r}")
 
 
+def dipole_floor_field(
+    X: np.ndarray,
+    kernel_name: str,
+    sigma_f: float,
+    lengthscale: float,
+    density: float,
+    depth: tuple[float, float] | None,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """(N, 3) field of magnetic dipoles under the floor at positions X (N, 2 or 3; planar
+    X lie at z = 0): ``density`` dipoles per square metre over the positions' bounding box
+    grown by the deepest depth, each at a depth uniform in ``depth`` [m] (None: 1.5 to 3
+    lengthscales) below z = 0 with a moment in a uniformly random direction and a
+    log-uniform strength over a decade, all scaled so that each component's standard
+    deviation along X is the GP's (sigma_f; curl_free: sigma_f / l). Curl-free and
+    divergence-free (casmag.data.dipoles), not a draw from the GP prior."""
+    N, d = X.shape
+    X3 = np.column_stack([X, np.zeros((N, 3 - d))]) if d < 3 else X
+    lo_d, hi_d = depth if depth is not None else (1.5 * lengthscale, 3.0 * lengthscale)
+    lo = X3[:, :2].min(axis=0) - hi_d
+    hi = X3[:, :2].max(axis=0) + hi_d
+    count = max(1, int(rng.poisson(density * float(np.prod(hi - lo)))))
+    pos = np.column_stack(
+        [rng.uniform(lo[0], hi[0], count), rng.uniform(lo[1], hi[1], count), np.zeros(count)]
+    )
+    pos[:, 2] = X3[:, 2].min() - rng.uniform(lo_d, hi_d, count)
+    direction = rng.standard_normal((count, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    strength = 10.0 ** rng.uniform(0.0, 1.0, count)
+    moments = [
+        moment_for(s, float(X3[:, 2].min() - z), u)
+        for s, z, u in zip(strength, pos[:, 2], direction, strict=True)
+    ]
+    field = DipoleField(np.zeros(3), [Dipole(p, m) for p, m in zip(pos, moments, strict=True)])
+    M = np.empty((N, FIELD_DIM))
+    for s in range(0, N, 4096):
+        M[s : s + 4096] = field(X3[s : s + 4096])
+    target = sigma_f / (lengthscale if kernel_name == "curl_free" else 1.0)
+    return M * (target / float(np.sqrt(np.mean(np.var(M, axis=0)))))
+
+
 def draw_field(
     X: np.ndarray, kernel_name: str, sigma_f: float, lengthscale: float, rng: np.random.Generator
 ) -> np.ndarray:
@@ -211,6 +253,11 @@ def simulate(spec: SimulationSpec, seed: int) -> Dataset:
     f = spec.field
     if f.method == "fourier":
         M = fourier_field(P, f.kernel, f.sigma_f, f.lengthscale, f.features, rng_field)
+    elif f.method == "dipoles":
+        depth = None if f.dipole_depth is None else (f.dipole_depth[0], f.dipole_depth[1])
+        M = dipole_floor_field(
+            P, f.kernel, f.sigma_f, f.lengthscale, f.dipole_density, depth, rng_field
+        )
     else:
         M = draw_field(P, f.kernel, f.sigma_f, f.lengthscale, rng_field)
     bias = np.asarray(spec.odometry.bias, dtype=float)

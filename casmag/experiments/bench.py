@@ -1,4 +1,5 @@
-"""Benchmarks: ``python -m casmag.experiments.bench scale`` (``make bench-scale``).
+"""Benchmarks: ``python -m casmag.experiments.bench scale`` (``make bench-scale``) and
+``... bench area`` (``make bench-area``).
 
 Each configuration runs in its own process, so the peak memory reported is that run's
 (``ru_maxrss``), and the results are collected into ``results/bench/scale.json`` (written to
@@ -43,10 +44,28 @@ loop closure, so a bias is unobservable; the exact GP then stretched the traject
 N = 100 its RMSE went from 0.007 m to 18.8 m in 144 iterations.)"""
 
 
+AREAS = ((6.0, 6.0), (20.0, 20.0), (50.0, 70.0))
+AREA_SAMPLES = 10_000
+AREA_FIELD = [
+    "simulation.field.method=dipoles",
+    "simulation.field.kernel=curl_free",
+    "solver.uncertainty=false",
+]
+"""``make bench-area``: the walk's 10,000 samples (the file's l = 0.35 m, growing warm start)
+over each area, in a field of dipoles under the floor (physics, not a GP draw;
+casmag.data.simulate.dipole_floor_field), solved with the curl-free map as one box and as
+tiles."""
+
+
 def run_one(
-    samples: int, form: str, knot_every: int | None, comparison: bool = False
+    samples: int,
+    form: str,
+    knot_every: int | None,
+    comparison: bool = False,
+    extra: tuple[str, ...] = (),
 ) -> dict[str, Any]:
-    """Simulate the walk with ``samples`` samples and solve it; figures measured here."""
+    """Simulate the walk with ``samples`` samples and solve it; figures measured here.
+    ``extra``: more ``--set`` overrides (the area benchmark's area and field)."""
     import numpy as np
 
     import casmag
@@ -56,6 +75,7 @@ def run_one(
         overrides.append(f"model.trajectory.knot_every={knot_every}")
     if comparison:
         overrides += COMPARISON
+    overrides += list(extra)
     problem = casmag.load_problem(WALK, overrides)
     t0 = time.perf_counter()
     data = simulate_problem(problem)
@@ -74,6 +94,8 @@ def run_one(
         "form": form,
         "knot_every": problem.spec.model.trajectory.knot_every,
         "num_basis": result.info["num_basis"],
+        "tiles": result.info.get("tiles"),
+        "overrides": list(extra),
         "status": result.status,
         "success": result.success,
         "wall_seconds": wall,
@@ -153,12 +175,69 @@ def main() -> None:
 
 @main.command()
 @click.argument("samples", type=int)
-@click.option("--form", default="reduced_rank", type=click.Choice(["reduced_rank", "exact"]))
+@click.option(
+    "--form", default="reduced_rank", type=click.Choice(["reduced_rank", "exact", "tiled"])
+)
 @click.option("--knot-every", type=int, default=None)
 @click.option("--comparison", is_flag=True, help="The exact-versus-reduced-rank set-up.")
-def one(samples: int, form: str, knot_every: int | None, comparison: bool) -> None:
+@click.option("--set", "extra", multiple=True, help="More overrides (key.path=value).")
+def one(
+    samples: int, form: str, knot_every: int | None, comparison: bool, extra: tuple[str, ...]
+) -> None:
     """Run one configuration and print its figures as one JSON line."""
-    click.echo(json.dumps(run_one(samples, form, knot_every, comparison)))
+    click.echo(json.dumps(run_one(samples, form, knot_every, comparison, extra)))
+
+
+@main.command()
+@click.option("--out", "out_dir", default=str(ROOT / "results" / "bench"), type=click.Path())
+@click.option("--samples", default=AREA_SAMPLES, type=int)
+@click.option("--forms", default="reduced_rank,tiled", help="Comma-separated map forms.")
+def area(out_dir: str, samples: int, forms: str) -> None:
+    """The same walk length over each area of :data:`AREAS` (:data:`AREA_FIELD`), each map
+    form in its own process: wall time, time per iteration, peak memory, RMSE before and
+    after. Writes OUT/area.json and OUT/area.png."""
+    runs = []
+    for w, h in AREAS:
+        for form in forms.split(","):
+            click.echo(f"{w:g} x {h:g} m, {form} ...", err=True)
+            sets = [f"simulation.trajectory.area=[{w}, {h}]", *AREA_FIELD]
+            args = [str(samples), "--form", form] + [a for s in sets for a in ("--set", s)]
+            runs.append({"area": [w, h], **_spawn(args)})
+            runs[-1].pop("P_estimate", None)
+            click.echo(f"  {_summary(runs[-1])}", err=True)
+    out = Path(out_dir)
+    _write_json(out / "area.json", {"meta": _meta(), "runs": runs})
+    _area_figure(runs, out / "area.png")
+    click.echo(f"wrote {out / 'area.json'} and {out / 'area.png'}", err=True)
+
+
+def _area_figure(runs: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12, 4))
+    axes = fig.subplots(1, 3)
+    for form in sorted({r.get("form") for r in runs if r.get("form")}):
+        ok = [r for r in runs if r.get("form") == form and r.get("success")]
+        a = [r["area"][0] * r["area"][1] for r in ok]
+        axes[0].loglog(a, [r["seconds_per_iteration_last_stage"] for r in ok], "o-", label=form)
+        axes[1].loglog(a, [r["peak_rss_gib"] for r in ok], "o-", label=form)
+        axes[2].loglog(a, [r["rmse_after"] for r in ok], "o-", label=f"{form} after")
+        axes[2].loglog(a, [r["rmse_before"] for r in ok], "x:", label=f"{form} before")
+    for ax, ylabel in zip(
+        axes, ("s / iteration (last stage)", "peak RSS [GiB]", "position RMSE [m]"), strict=True
+    ):
+        ax.set_xlabel("area [m^2]")
+        ax.set_ylabel(ylabel)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.suptitle("10,000-sample walk over growing areas, dipole field: one box against tiles")
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.png")
+    fig.savefig(tmp, dpi=110)
+    os.replace(tmp, path)
 
 
 @main.command()
@@ -217,15 +296,18 @@ def _comparisons(sizes: list[int]) -> list[dict[str, Any]]:
     return runs
 
 
-def _save(out: Path, runs: list[dict[str, Any]]) -> None:
+def _meta() -> dict[str, Any]:
     import casadi
 
-    meta = {
+    return {
         "problem": str(WALK.relative_to(ROOT)),
         "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
         "casadi": casadi.__version__,
     }
-    _write_json(out / "scale.json", {"meta": meta, "runs": runs})
+
+
+def _save(out: Path, runs: list[dict[str, Any]]) -> None:
+    _write_json(out / "scale.json", {"meta": _meta(), "runs": runs})
     _figure([r for r in runs if r["comparison"] == "scale"], out / "scale.png")
     click.echo(f"wrote {out / 'scale.json'} and {out / 'scale.png'}", err=True)
 

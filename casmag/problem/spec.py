@@ -79,14 +79,21 @@ class FieldSpec(Strict):
     method ``exact``: a joint Gaussian draw at the samples (O(N^3), for N up to a few
     thousand); ``fourier``: random Fourier features (``features`` cosines with frequencies
     drawn from the kernel's spectral density), a smooth field defined everywhere, for long
-    walks. ``fourier`` supports the se and curl_free kernels.
+    walks. ``fourier`` supports the se and curl_free kernels. ``dipoles``: not a GP draw but
+    physics (casmag.data.simulate.dipole_floor_field): magnetic dipoles under the floor,
+    ``dipole_density`` per square metre at depths uniform in ``dipole_depth`` [m] (null:
+    1.5 to 3 lengthscales) below the path's plane, scaled so that each component's standard
+    deviation along the path is the GP's (sigma_f; curl_free: sigma_f / l); the kernel,
+    sigma_f and lengthscale are then what a model with null values assumes.
     """
 
     kernel: KernelName = "se"
     sigma_f: PositiveFloat = 0.1
     lengthscale: PositiveFloat = 0.1
-    method: Literal["exact", "fourier"] = "exact"
+    method: Literal["exact", "fourier", "dipoles"] = "exact"
     features: Annotated[int, Field(ge=10, le=100_000)] = 2000
+    dipole_density: PositiveFloat = 1.0
+    dipole_depth: Annotated[list[PositiveFloat], Field(min_length=2, max_length=2)] | None = None
 
 
 class OdometrySimSpec(Strict):
@@ -397,6 +404,10 @@ class ProblemSpec(Strict):
             )
         kernel = gp.kernel or self.simulation.field.kernel
         field = self.simulation.field
+        if field.dipole_depth is not None and field.dipole_depth[0] > field.dipole_depth[1]:
+            raise ValueError("simulation.field.dipole_depth: [shallowest, deepest] in metres")
+        if field.method == "dipoles" and field.kernel == "div_free":
+            raise ValueError("simulation.field.method: dipoles gives a curl-free field")
         if field.method == "fourier" and field.kernel == "div_free":
             raise ValueError(
                 "simulation.field.method: fourier supports the se and curl_free kernels"
