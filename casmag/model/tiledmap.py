@@ -96,9 +96,7 @@ class TiledMapModel(MapModel):
     CHUNK = 1024
 
     def __init__(self, tiles: TiledBasis, knots: Knots, dim: int, layout: MapLayout) -> None:
-        self.tiles, self.kernel, self.knots, self.dim, self.lay = (
-            tiles, "curl_free", knots, dim, layout
-        )  # fmt: skip
+        self.tiles, self.knots, self.dim, self.lay = tiles, knots, dim, layout
         self.n_w = tiles.num_weights
 
     def weights(self, w: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ from casmag.data.simulate import Dataset
 from casmag.gp.fieldmap import field_at, reduced_rank_std
 from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
-from casmag.gp.tiles import TileGrid
+from casmag.gp.tiles import TileGrid, cached_tiles
 from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam
 from casmag.model.field import ExactField, ReducedRankField, TiledField
 from casmag.model.knots import Knots
@@ -198,7 +198,7 @@ def initial_weights(
     normal matrix holds one block per pair of neighbouring tiles; a direct factor of it
     would fill in)."""
     if s.form == "tiled":
-        tiles = TiledField(s.tiles, s.home).tiles()
+        tiles = cached_tiles(s.tiles)
         A_t = tiles.design(P)
         S_t = np.tile(tiles.prior_variances(sigma_f, lengthscale), tiles.num_tiles)
         G_t = (A_t.T @ A_t) / sigma_m**2 + scipy.sparse.diags(1.0 / S_t)
@@ -228,11 +228,18 @@ def positions(s: Structure, sol: Solution, dead_reckoning: np.ndarray) -> np.nda
 def field_estimate(s: Structure, sol: Solution, P: np.ndarray) -> np.ndarray:
     """(N, 3) estimated field at the estimated positions P."""
     if s.form == "tiled":
-        return field_on_grid(s, sol, {}, P, 0.0, P)
+        return _tiled_field(s, sol, P)
     if s.form != "reduced_rank":
         return sol.x["M"]
     basis = s.hilbert_basis()
     m, _, _ = field_and_jacobians(basis, s.kernel, P, sol.x["W"].ravel(order="F"))
+    return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
+
+
+def _tiled_field(s: Structure, sol: Solution, X: np.ndarray) -> np.ndarray:
+    """(G, 3) the tiled map's field (with its constant) at points X (G, d)."""
+    assert s.tiles is not None
+    m = cached_tiles(s.tiles).field(X, sol.x["W"].T)
     return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
 
 
@@ -247,11 +254,10 @@ def field_on_grid(
     """(G, 3) estimated field at grid points (G, d): the reduced-rank map itself, or for the
     exact GP the posterior mean given the estimated field at the estimated positions P,
     K(grid, P) K(P, P)^-1 m."""
-    if s.form in ("reduced_rank", "tiled"):
-        if s.form == "tiled":
-            m = TiledField(s.tiles, s.home).tiles().field(grid, sol.x["W"].T)
-        else:
-            m = field_at(s.hilbert_basis(), s.kernel, grid, sol.x["W"])
+    if s.form == "tiled":
+        return _tiled_field(s, sol, grid)
+    if s.form == "reduced_rank":
+        m = field_at(s.hilbert_basis(), s.kernel, grid, sol.x["W"])
         return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
     kernel = get_kernel(s.kernel)
     M = sol.x["M"]
