@@ -18,6 +18,7 @@ import scipy.linalg
 
 from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.reduced_rank import HilbertBasis
+from casmag.gp.tiles import TiledBasis
 
 #: Grid points per axis of a map drawn by map.png.
 GRID_POINTS = 90
@@ -125,4 +126,28 @@ def map_arrays(
     out.update(
         map_field=m.reshape(shape), map_std=std.reshape(shape), map_prior_std=prior.reshape(shape)
     )
+    return out
+
+
+def tiled_map_arrays(
+    tiles: TiledBasis,
+    W: np.ndarray,
+    c: np.ndarray | None,
+    lengthscale: float,
+    P: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """The arrays map.png draws for a tiled map (casmag.gp.tiles) with weights W (T, m):
+    ``map_x``, ``map_y``, ``map_field`` (and ``map_z`` for a 3-D path) as
+    :func:`map_arrays`; its posterior standard deviation is not computed (map.png then
+    draws the field alone). Grid points where the map lacks a tile get NaN."""
+    gx, gy = grid_over(P, lengthscale)
+    pts = np.column_stack([gx.ravel(), gy.ravel()])
+    out: dict[str, np.ndarray] = {"map_x": gx, "map_y": gy}
+    if P.shape[1] == 3:
+        z = float(np.median(P[:, 2]))
+        pts = np.column_stack([pts, np.full(pts.shape[0], z)])
+        out["map_z"] = np.array(z)
+    m = tiles.field(pts, W) + (0.0 if c is None else np.ravel(c))
+    m[~tiles.inside(pts)] = np.nan
+    out["map_field"] = m.reshape(*gx.shape, FIELD_DIM)
     return out

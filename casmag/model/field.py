@@ -31,9 +31,20 @@ from casmag.gp.reduced_rank import HilbertBasis, cached_basis
 from casmag.gp.tiles import TiledBasis, TileGrid, cached_tiles
 from casmag.model.builder import FieldModel, HessianPart, Pose
 from casmag.model.exact import add_exact_prior
-from casmag.model.rotated import add_rotated_map, rotated_gauss_newton
-from casmag.model.rrmap import GaussNewtonHessian, MagnetometerCost, MapLayout, MapModel
-from casmag.model.tiledmap import TiledGaussNewton, TiledMapModel
+from casmag.model.rotated import add_rotated_map, rotated_gauss_newton, rotated_layout
+from casmag.model.rrmap import (
+    GaussNewtonHessian,
+    MagnetometerCost,
+    MapLayout,
+    MapModel,
+    NumpyCost,
+)
+from casmag.model.tiledmap import (
+    RotatedTiledGaussNewton,
+    RotatedTiledModel,
+    TiledGaussNewton,
+    TiledMapModel,
+)
 from casmag.nlp import NLPBuilder
 from casmag.problem.spec import SolverSpec
 
@@ -282,10 +293,11 @@ class WindowField(ReducedRankField):
 class TiledField(FieldModel):
     """A tiled map (casmag.gp.tiles, casmag.model.tiledmap): the curl-free field of a blend
     of reduced-rank potentials on a grid of tiles, weights ``W`` (m, T) (one column per
-    tile), a constant field ``c`` when ``constant_field``. Read in the map frame; its
-    magnetometer block's Hessian is Gauss-Newton, sparse in the tiles (``home``: each
-    sample's nearest grid point when the NLP was built, which fixes the knot-weight
-    pattern). Hyperparameters are parameters."""
+    tile), a constant field ``c`` when ``constant_field``. Read in the map frame, or through
+    the pose's rotation when the motion model has one (y = R^T (m + c): planar with heading,
+    IMU; casmag.model.tiledmap.RotatedTiledModel); the magnetometer block's Hessian is
+    Gauss-Newton, sparse in the tiles (``home``: each sample's nearest grid point when the
+    NLP was built, which fixes the pose-weight pattern). Hyperparameters are parameters."""
 
     grid: TileGrid
     home: tuple[int, ...]
@@ -300,21 +312,36 @@ class TiledField(FieldModel):
         return with_metis(solver) if self.metis else solver
 
     def declare(self, b: NLPBuilder, pose: Pose, solver: SolverSpec) -> HessianPart | None:
-        if pose.rotation is not None:
-            raise ValueError("the tiled map is read in the map frame (translational motion)")
         tiles = self.tiles()
         sigma_f, ell, _ = (hyperparameter(b, h, False) for h in HYPERPARAMETERS)
         W = b.variable("W", (tiles.per_tile, tiles.num_tiles))
         c = b.variable("c", (FIELD_DIM, 1)) if self.constant_field else None
         sigma_lin = b.parameter("sigma_lin", (1, 1)) if c is not None else None
-        model = map_frame_block(
-            b, pose, self.constant_field, "magnetometer",
-            lambda layout: TiledMapModel(tiles, pose.knots, pose.dim, layout),
-        )  # fmt: skip
         S = tiles.basis.prior_variances("curl_free", sigma_f, ell)  # (m, 1)
-        b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2) / S))
+        if pose.rotation is None:
+            model: Any = map_frame_block(
+                b, pose, self.constant_field, "magnetometer",
+                lambda layout: TiledMapModel(tiles, pose.knots, pose.dim, layout),
+            )  # fmt: skip
+            hessian: Any = lambda: TiledGaussNewton("tiled_mag_hessian", model, self.home)  # noqa: E731
+        else:
+            # Read through the body's rotation (planar with heading, IMU): y = R^T (m + c).
+            b.parameter("Y", (pose.n, FIELD_DIM))
+            layout = rotated_layout(b, pose, whitened=True)
+            model = RotatedTiledModel(tiles, pose.rotation.function, layout)
+            mag = b.retain(
+                NumpyCost("rotated_tiled_magnetometer", *b.sizes, model.cost, model.gradient)
+            )
+            b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
+            hessian = lambda: RotatedTiledGaussNewton(  # noqa: E731
+                "rotated_tiled_hessian", model, self.home
+            )
+        if pose.rotation is None:
+            b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2) / S))
+        else:  # whitened weights (RotatedTiledModel)
+            b.cost("gp_prior", 0.5 * ca.sumsqr(W))
         if c is not None:
             b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
         if solver.hessian == "limited-memory":
             return None
-        return ("magnetometer", TiledGaussNewton("tiled_mag_hessian", model, self.home))
+        return ("magnetometer", hessian())

@@ -14,8 +14,9 @@ import casadi as ca
 import numpy as np
 
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.gp.tiles import TiledBasis, TileGrid, cached_tiles
 from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
-from casmag.model.field import ReducedRankField
+from casmag.model.field import ReducedRankField, TiledField
 from casmag.model.knots import Knots
 from casmag.model.rotated import planar_rotation_function
 from casmag.nlp import NLP, NLPBuilder
@@ -24,19 +25,37 @@ from casmag.nlp import NLP, NLPBuilder
 # --------------------------------------------------------------------------- planar model
 @dataclass(frozen=True)
 class PlanarStructure:
+    """Everything that changes the planar NLP: samples, bias model, kernel, the map (a
+    reduced-rank ``basis`` key, or a tile ``grid`` with each sample's ``home`` grid point
+    when the map is tiled), the solver settings as JSON."""
+
     n: int
     bias: str
     kernel: str
-    basis: tuple
+    basis: tuple | None
     solver: str
     curvature: bool = True
+    grid: TileGrid | None = None
+    home: tuple[int, ...] = ()
+
+    @property
+    def tiled(self) -> bool:
+        return self.grid is not None
 
     def hilbert_basis(self) -> HilbertBasis:
+        assert self.basis is not None, "a tiled map has no global basis"
         return cached_basis(self.basis)
 
-    def field(self) -> ReducedRankField:
-        """The reduced-rank map with a constant field; with ``curvature`` its Hessian
-        callback carries the second-order terms from the start (exact), else Gauss-Newton."""
+    def tiles(self) -> TiledBasis:
+        assert self.grid is not None
+        return cached_tiles(self.grid)
+
+    def field(self) -> ReducedRankField | TiledField:
+        """The map with a constant field: the tiles (Gauss-Newton Hessian), or the
+        reduced-rank box; with ``curvature`` its Hessian callback carries the second-order
+        terms from the start (exact), else Gauss-Newton."""
+        if self.grid is not None:
+            return TiledField(self.grid, self.home, constant_field=True)
         mode = "exact" if self.curvature else "gauss-newton"
         return ReducedRankField(self.kernel, self.basis, constant_field=True, curvature=mode)
 
@@ -104,7 +123,7 @@ class PlanarMotion(MotionModel):
 
 
 def cached_planar_nlp(s: PlanarStructure) -> NLP:
-    """The planar model with the structure's reduced-rank map, built once per process."""
+    """The planar model with the structure's map, built once per process."""
     return cached_slam(PlanarMotion(s.n, s.bias), s.field(), s.solver)
 
 

@@ -307,7 +307,19 @@ def rotated_gauss_newton(
 ) -> tuple[str, RotatedFieldGaussNewton]:
     """The ``magnetometer`` block's Hessian callback of :func:`add_rotated_map` on a pose
     (declare every symbol first)."""
+    layout = rotated_layout(b, pose, whitened=True)
+    return "magnetometer", RotatedFieldGaussNewton(
+        "rotated_mag_gauss_newton", basis, kernel, pose.rotation.function, layout, mode
+    )
+
+
+def rotated_layout(b: NLPBuilder, pose: Pose, whitened: bool) -> RotatedMapLayout:
+    """Where a rotated magnetometer block's unknowns and data sit in x and p (every symbol
+    declared first: ``W``, ``c``, ``Y``, ``sigma_m`` and, with ``whitened`` weights,
+    ``sigma_f`` and ``lengthscale``). One row per sample: the pose's knots are the samples."""
     assert pose.rotation is not None
+    if pose.knots.count != pose.n:
+        raise ValueError("a rotated magnetometer block needs one pose unknown per sample")
     n_x, n_p = b.sizes
     n, dim, rot = pose.n, pose.dim, pose.rotation
     k = np.arange(n)
@@ -320,7 +332,7 @@ def rotated_gauss_newton(
         aux = np.zeros((n, 0), dtype=np.int64)
     else:
         aux = columns(rot.aux_name, rot.aux.shape[1], "p")
-    layout = RotatedMapLayout(
+    return RotatedMapLayout(
         n_x=n_x,
         n_p=n_p,
         pos=columns(pose.variable, dim),
@@ -331,11 +343,8 @@ def rotated_gauss_newton(
         c=b.offset("c"),
         sigma_m=b.offset("sigma_m", "p"),
         Y=b.offset("Y", "p"),
-        sigma_f=b.offset("sigma_f", "p"),
-        lengthscale=b.offset("lengthscale", "p"),
-    )
-    return "magnetometer", RotatedFieldGaussNewton(
-        "rotated_mag_gauss_newton", basis, kernel, rot.function, layout, mode
+        sigma_f=b.offset("sigma_f", "p") if whitened else None,
+        lengthscale=b.offset("lengthscale", "p") if whitened else None,
     )
 
 

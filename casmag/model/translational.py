@@ -40,7 +40,7 @@ from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam
 from casmag.model.field import ExactField, ReducedRankField, TiledField
 from casmag.model.knots import Knots
 from casmag.model.rrmap import field_and_jacobians, make_basis
-from casmag.model.tiledmap import home_points, tile_grid
+from casmag.model.tiledmap import home_points, ridge_tile_weights, tile_grid
 from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.problem.spec import Problem
 
@@ -198,14 +198,8 @@ def initial_weights(
     normal matrix holds one block per pair of neighbouring tiles; a direct factor of it
     would fill in)."""
     if s.form == "tiled":
-        tiles = cached_tiles(s.tiles)
-        A_t = tiles.design(P)
-        S_t = np.tile(tiles.prior_variances(sigma_f, lengthscale), tiles.num_tiles)
-        G_t = (A_t.T @ A_t) / sigma_m**2 + scipy.sparse.diags(1.0 / S_t)
-        rhs_t = A_t.T @ (Y - c0).ravel(order="F") / sigma_m**2
-        pre = scipy.sparse.diags(1.0 / G_t.diagonal())
-        w, _ = scipy.sparse.linalg.cg(G_t, rhs_t, rtol=1e-8, maxiter=1000, M=pre)
-        return w.reshape(tiles.num_tiles, tiles.per_tile).T
+        assert s.tiles is not None
+        return ridge_tile_weights(cached_tiles(s.tiles), P, Y, c0, sigma_m, sigma_f, lengthscale)
     basis = s.hilbert_basis()
     S = basis.prior_variances(s.kernel, sigma_f, lengthscale)
     M = basis.num_basis

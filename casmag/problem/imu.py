@@ -513,6 +513,7 @@ class PlanarModelSpec(Strict):
     curvature: bool = True
     starts: Annotated[int, Field(ge=1, le=21)] = 1
     start_heading_deg: PositiveFloat = 10.0
+    form: Literal["reduced_rank", "tiled"] = "reduced_rank"
 
     @field_validator("starts")
     @classmethod
@@ -520,6 +521,14 @@ class PlanarModelSpec(Strict):
         if v % 2 == 0:
             raise ValueError("must be odd (the dead reckoning and pairs of +-biases)")
         return v
+
+    @model_validator(mode="after")
+    def _tiled_is_curl_free(self) -> PlanarModelSpec:
+        if self.form == "tiled" and self.kernel != "curl_free":
+            raise ValueError(
+                "form tiled needs kernel: curl_free (the tiles blend a scalar potential)"
+            )
+        return self
 
 
 #: Solver settings of planar recordings that differ from SolverSpec's defaults (keys a
@@ -564,7 +573,10 @@ class PlanarOptions:
     priors on the known first position and heading; starts: number of starts (odd: the dead
     reckoning and pairs of +-heading-rate biases, the lowest MAP cost kept) [1];
     start_heading_deg: the heading the first pair's bias turns over the recording [10];
-    solver: IPOPT settings."""
+    form: the map, ``reduced_rank`` (one box around the dead reckoning) or ``tiled``
+    (casmag.gp.tiles: tiles only where the path goes, each sample touching the four
+    around it; needs kernel ``curl_free``; the Hessian is Gauss-Newton, ``curvature``
+    applies to the box only) [reduced_rank]; solver: IPOPT settings."""
 
     sigma_disp: float = 0.01
     sigma_dyaw: float = 0.002
@@ -583,6 +595,7 @@ class PlanarOptions:
     curvature: bool = True
     starts: int = 1
     start_heading_deg: float = 10.0
+    form: str = "reduced_rank"
     solver: SolverSpec = dataclasses.field(
         default_factory=lambda: SolverSpec(**PLANAR_SOLVER_DEFAULTS)
     )

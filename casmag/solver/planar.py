@@ -13,9 +13,8 @@ import numpy as np
 from casmag import strapdown as sd
 from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
-from casmag.gp.fieldmap import map_arrays, unwhitened
+from casmag.gp.fieldmap import map_arrays, tiled_map_arrays, unwhitened
 from casmag.gp.hyper import estimate_hyperparameters
-from casmag.gp.reduced_rank import HilbertBasis
 from casmag.model.field import left_map_box
 from casmag.model.planar import (
     PlanarStructure,
@@ -24,6 +23,7 @@ from casmag.model.planar import (
 )
 from casmag.model.rotated import ridge_weights, whiten
 from casmag.model.rrmap import make_basis
+from casmag.model.tiledmap import home_points, left_map_tiles, ridge_tile_weights, tile_grid
 from casmag.nlp import NLP, Progress, lowest_cost
 from casmag.problem.imu import PlanarOptions
 from casmag.result import Result
@@ -106,19 +106,24 @@ def solve_planar(
         sigma_lin = float(np.abs(Y_local.mean(axis=0)).max() + Y_local.std()) or 1.0
 
     def structure(k: int, around: np.ndarray, solver: Any) -> PlanarStructure:
-        """The first k samples' problem, its map box around the positions ``around``."""
+        """The first k samples' problem, its map (box or tiles) around the positions
+        ``around``."""
+        common = {
+            "n": k, "bias": options.bias, "kernel": options.kernel,
+            "solver": solver.model_dump_json(),
+        }  # fmt: skip
+        if options.form == "tiled":
+            grid = tile_grid(around, float(ell), reach=options.margin)
+            return PlanarStructure(**common, basis=None, grid=grid, home=home_points(grid, around))
         hb = make_basis(options.kernel, around, float(ell), options.num_basis, options.margin)
         return PlanarStructure(
-            n=k,
-            bias=options.bias,
-            kernel=options.kernel,
+            **common,
             basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
-            solver=solver.model_dump_json(),
             curvature=options.curvature,
         )
 
     s = structure(n, P_dr, options.solver)
-    nlp = cached_planar_nlp(s)
+    nlp = cached_planar_nlp(s) if not s.tiled else None  # tiles: built around each start
     params: dict[str, Any] = {
         "U": U,
         "dt": dt.reshape(-1, 1),
@@ -137,37 +142,47 @@ def solve_planar(
     if options.bias == "random_walk":
         params["bias_walk"] = options.bias_walk
     c0 = Y_local.mean(axis=0)
-    basis = s.hilbert_basis()
     n_bias = n - 1 if options.bias == "random_walk" else 1
+
+    def initial_map(s_k: PlanarStructure, P0: np.ndarray, Y0: np.ndarray) -> np.ndarray:
+        """The NLP's map unknowns fitted to the field Y0 (in the map frame) at P0: the
+        tiles' weights, or the box's whitened weights."""
+        if s_k.tiled:  # whitened (casmag.model.tiledmap.RotatedTiledModel)
+            tiles = s_k.tiles()
+            w = ridge_tile_weights(tiles, P0, Y0, c0, sigma_m, float(sigma_f), float(ell))
+            return w / np.sqrt(tiles.prior_variances(float(sigma_f), float(ell)))[:, None]
+        basis_k = s_k.hilbert_basis()
+        w = ridge_weights(basis_k, options.kernel, P0, Y0, c0, sigma_m, float(sigma_f), float(ell))
+        return whiten(basis_k, options.kernel, float(sigma_f), float(ell), w)
 
     def solve_prefix(
         k: int, P0: np.ndarray, psi_0: np.ndarray, bias0: np.ndarray, stage_solver: Any
-    ) -> tuple[Any, NLP, HilbertBasis]:
-        """The first k samples' problem from (P0, psi_0, bias0), its map box around P0;
+    ) -> tuple[Any, NLP, PlanarStructure]:
+        """The first k samples' problem from (P0, psi_0, bias0), its map around P0;
         k = n with the full solver is the batch's problem, its box around the dead
-        reckoning (also the last growing stage's, and the solve from the truth's)."""
-        if k == n and stage_solver is options.solver:
-            nlp_k, basis_k, params_k = nlp, basis, params
+        reckoning (also the last growing stage's, and the solve from the truth's). Tiles
+        are always laid around P0: their Hessian pattern follows the start."""
+        if k == n and stage_solver is options.solver and not s.tiled:
+            nlp_k, s_k, params_k = nlp, s, params
         else:
             s_k = structure(k, P0, stage_solver)
-            nlp_k, basis_k = cached_planar_nlp(s_k), s_k.hilbert_basis()
+            nlp_k = cached_planar_nlp(s_k)
             params_k = {**params, "U": U[: k - 1], "dt": dt[: k - 1].reshape(-1, 1), "Y": Y[:k]}
         Y0 = sd.rotate(sd.quat_from_euler(0.0 * psi_0, 0.0 * psi_0, psi_0), Y[:k])
-        w = ridge_weights(basis_k, options.kernel, P0, Y0, c0, sigma_m, float(sigma_f), float(ell))
         x0 = {
             "P": P0,
             "psi": psi_0.reshape(-1, 1),
             "bias": bias0,
-            "W": whiten(basis_k, options.kernel, float(sigma_f), float(ell), w),
+            "W": initial_map(s_k, P0, Y0),
             "c": c0.reshape(3, 1),
         }
-        return nlp_k.solve(params_k, x0, progress=progress), nlp_k, basis_k
+        return nlp_k.solve(params_k, x0, progress=progress), nlp_k, s_k
 
-    def solve_from(bias0: float) -> Any:
+    def solve_from(bias0: float) -> tuple[Any, NLP, PlanarStructure]:
         U0 = U.copy()
         U0[:, 2] -= bias0 * dt
         P0, psi_0 = dead_reckon_planar(U0, np.asarray(p0, float), psi0)
-        return solve_prefix(n, P0, psi_0, np.full((n_bias, 1), bias0), options.solver)[0]
+        return solve_prefix(n, P0, psi_0, np.full((n_bias, 1), bias0), options.solver)
 
     ws = options.solver.warm_start
     sizes = stage_lengths(n, ws.first_samples, ws.growth) if ws.strategy == "growing" else [n]
@@ -194,7 +209,7 @@ def solve_planar(
             return solved[0], solved
 
         grown = grow(sizes, stage)
-        sol, nlp, basis = grown[-1][2]
+        sol, nlp, s = grown[-1][2]
         solves = [(0.0, so) for _, so, _ in grown]
         starts = [
             {"bias": 0.0, "samples": k, "cost": so.objective, "status": so.status,
@@ -205,7 +220,8 @@ def solve_planar(
         delta = np.radians(options.start_heading_deg) / max(float(dt.sum()), 1e-12)
         k = np.arange(1, (options.starts - 1) // 2 + 1)
         biases = [0.0, *np.ravel(np.column_stack([k * delta, -k * delta]))]
-        solves = [(b0, solve_from(float(b0))) for b0 in biases]
+        runs = [(b0, solve_from(float(b0))) for b0 in biases]
+        solves = [(b0, run[0]) for b0, run in runs]
         starts = [
             {"bias": float(b0), "cost": so.objective, "status": so.status,
              "iterations": so.iterations}
@@ -213,7 +229,7 @@ def solve_planar(
         ]  # fmt: skip
         best = lowest_cost([so for _, so in solves])
         best = 0 if best is None else best  # none succeeded: the dead reckoning's
-        sol = solves[best][1]
+        sol, nlp, s = runs[best][1]
         for i, st in enumerate(starts):
             st["kept"] = i == best
 
@@ -232,7 +248,11 @@ def solve_planar(
             if flag is not None:
                 flags.append(flag)
     if sol.success:
-        box = left_map_box(basis.domain.center, basis.domain.half_width, sol.x["P"])
+        if s.tiled:
+            box = left_map_tiles(s.tiles(), sol.x["P"])
+        else:
+            basis = s.hilbert_basis()
+            box = left_map_box(basis.domain.center, basis.domain.half_width, sol.x["P"])
         if box is not None:
             flags.append(box)
     before = after = (None, None)
@@ -270,7 +290,8 @@ def solve_planar(
         info={
             "name": name,
             "samples": int(n),
-            "num_basis": basis.num_basis,
+            "num_basis": s.tiles().num_weights if s.tiled else s.hilbert_basis().num_basis,
+            "map": _map_info(s),
             "anchor": {
                 "kind": anchor_kind,
                 "position": [float(v) for v in p0],
@@ -292,7 +313,7 @@ def solve_planar(
         },
         convergence=[sol.trace("GP-SLAM")],
         arrays={
-            **(_map_arrays(basis, options, hyper, sol) if sol.success else {}),
+            **(_map_arrays(s, options, hyper, sol) if sol.success else {}),
             "t": np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
             "P_odometry": P_dr,
             "psi_odometry": psi_dr,
@@ -337,11 +358,36 @@ def _wrong_basin(
 
 
 def _map_arrays(
-    basis: HilbertBasis, options: PlanarOptions, hyper: dict[str, float], sol: Any
+    s: PlanarStructure, options: PlanarOptions, hyper: dict[str, float], sol: Any
 ) -> dict[str, np.ndarray]:
-    """The solved map on a grid with its posterior std (casmag.gp.fieldmap), for map.png."""
+    """The solved map on a grid with its posterior std (casmag.gp.fieldmap), for map.png
+    (the tiled map's field alone)."""
+    if s.tiled:
+        tiles = s.tiles()
+        W = sol.x["W"].T * np.sqrt(tiles.prior_variances(hyper["sigma_f"], hyper["lengthscale"]))
+        return tiled_map_arrays(tiles, W, sol.x["c"], hyper["lengthscale"], sol.x["P"])
+    basis = s.hilbert_basis()
     W = unwhitened(basis, options.kernel, hyper, sol.x["W"])
     return map_arrays(basis, options.kernel, W, sol.x["c"], hyper, sol.x["P"])
+
+
+def _map_info(s: PlanarStructure) -> dict[str, Any]:
+    """The map of the kept solve: its form and size."""
+    if s.tiled:
+        tiles = s.tiles()
+        return {
+            "form": "tiled",
+            "tiles": tiles.num_tiles,
+            "functions_per_tile": tiles.per_tile,
+            "spacing_m": tiles.grid.spacing,
+        }
+    basis = s.hilbert_basis()
+    return {
+        "form": "reduced_rank",
+        "num_basis": basis.num_basis,
+        "box_center": [float(v) for v in basis.domain.center],
+        "box_half_width": [float(v) for v in basis.domain.half_width],
+    }
 
 
 def solve_planar_recording(
