@@ -99,6 +99,20 @@ def unwhitened(basis: HilbertBasis, kernel: str, hyper: dict[str, float], V: Any
     return np.asarray(V, dtype=float) * np.sqrt(np.ravel(S))[:, None]
 
 
+def map_grid(P: np.ndarray, lengthscale: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The grid map.png draws over the positions P (N, d): ``map_x``, ``map_y`` (G, G) [m]
+    and, for a 3-D path, ``map_z`` (the grid's height [m], the path's median), and its
+    points (G^2, d)."""
+    gx, gy = grid_over(P, lengthscale)
+    pts = np.column_stack([gx.ravel(), gy.ravel()])
+    out: dict[str, np.ndarray] = {"map_x": gx, "map_y": gy}
+    if P.shape[1] == 3:
+        z = float(np.median(P[:, 2]))
+        pts = np.column_stack([pts, np.full(pts.shape[0], z)])
+        out["map_z"] = np.array(z)
+    return out, pts
+
+
 def map_arrays(
     basis: HilbertBasis,
     kernel: str,
@@ -111,13 +125,8 @@ def map_arrays(
     (curl-free potential) and constant field c (3,): ``map_x``, ``map_y`` (G, G) [m],
     ``map_field``, ``map_std``, ``map_prior_std`` (G, G, 3) and, for a 3-D path, ``map_z``
     (the grid's height [m], the path's median)."""
-    gx, gy = grid_over(P, hyper["lengthscale"])
-    pts = np.column_stack([gx.ravel(), gy.ravel()])
-    out: dict[str, np.ndarray] = {"map_x": gx, "map_y": gy}
-    if P.shape[1] == 3:
-        z = float(np.median(P[:, 2]))
-        pts = np.column_stack([pts, np.full(pts.shape[0], z)])
-        out["map_z"] = np.array(z)
+    out, pts = map_grid(P, hyper["lengthscale"])
+    gx = out["map_x"]
     m = field_at(basis, kernel, pts, weights)
     if c is not None:
         m = m + np.ravel(c)
@@ -140,14 +149,8 @@ def tiled_map_arrays(
     ``map_x``, ``map_y``, ``map_field`` (and ``map_z`` for a 3-D path) as
     :func:`map_arrays`; its posterior standard deviation is not computed (map.png then
     draws the field alone). Grid points where the map lacks a tile get NaN."""
-    gx, gy = grid_over(P, lengthscale)
-    pts = np.column_stack([gx.ravel(), gy.ravel()])
-    out: dict[str, np.ndarray] = {"map_x": gx, "map_y": gy}
-    if P.shape[1] == 3:
-        z = float(np.median(P[:, 2]))
-        pts = np.column_stack([pts, np.full(pts.shape[0], z)])
-        out["map_z"] = np.array(z)
+    out, pts = map_grid(P, lengthscale)
     m = tiles.field(pts, W) + (0.0 if c is None else np.ravel(c))
     m[~tiles.inside(pts)] = np.nan
-    out["map_field"] = m.reshape(*gx.shape, FIELD_DIM)
+    out["map_field"] = m.reshape(*out["map_x"].shape, FIELD_DIM)
     return out

@@ -161,7 +161,9 @@ def solve_planar(
         """The first k samples' problem from (P0, psi_0, bias0), its map around P0;
         k = n with the full solver is the batch's problem, its box around the dead
         reckoning (also the last growing stage's, and the solve from the truth's). Tiles
-        are always laid around P0: their Hessian pattern follows the start."""
+        are always laid around P0: their Hessian pattern follows the start (so the solve
+        from the truth lays its own tiles, whose prior on the weights of unvisited tiles
+        adds nothing at the optimum)."""
         if k == n and stage_solver is options.solver and not s.tiled:
             nlp_k, s_k, params_k = nlp, s, params
         else:

@@ -21,6 +21,14 @@ N = 40
 ELL = 0.3
 
 
+def _central(f, x, i, h):
+    """Central difference of f (a scalar or an array) in x[i]."""
+    up, down = x.copy(), x.copy()
+    up[i] += h
+    down[i] -= h
+    return (np.asarray(f(up)) - np.asarray(f(down))) / (2 * h)
+
+
 def _problem(knot_every, seed=0):
     rng = np.random.default_rng(seed)
     P0 = np.cumsum(rng.normal(scale=0.15, size=(N, 2)), axis=0)
@@ -57,11 +65,7 @@ def test_gradient_and_gauss_newton_hessian(knot_every):
     grad = np.asarray(nlp.solver.get_function("nlp_grad_f")(x, p)[1]).ravel()
     rng = np.random.default_rng(1)
     for i in rng.choice(x.size, size=40, replace=False):
-        h = 1e-6
-        up, down = x.copy(), x.copy()
-        up[i] += h
-        down[i] -= h
-        fd = (float(f_of(up, p)) - float(f_of(down, p))) / (2 * h)
+        fd = _central(lambda v: float(f_of(v, p)), x, i, 1e-6)
         assert grad[i] == pytest.approx(fd, rel=1e-5, abs=1e-5)
     hess = nlp.keep[1]
     model = hess.model
@@ -76,11 +80,7 @@ def test_gradient_and_gauss_newton_hessian(knot_every):
     cols = np.unique(cols)
     J = np.empty((3 * N, cols.size))
     for k, i in enumerate(cols):
-        h = 1e-6
-        up, down = x.copy(), x.copy()
-        up[i] += h
-        down[i] -= h
-        J[:, k] = (residual(up) - residual(down)) / (2 * h)
+        J[:, k] = _central(residual, x, i, 1e-6)
     G = np.triu(J.T @ J)
     hess.set_mode("gauss-newton")
     H = np.zeros((x.size, x.size))
@@ -97,11 +97,7 @@ def test_gradient_and_gauss_newton_hessian(knot_every):
     knots = nlp.x_layout.entries["C"].offset + np.arange(nlp.x_layout.entries["C"].size)
     exact = np.empty((x.size, knots.size))
     for k, i in enumerate(knots):
-        h = 1e-5
-        up, down = x.copy(), x.copy()
-        up[i] += h
-        down[i] -= h
-        exact[:, k] = (model.gradient(up, p) - model.gradient(down, p)) / (2 * h)
+        exact[:, k] = _central(lambda v: model.gradient(v, p), x, i, 1e-5)
     assert np.abs(H[:, knots] - exact).max() < 1e-7 * np.abs(exact).max()
     gn = np.zeros((x.size, x.size))
     gn[np.ix_(cols, cols)] = G + np.triu(G, 1).T
@@ -199,11 +195,7 @@ def test_tiled_map_read_through_a_rotation():
         [model.lay.pos.ravel(), model.lay.rot.ravel(), rng.choice(x.size, 60, replace=False)]
     )
     for i in checked:
-        h = 1e-6
-        up, down = x.copy(), x.copy()
-        up[i] += h
-        down[i] -= h
-        fd = (float(f_of(up, p)) - float(f_of(down, p))) / (2 * h)
+        fd = _central(lambda v: float(f_of(v, p)), x, i, 1e-6)
         assert grad[i] == pytest.approx(fd, rel=1e-4, abs=1e-4)
 
     def residual(xv):
@@ -213,11 +205,7 @@ def test_tiled_map_read_through_a_rotation():
     cols = np.unique(np.concatenate([checked, c]))
     J = np.empty((3 * n, cols.size))
     for k, i in enumerate(cols):
-        h = 1e-6
-        up, down = x.copy(), x.copy()
-        up[i] += h
-        down[i] -= h
-        J[:, k] = (residual(up) - residual(down)) / (2 * h)
+        J[:, k] = _central(residual, x, i, 1e-6)
     G = np.triu(J.T @ J)
     hess.set_mode("gauss-newton")
     H = np.zeros((x.size, x.size))
@@ -233,11 +221,7 @@ def test_tiled_map_read_through_a_rotation():
     local = np.concatenate([model.lay.pos.ravel(), model.lay.rot.ravel()])
     exact = np.empty((x.size, local.size))
     for k, i in enumerate(local):
-        h = 1e-5
-        up, down = x.copy(), x.copy()
-        up[i] += h
-        down[i] -= h
-        exact[:, k] = (model.gradient(up, p) - model.gradient(down, p)) / (2 * h)
+        exact[:, k] = _central(lambda v: model.gradient(v, p), x, i, 1e-5)
     assert np.abs(H[:, local] - exact).max() < 1e-7 * np.abs(exact).max()
     gn = np.zeros((x.size, x.size))
     gn[np.ix_(cols, cols)] = G + np.triu(G, 1).T
