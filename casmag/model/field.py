@@ -296,8 +296,9 @@ class TiledField(FieldModel):
     tile), a constant field ``c`` when ``constant_field``. Read in the map frame, or through
     the pose's rotation when the motion model has one (y = R^T (m + c): planar with heading,
     IMU; casmag.model.tiledmap.RotatedTiledModel); the magnetometer block's Hessian is
-    Gauss-Newton, sparse in the tiles (``home``: each sample's nearest grid point when the
-    NLP was built, which fixes the pose-weight pattern). Hyperparameters are parameters."""
+    sparse in the tiles (``home``: each sample's nearest grid point when the NLP was built,
+    which fixes the pose-weight pattern), Gauss-Newton and then exact in each sample's pose
+    (``hybrid``, casmag.model.tiledmap). Hyperparameters are parameters."""
 
     grid: TileGrid
     home: tuple[int, ...]
