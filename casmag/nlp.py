@@ -17,7 +17,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from casmag import interrupt
+from casmag import interrupt, memory
 from casmag.problem.spec import SolverSpec
 
 #: A solve's progress callback: (iteration, cost, max-norm of the step, seconds).
@@ -29,24 +29,31 @@ STALLED = "User_Requested_Stop"
 #: STALL_ITERATIONS consecutive iterations (no progress measurable in double precision).
 STALL_RELATIVE = 1e-12
 STALL_ITERATIONS = 3
+#: The status of a solve refused before it started, or stopped, because its memory would
+#: exceed ``solver.memory_budget`` (casmag.memory).
+MEMORY_STATUS = "Memory_Budget_Exceeded"
 
 
 class _Progress(ca.Callback):
     """IPOPT iteration callback: hands (iteration, cost, step norm, seconds) to ``sink``
     when one is set for the current solve, and stops IPOPT (status :data:`STALLED`) when
-    ``stop_when_stalled`` is set and the objective has stopped changing."""
+    ``stop_when_stalled`` is set and the objective has stopped changing, or when the
+    process's resident memory has passed ``budget`` bytes (``over_budget`` then set)."""
 
-    def __init__(self, n_x: int, n_p: int):
+    def __init__(self, n_x: int, n_p: int, budget: int | None = None):
         ca.Callback.__init__(self)
         self._sizes = {"x": n_x, "f": 1, "g": 0, "lam_x": n_x, "lam_g": 0, "lam_p": n_p}
         self.sink: Callable[[int, float, float, float], None] | None = None
         self.stop_when_stalled = False
+        self.budget = budget
+        self.over_budget = False
         self._reset()
         self.construct("casmag_progress", {})
 
     def _reset(self) -> None:
         self._k, self._x, self._t0 = 0, None, time.perf_counter()
         self._costs: list[float] = []
+        self.over_budget = False
 
     def start(
         self, sink: Callable[[int, float, float, float], None] | None, stop_when_stalled: bool
@@ -85,7 +92,13 @@ class _Progress(ca.Callback):
             self.sink(self._k, cost, step, time.perf_counter() - self._t0)
             self._x = x
         self._k += 1
-        stop = interrupt.pending() or (self.stop_when_stalled and self._stalled(cost))
+        if self.budget is not None and memory.rss_bytes() > self.budget:
+            self.over_budget = True
+        stop = (
+            interrupt.pending()
+            or self.over_budget
+            or (self.stop_when_stalled and self._stalled(cost))
+        )
         return [1 if stop else 0]
 
 
@@ -259,7 +272,7 @@ class NLPBuilder:
                 ["triu_hess_gamma_x_x"],
             )
         opts.update({f"ipopt.{k}": v for k, v in solver.ipopt.items()})
-        progress = _Progress(self._x.size, self._p.size)
+        progress = _Progress(self._x.size, self._p.size, memory.budget_bytes(solver.memory_budget))
         opts["iteration_callback"] = progress
         ipopt = ca.nlpsol(name, "ipopt", nlp, opts)
         names = list(self.blocks)
@@ -347,6 +360,7 @@ class NLP:
     keep: Any = None  # objects the solver calls back into (kept alive)
     callbacks: list[Any] = field(default_factory=list)  # numpy blocks (kept alive)
     progress: _Progress | None = None
+    _nonzeros: int | None = field(default=None, repr=False)
 
     def evaluate_blocks(self, x: np.ndarray, p: np.ndarray) -> dict[str, float]:
         values = self.blocks_fn(x, p)
@@ -379,6 +393,33 @@ class NLP:
         upper = sp.csc_matrix(H)
         return (upper + sp.triu(upper, k=1).T).tocsc()
 
+    def hessian_nonzeros(self) -> int:
+        """Non-zeros of the upper-triangular Hessian IPOPT factorises (its pattern is fixed
+        when the NLP is built)."""
+        if self._nonzeros is None:
+            self._nonzeros = int(self.solver.get_function("nlp_hess_l").sparsity_out(0).nnz())
+        return self._nonzeros
+
+    def _refused(
+        self, x0: np.ndarray, before: dict[str, float], estimate: int, budget: int
+    ) -> Solution:
+        """The failed solution of a solve refused by the memory budget: x0 unchanged."""
+        message = memory.over_budget_message(estimate, budget, self.hessian_nonzeros())
+        return Solution(
+            x=self.x_layout.unpack(x0),
+            lam_x=np.zeros(x0.size),
+            status=MEMORY_STATUS,
+            success=False,
+            iterations=0,
+            solve_seconds=0.0,
+            objective=float(sum(before.values())),
+            cost_per_iteration=[],
+            inf_pr_per_iteration=[],
+            blocks_before=before,
+            blocks_after=before,
+            stats={"return_status": MEMORY_STATUS, "success": False, "memory": message},
+        )
+
     def solve(
         self,
         params: Mapping[str, Any],
@@ -400,16 +441,23 @@ class NLP:
         if lam_x0 is not None:
             args["lam_x0"] = lam_x0
         before = self.evaluate_blocks(x0v, p)
+        budget = None if self.progress is None else self.progress.budget
+        if budget is not None:
+            estimate = memory.solve_estimate(self.hessian_nonzeros())
+            if estimate > budget:  # refused before IPOPT starts: nothing allocated for it
+                return self._refused(x0v, before, estimate, budget)
         if self.progress is not None:
             self.progress.start(progress, stop_when_stalled)
         if self.keep is not None and hasattr(self.keep[1], "reset"):
             self.keep[1].reset()
         t0 = time.perf_counter()
+        over_budget = False
         try:
             with interrupt.solving():  # a signal stops IPOPT, then raises Interrupted
                 out = self.solver(**args)
         finally:
             if self.progress is not None:
+                over_budget = self.progress.over_budget
                 self.progress.start(None, False)
         seconds = time.perf_counter() - t0
         stats = self.solver.stats()
@@ -418,6 +466,11 @@ class NLP:
             stats["hessian_terms_dropped"] = int(max(dropped))
         xopt = np.asarray(out["x"]).ravel()
         iters = stats.get("iterations", {})
+        if over_budget and self.progress is not None:
+            stats["return_status"], stats["success"] = MEMORY_STATUS, False
+            stats["memory"] = memory.over_budget_message(
+                None, self.progress.budget or 0, self.hessian_nonzeros()
+            )
         return Solution(
             x=self.x_layout.unpack(xopt),
             lam_x=np.asarray(out["lam_x"]).ravel(),

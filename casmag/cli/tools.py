@@ -15,6 +15,7 @@ import click
 from casmag import interrupt
 from casmag.errors import CasmagError
 from casmag.interrupt import Interrupted
+from casmag.nlp import MEMORY_STATUS
 from casmag.problem.spec import document_kind, read_yaml
 from casmag.result import Result, bias_table
 from casmag.result.evaluation import ALIGNMENTS, evaluate_result
@@ -187,6 +188,14 @@ def finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
     IPOPT's status (and, for IMU problems, the stage that failed) when the solve failed;
     else the summary (:func:`summary_lines`) unless ``quiet``; then exit 3 when the verdict
     does not trust the estimate (:func:`exit_untrusted`), else return (exit 0)."""
+    if result.status == MEMORY_STATUS:
+        fail(
+            f"{source}: stopped{_failed_where(result)}: status {MEMORY_STATUS}: the solve "
+            f"needs more memory than solver.memory_budget allows (default 80 % of the "
+            "machine's): raise it, or make the problem smaller (fewer knots or keyframes, fewer "
+            f"basis functions, the tiled map); recorded in {out_dir / 'result.json'}",
+            EXIT_SOLVER_FAILED,
+        )
     if not result.success:
         fail(
             f"{source}: IPOPT failed{_failed_where(result)}: status {result.status} after "

@@ -322,6 +322,11 @@ class SolverSpec(Strict):
     uncertainty: compute the Laplace covariance of every position at the solution
     (casmag.solver.uncertainty): a 1-sigma column in trajectory.csv, ellipses in trajectory.png, the
     NEES against truth in result.json.
+    memory_budget: GiB of resident memory a solve may use (null: 80 % of the machine's memory,
+    or of the process's control-group limit when lower; casmag.memory). A solve whose
+    estimate (what the process holds plus 200 bytes per Hessian non-zero, measured) is
+    above it is refused before IPOPT starts, and a solve that passes it is stopped; both
+    fail with status ``Memory_Budget_Exceeded`` and say what to change.
     uncertainty_inflation: how that covariance accounts for magnetometer residuals that are
     correlated along the path (casmag.solver.uncertainty): ``long-run`` (default), the sandwich
     covariance with the residuals' long-run variance per session and component (measured
@@ -338,6 +343,7 @@ class SolverSpec(Strict):
     ipopt: dict[str, float | int | str] = {}
     warm_start: WarmStartSpec = WarmStartSpec()
     uncertainty: bool = True
+    memory_budget: PositiveFloat | None = None
     uncertainty_inflation: Literal["none", "correlation", "long-run"] = "long-run"
 
     @field_validator("linear_solver")
