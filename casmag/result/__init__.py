@@ -206,6 +206,7 @@ class Result:
                 (tmp / "biases.md").write_text(bias_table(self.details, self.stages))
             if any(self.arrays.get(key) is not None for key, _ in TRAJECTORIES):
                 write_trajectory_csv(self, tmp / "trajectory.csv")
+                write_tum_files(self, tmp)
             write_arrays(tmp, self.arrays)
             if figures and self.arrays:
                 from casmag.result import plotting
@@ -407,6 +408,61 @@ TRAJECTORIES = (
 )
 
 TRAJECTORY_COLUMNS = ("x", "y", "z")
+
+
+#: The TUM files of a result: trajectory key -> file name (``write_tum_files``).
+TUM_FILES = {
+    "P_estimate": "trajectory.tum",
+    "P_true": "truth.tum",
+    "P_odometry": "odometry.tum",
+    "P_strapdown": "strapdown.tum",
+    "P_imu_only": "imu_only.tum",
+    "P_gp_slam_map": "gp_slam_map.tum",
+}
+
+
+def tum_rows(result: Result, key: str) -> np.ndarray | None:
+    """The rows ``t x y z qx qy qz qw`` of one trajectory of a result (None when it has
+    none): times ``t`` when the result has them, else the sample index; 2-D positions with
+    z = 0; the orientation (sensor to map frame) from the IMU quaternions, the planar
+    heading (a rotation about z), or identity where the model has none (translational, or a
+    heading not known)."""
+    a = result.arrays
+    P = a.get(key)
+    if P is None:
+        return None
+    P = np.asarray(P, dtype=float)
+    n = P.shape[0]
+    t = np.asarray(a["t"], dtype=float) if a.get("t") is not None else np.arange(n, dtype=float)
+    xyz = np.zeros((n, 3))
+    xyz[:, : P.shape[1]] = P
+    q = np.zeros((n, 4))
+    q[:, 3] = 1.0  # TUM order: qx qy qz qw
+    Q = a.get(key.replace("P_", "Q_", 1))
+    psi = a.get(key.replace("P_", "psi_", 1))
+    if Q is not None:
+        Q = np.asarray(Q, dtype=float)
+        q = np.column_stack([Q[:, 1:], Q[:, 0]])
+    elif psi is not None:
+        psi = np.asarray(psi, dtype=float)
+        known = np.isfinite(psi)
+        q[known, 2], q[known, 3] = np.sin(psi[known] / 2), np.cos(psi[known] / 2)
+    return np.column_stack([t, xyz, q])
+
+
+def write_tum_files(result: Result, folder: Path) -> None:
+    """Each trajectory of a result as a TUM file (``TUM_FILES``: ``t x y z qx qy qz qw`` per
+    line, space-separated, full precision), which trajectory tools such as evo read:
+    ``evo_ape tum truth.tum trajectory.tum`` gives ``rmse_after`` (no alignment)."""
+    for key, name in TUM_FILES.items():
+        rows = tum_rows(result, key)
+        if rows is not None:
+            np.savetxt(
+                folder / name,
+                rows,
+                fmt="%.17g",
+                header="timestamp tx ty tz qx qy qz qw",
+            )
 
 
 def write_trajectory_csv(result: Result, path: Path) -> None:

@@ -962,12 +962,20 @@ def solve_imu(
             arrays["att_err_imu_only_deg"] = np.degrees(sd.quat_angle(imu_only.Q, Qt))
         if est is not None:
             arrays["att_err_est_deg"] = np.degrees(sd.quat_angle(est.Q, Qt))
+    # Orientations (w, x, y, z; sensor to local frame) beside each trajectory.
+    arrays.update(
+        Q_strapdown=res.strapdown["Q"],
+        Q_imu_only=None if imu_only is None else imu_only.Q,
+        Q_estimate=None if est is None else est.Q,
+        Q_true=Qt,
+    )
     if res.fallback and slam_map is not None:
         arrays["P_gp_slam_map"] = slam_map.P
+        arrays["Q_gp_slam_map"] = slam_map.Q
     if decision == "map" and slam_map is not None and slam_map.field_model is not None:
         arrays.update(_map_arrays(slam_map))
-    if arrays["P_estimate"] is None:
-        arrays["P_estimate"] = arrays["P_imu_only"] if spec.model.gp.form == "none" else None
+    if arrays["P_estimate"] is None and spec.model.gp.form == "none":
+        arrays["P_estimate"], arrays["Q_estimate"] = arrays["P_imu_only"], arrays["Q_imu_only"]
     passes = [
         {
             "name": "gp_slam",
