@@ -38,3 +38,8 @@ class SolverError(CasmagError):
     def __init__(self, status: str, iterations: int, message: str | None = None):
         self.status, self.iterations = status, iterations
         super().__init__(message or f"IPOPT failed: status {status} after {iterations} iterations")
+
+
+class MemoryBudgetError(CasmagError):
+    """A problem whose Hessian would not fit ``solver.memory_budget``, found while its NLP
+    is built (casmag.memory): the solve is refused before it starts."""

@@ -16,14 +16,21 @@ IPOPT iterations; resident memory when the solve starts -> peak):
 
 :data:`HESSIAN_NONZERO_BYTES` is above the largest, so the estimate errs on the side of
 refusing. IPOPT's ``mumps_mem_percent`` did not change the peak (100 against the default
-1000: 4.45 against 4.44 GiB). Not covered: the NLP's build, which happens before the check
-and peaked at 3.08 GiB for the 4,000-function box (the Hessian pattern's construction).
+1000: 4.45 against 4.44 GiB). The same estimate is taken twice: while the NLP is built, as
+soon as a map's Hessian pattern is known and before CasADi copies it (:func:`check_pattern`,
+raising MemoryBudgetError; the 4,000-function box's build alone peaked at 3.08 GiB), and
+when a solve starts (casmag.nlp), for the Hessians CasADi forms itself.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
+
+from casmag.errors import MemoryBudgetError
 
 GIB = 2**30
 #: Default budget: this fraction of the memory the machine gives the process.
@@ -83,12 +90,39 @@ def solve_estimate(hessian_nonzeros: int) -> int:
 def over_budget_message(estimate: int | None, budget: int, nonzeros: int) -> str:
     """The one line a refused or stopped solve reports."""
     what = (
-        f"needs about {estimate / GIB:.2f} GiB"
+        f"needs about {estimate / GIB:.3g} GiB"
         if estimate is not None
-        else f"passed {rss_bytes() / GIB:.2f} GiB while solving"
+        else f"passed {rss_bytes() / GIB:.3g} GiB while solving"
     )
     return (
         f"the solve {what} (Hessian with {nonzeros:,} non-zeros) against a memory budget "
-        f"of {budget / GIB:.2f} GiB (solver.memory_budget): raise it, or make the problem "
+        f"of {budget / GIB:.3g} GiB (solver.memory_budget): raise it, or make the problem "
         "smaller (fewer knots or keyframes, fewer basis functions, the tiled map)"
     )
+
+
+#: The budget of the NLP being built (set by casmag.model.builder.build_slam).
+_BUILD_BUDGET: ContextVar[int | None] = ContextVar("casmag_build_budget", default=None)
+
+
+@contextmanager
+def build_budget(budget: int) -> Iterator[None]:
+    """Within this block, a Hessian pattern (:func:`check_pattern`) is held against
+    ``budget`` bytes."""
+    token = _BUILD_BUDGET.set(budget)
+    try:
+        yield
+    finally:
+        _BUILD_BUDGET.reset(token)
+
+
+def check_pattern(nonzeros: int) -> None:
+    """Raise MemoryBudgetError when a Hessian of ``nonzeros`` non-zeros, whose pattern is
+    about to be built, would take the solve past the budget of the NLP being built (the
+    same estimate as the solve's own check, taken before the pattern's CasADi copies)."""
+    budget = _BUILD_BUDGET.get()
+    if budget is None:
+        return
+    estimate = solve_estimate(nonzeros)
+    if estimate > budget:
+        raise MemoryBudgetError(over_budget_message(estimate, budget, nonzeros))

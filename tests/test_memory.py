@@ -3,10 +3,14 @@ starts, one that outgrows the budget is stopped, and both fail with their own st
 
 import casadi as ca
 import numpy as np
+import pytest
 from click.testing import CliRunner
+from small_problems import tiny_walk
 
+import casmag
 from casmag import memory
 from casmag.cli.main import main
+from casmag.errors import MemoryBudgetError
 from casmag.nlp import MEMORY_STATUS, NLPBuilder
 from casmag.problem.spec import SolverSpec
 
@@ -56,6 +60,14 @@ def test_within_budget_solves_as_before():
     assert _nlp(None).hessian_nonzeros() == 3  # the diagonal
 
 
+def test_a_problem_over_budget_is_refused_while_its_nlp_is_built():
+    """The map's Hessian pattern is held against the budget before CasADi copies it: the
+    build raises, naming the budget, and nothing is solved."""
+    with pytest.raises(MemoryBudgetError, match=r"solver\.memory_budget"):
+        casmag.solve(tiny_walk(["solver.memory_budget=0.0001"]))
+    assert casmag.solve(tiny_walk()).success  # the default budget: the machine's
+
+
 def test_the_command_line_says_what_to_change(root, tmp_path):
     out = tmp_path / "out"
     r = CliRunner().invoke(
@@ -70,7 +82,7 @@ def test_the_command_line_says_what_to_change(root, tmp_path):
         ],
     )
     assert r.exit_code == 1
-    lines = [line for line in r.output.splitlines() if MEMORY_STATUS in line]
+    lines = r.output.splitlines()
     assert len(lines) == 1
     assert "base.yaml" in lines[0] and "solver.memory_budget" in lines[0]
-    assert (out / "result.json").exists()
+    assert not out.exists()  # refused before anything was solved or written

@@ -22,6 +22,7 @@ from casmag.cli.tools import (
     align_option,
     fail,
     fail_bad_input,
+    fail_error,
     finish,
     output_options,
     print_progress,
@@ -61,7 +62,7 @@ def _solve_real(problem: Path, out_dir: Path, quiet: bool, align: str) -> None:
     try:
         rows = solve_problem(problem, out_dir, None if quiet else print_progress, align=align)
     except CasmagError as exc:
-        fail(str(exc), EXIT_BAD_INPUT)
+        fail_error(exc, problem)
     except INPUT_ERRORS as exc:
         fail_bad_input(problem, exc)
     failed = [r for r in rows if not r["success"]]
@@ -171,7 +172,7 @@ def _solve_problem_file(
             click.echo(line, err=True)
         with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
-        fail(str(exc), EXIT_BAD_INPUT)
+        fail_error(exc, problem)
     except INPUT_ERRORS as exc:
         fail_bad_input(problem, exc)
     finish(result, problem, out_dir, quiet)
@@ -288,7 +289,7 @@ def slam(
             )
         with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
-        fail(str(exc), EXIT_BAD_INPUT)
+        fail_error(exc, recording)
     except INPUT_ERRORS as exc:
         fail_bad_input(recording, exc)
     finish(result, recording, out_dir, quiet)
@@ -325,7 +326,7 @@ def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool, ali
             return
         write_report(tables, out_file, figures=not no_figures)
     except CasmagError as exc:
-        fail(str(exc), EXIT_BAD_INPUT)
+        fail_error(exc)
 
 
 @main.command()
@@ -395,7 +396,7 @@ def convert(
         tmp.write_text(json.dumps(conv.record, indent=2) + "\n")
         tmp.replace(record)
     except CasmagError as exc:
-        fail(str(exc), EXIT_BAD_INPUT)
+        fail_error(exc, source)
     except (ValueError, TypeError) as exc:
         fail_bad_input(source, exc)
     od = conv.record["odometry"]

@@ -8,7 +8,12 @@ from pathlib import Path
 
 import click
 
-from casmag.cli.tools import EXIT_BAD_INPUT, EXIT_SOLVER_FAILED, distinct_set_keys, fail
+from casmag.cli.tools import (
+    EXIT_SOLVER_FAILED,
+    distinct_set_keys,
+    fail,
+    fail_error,
+)
 from casmag.errors import CasmagError, ProblemError
 from casmag.experiments.sweep import SweepAborted, load_sweep, run_sweeps
 from casmag.interrupt import Interrupted
@@ -100,7 +105,7 @@ def sweep_command(
     except SweepAborted as exc:
         fail(f"{exc}; rerun the same command to resume", EXIT_SOLVER_FAILED)
     except CasmagError as exc:
-        fail(str(exc), EXIT_BAD_INPUT)
+        fail_error(exc)
     except KeyboardInterrupt:
         fail("interrupted; saved runs are kept, rerun the same command to resume", 130)
     except Interrupted as exc:

@@ -13,7 +13,7 @@ from typing import Any, NoReturn
 import click
 
 from casmag import interrupt
-from casmag.errors import CasmagError
+from casmag.errors import CasmagError, MemoryBudgetError
 from casmag.interrupt import Interrupted
 from casmag.nlp import MEMORY_STATUS
 from casmag.problem.spec import document_kind, read_yaml
@@ -31,6 +31,14 @@ EXIT_INTERRUPTED = 130
 def fail(message: str, code: int) -> NoReturn:
     click.echo(f"casmag: error: {message}", err=True)
     sys.exit(code)
+
+
+def fail_error(exc: CasmagError, source: Path | None = None) -> NoReturn:
+    """Exit with a casmag error's line: 1 for a solve refused by the memory budget (naming
+    ``source``, the file solved), 2 (bad input) for every other."""
+    if isinstance(exc, MemoryBudgetError):
+        fail(f"{source}: {exc}" if source is not None else str(exc), EXIT_SOLVER_FAILED)
+    fail(str(exc), EXIT_BAD_INPUT)
 
 
 #: What a value the numerics cannot carry raises past validation (casmag.problem.spec refuses inf
@@ -164,7 +172,7 @@ def problem_kind(problem: Path) -> str:
     try:
         return document_kind(read_yaml(problem))
     except CasmagError as exc:
-        fail(str(exc), EXIT_BAD_INPUT)
+        fail_error(exc)
 
 
 def refuse_other_kind(problem: Path, kind: str, expected: str) -> None:

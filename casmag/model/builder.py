@@ -31,6 +31,7 @@ from typing import Any
 
 import casadi as ca
 
+from casmag import memory
 from casmag.model.knots import Knots
 from casmag.nlp import NLP, NLPBuilder
 from casmag.problem.spec import SolverSpec
@@ -135,7 +136,8 @@ def build_slam(motion: MotionModel, field: FieldModel, solver: SolverSpec) -> NL
     b = NLPBuilder()
     solver = field.solver(motion.solver(solver))
     pose = motion.declare(b)
-    hessian = field.declare(b, pose, solver)
+    with memory.build_budget(memory.budget_bytes(solver.memory_budget)):
+        hessian = field.declare(b, pose, solver)
     motion.close(b, pose)
     residuals = b.residuals if solver.hessian in ("auto", "gauss-newton") else None
     return b.build(

@@ -27,6 +27,7 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sps
 
+from casmag import memory
 from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.reduced_rank import HilbertBasis, default_margin, default_num_basis, domain_for
 from casmag.model.knots import Knots
@@ -343,6 +344,7 @@ class HessianCallback(ca.Callback):
         return exact
 
     def _set_pattern(self, rows: np.ndarray, cols: np.ndarray, n_x: int, n_p: int) -> None:
+        memory.check_pattern(rows.size)  # before CasADi's copies of a pattern that won't fit
         self._rows, self._cols, self._n_x, self._n_p = rows, cols, n_x, n_p
         nnz = rows.size
         A = sps.csc_matrix(

@@ -325,8 +325,9 @@ class SolverSpec(Strict):
     memory_budget: GiB of resident memory a solve may use (null: 80 % of the machine's memory,
     or of the process's control-group limit when lower; casmag.memory). A solve whose
     estimate (what the process holds plus 200 bytes per Hessian non-zero, measured) is
-    above it is refused before IPOPT starts, and a solve that passes it is stopped; both
-    fail with status ``Memory_Budget_Exceeded`` and say what to change.
+    above it is refused while its NLP is built (MemoryBudgetError) or before IPOPT starts
+    (status ``Memory_Budget_Exceeded``), and a solve that passes it is stopped (the same
+    status); each says what to change.
     uncertainty_inflation: how that covariance accounts for magnetometer residuals that are
     correlated along the path (casmag.solver.uncertainty): ``long-run`` (default), the sandwich
     covariance with the residuals' long-run variance per session and component (measured
