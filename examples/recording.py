@@ -17,15 +17,16 @@ from casmag.data.simulate import simulate_problem
 
 if len(sys.argv) > 1:
     path = Path(sys.argv[1])
-else:  # a simulated spiral walk, written as a recording at 10 Hz
+    result = casmag.slam(path, on_warning=print)
+else:  # a simulated spiral walk, written as a recording at 10 Hz (removed afterwards)
     problem = casmag.load_problem("problems/paper/base.yaml", ["seed=3"])
     data = simulate_problem(problem)
-    path = Path(tempfile.mkdtemp(prefix="casmag-example-")) / "walk.csv"
-    t = 0.1 * np.arange(data.n_samples)  # s
-    Y = 50.0 + 100.0 * data.Y  # the simulation's field units as microtesla-sized numbers
-    write_recording(path, t, Y, dxy=data.U, P_true=data.P_true)
-
-result = casmag.slam(path, on_warning=print)
+    with tempfile.TemporaryDirectory(prefix="casmag-example-") as folder:
+        path = Path(folder) / "walk.csv"
+        t = 0.1 * np.arange(data.n_samples)  # s
+        Y = 50.0 + 100.0 * data.Y  # the simulation's field units as microtesla-sized numbers
+        write_recording(path, t, Y, dxy=data.U, P_true=data.P_true)
+        result = casmag.slam(path, on_warning=print)
 print(f"{path.name}: {result.status}, {result.iterations} iterations")
 if result.rmse_before is not None and result.rmse_after is not None:
     print(f"RMSE {result.rmse_before:.4f} m -> {result.rmse_after:.4f} m")
