@@ -37,6 +37,11 @@ GIB = 2**30
 BUDGET_FRACTION = 0.8
 #: Peak bytes per non-zero of the (upper-triangular) Hessian IPOPT factorises.
 HESSIAN_NONZERO_BYTES = 200
+#: What to change when a solve does not fit its budget.
+REMEDY = (
+    "raise it, or make the problem smaller (fewer knots or keyframes, fewer basis functions, "
+    "the tiled map)"
+)
 
 
 def _cgroup_limit() -> int | None:
@@ -96,8 +101,7 @@ def over_budget_message(estimate: int | None, budget: int, nonzeros: int) -> str
     )
     return (
         f"the solve {what} (Hessian with {nonzeros:,} non-zeros) against a memory budget "
-        f"of {budget / GIB:.3g} GiB (solver.memory_budget): raise it, or make the problem "
-        "smaller (fewer knots or keyframes, fewer basis functions, the tiled map)"
+        f"of {budget / GIB:.3g} GiB (solver.memory_budget): {REMEDY}"
     )
 
 

@@ -46,7 +46,6 @@ class _Progress(ca.Callback):
         self.sink: Callable[[int, float, float, float], None] | None = None
         self.stop_when_stalled = False
         self.budget = budget
-        self.over_budget = False
         self._reset()
         self.construct("casmag_progress", {})
 
@@ -466,11 +465,9 @@ class NLP:
             stats["hessian_terms_dropped"] = int(max(dropped))
         xopt = np.asarray(out["x"]).ravel()
         iters = stats.get("iterations", {})
-        if over_budget and self.progress is not None:
+        if over_budget:
             stats["return_status"], stats["success"] = MEMORY_STATUS, False
-            stats["memory"] = memory.over_budget_message(
-                None, self.progress.budget or 0, self.hessian_nonzeros()
-            )
+            stats["memory"] = memory.over_budget_message(None, budget, self.hessian_nonzeros())
         return Solution(
             x=self.x_layout.unpack(xopt),
             lam_x=np.asarray(out["lam_x"]).ravel(),

@@ -12,7 +12,7 @@ from typing import Any, NoReturn
 
 import click
 
-from casmag import interrupt
+from casmag import interrupt, memory
 from casmag.errors import CasmagError, MemoryBudgetError
 from casmag.interrupt import Interrupted
 from casmag.nlp import MEMORY_STATUS
@@ -199,9 +199,8 @@ def finish(result: Result, source: Path, out_dir: Path, quiet: bool) -> None:
     if result.status == MEMORY_STATUS:
         fail(
             f"{source}: stopped{_failed_where(result)}: status {MEMORY_STATUS}: the solve "
-            f"needs more memory than solver.memory_budget allows (default 80 % of the "
-            "machine's): raise it, or make the problem smaller (fewer knots or keyframes, fewer "
-            f"basis functions, the tiled map); recorded in {out_dir / 'result.json'}",
+            "needs more memory than solver.memory_budget allows (default 80 % of the "
+            f"machine's): {memory.REMEDY}; recorded in {out_dir / 'result.json'}",
             EXIT_SOLVER_FAILED,
         )
     if not result.success:
