@@ -10,7 +10,7 @@ warm starts), which is what sweeps and windowing rely on.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -426,6 +426,7 @@ class NLP:
         lam_x0: np.ndarray | None = None,
         progress: Callable[[int, float, float, float], None] | None = None,
         stop_when_stalled: bool = False,
+        fixed: Collection[str] = (),
     ) -> Solution:
         """Solve for the given parameters from the initial guess x0 (every variable named).
 
@@ -433,10 +434,19 @@ class NLP:
         step, seconds since the solve started). stop_when_stalled: stop IPOPT (status
         :data:`STALLED`) once the objective no longer changes measurably (STALL_RELATIVE
         over STALL_ITERATIONS iterations), for a caller that re-centres and solves again.
+        fixed: variables held at their x0 values (bounds lbx = ubx; IPOPT takes them out of
+        the problem it factorises), e.g. a known map's weights.
         """
         p = self.p_layout.pack(params)
         x0v = self.x_layout.pack(x0)
-        args: dict[str, Any] = {"x0": x0v, "p": p, "lbx": self.lbx, "ubx": self.ubx}
+        lbx, ubx = self.lbx, self.ubx
+        if fixed:
+            lbx, ubx = lbx.copy(), ubx.copy()
+            for name in fixed:
+                e = self.x_layout.entries[name]
+                lbx[e.offset : e.offset + e.size] = x0v[e.offset : e.offset + e.size]
+                ubx[e.offset : e.offset + e.size] = x0v[e.offset : e.offset + e.size]
+        args: dict[str, Any] = {"x0": x0v, "p": p, "lbx": lbx, "ubx": ubx}
         if lam_x0 is not None:
             args["lam_x0"] = lam_x0
         before = self.evaluate_blocks(x0v, p)

@@ -9,7 +9,7 @@ casmag.result.verdict); 130 / 143 interrupted by Ctrl-C / SIGTERM (the previous 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import click
 
@@ -221,6 +221,15 @@ def _warn(line: str) -> None:
     help="Estimate sigma_m again where the path returns and solve again with it when it is "
     "clearly larger (translational recordings; casmag.solver.recslam.refit_sigma_m).",
 )
+@click.option(
+    "--map",
+    "map_file",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Locate the recording against this saved map (map.npz, or the result folder of an "
+    "earlier run) instead of mapping from scratch; the map's kernel, hyperparameters and "
+    "mean are used, held fixed (translational recordings, casmag.solver.localize).",
+)
 def slam(
     recordings: tuple[Path, ...],
     out_dir: Path,
@@ -233,6 +242,7 @@ def slam(
     no_field_check: bool,
     mag_lag: float | str | None,
     refit_noise: bool,
+    map_file: Path | None,
 ) -> None:
     """GP-SLAM on RECORDINGS (CSV: t, motion increments, mx,my,mz, optional truth).
 
@@ -246,6 +256,10 @@ def slam(
     the common frame) are solved together with one shared map, each with its own odometry
     bias (casmag.solver.multisession); result.json lists each session's errors and sessions.png
     shows them.
+
+    Every translational run with a reduced-rank map writes map.npz, the map with its
+    posterior; --map MAP locates a later recording (its first position in the map's frame)
+    against it, and casmag map MAP draws it.
     """
     from casmag.data.recording import is_planar_recording
     from casmag.solver.recslam import slam as run_slam
@@ -265,8 +279,11 @@ def slam(
                 anchor=anchor,
                 mag_lag=mag_lag,
                 refit_noise=refit_noise,
+                map_file=map_file,
             )
         else:
+            if map_file is not None:
+                raise CasmagError("--map: one recording at a time")
             for r in recordings:
                 if is_planar_recording(r):
                     raise CasmagError(
@@ -331,15 +348,121 @@ def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool, ali
 
 @main.command()
 @click.argument("source", type=click.Path(path_type=Path))
-@click.option("--out", "out_file", required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--out",
+    "out_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Recording CSV to write (required; a bag's topics are listed without it).",
+)
 @click.option("--drift", type=float, help="Final odometry drift [m] (default 0.5).")
 @click.option("--seed", type=int, help="Seed of the odometry noise and bias (default 0).")
 @click.option("--rate", type=float, help="Output rate [Hz] (default 10).")
 @click.option("--noise", type=float, help="Odometry noise per step, fraction of the median step.")
-@click.option("--motion", type=click.Choice(["translational", "planar"]))
+@click.option(
+    "--motion",
+    type=click.Choice(["translational", "planar", "translational3"]),
+    help="Motion input written: dx,dy | dfwd,dleft,dyaw | dx,dy,dz (translational3: bags "
+    "only). A bag's default is translational; with --imu it gets the IMU increments.",
+)
 @click.option("--field", type=click.Choice(["recorded", "constant"]))
 @click.option("--no-align", is_flag=True, help="Keep the recorded magnetometer timing.")
+@click.option(
+    "--magnetometer",
+    metavar="TOPIC",
+    help="Bag: sensor_msgs/msg/MagneticField topic (tesla, written in microtesla).",
+)
+@click.option(
+    "--odometry",
+    metavar="TOPIC",
+    help="Bag: nav_msgs/msg/Odometry or geometry_msgs/msg/PoseStamped topic, written as "
+    "increments of --motion.",
+)
+@click.option(
+    "--imu",
+    metavar="TOPIC",
+    help="Bag: sensor_msgs/msg/Imu topic (rad/s, m/s^2), written as strapdown increments "
+    "(instead of --odometry).",
+)
+@click.option(
+    "--truth",
+    metavar="TOPIC",
+    help="Bag: nav_msgs/msg/Odometry or geometry_msgs/msg/PoseStamped topic of the true pose.",
+)
 def convert(
+    source: Path,
+    out_file: Path | None,
+    drift: float | None,
+    seed: int | None,
+    rate: float | None,
+    noise: float | None,
+    motion: str | None,
+    field: str | None,
+    no_align: bool,
+    magnetometer: str | None,
+    odometry: str | None,
+    imu: str | None,
+    truth: str | None,
+) -> None:
+    """Turn a recorded sequence or a ROS bag into a recording CSV.
+
+    SOURCE is a sequence prefix (DIR/N for DIR/N-time.csv, N-loc.csv, N-mag.csv), a
+    handheld recording with the device's pose (a .mat file: t, dPos, quat, m; planar
+    odometry with the publishing paper's noise and a 0.005 rad/s heading-rate bias by
+    default) or a real-data problem file (problems/real/*.yaml) whose ``recording`` section
+    gives the settings (casmag.data.realdata's protocol); options override either. Writes
+    OUT and OUT's stem + .json (the protocol record: clock shift, bias, measured drift).
+
+    SOURCE may also be a ROS 1 .bag file or a ROS 2 bag folder (with metadata.yaml),
+    read with the rosbags package (pip install casmag[bags]; casmag.data.rosbag): give
+    --magnetometer (tesla in the bag, microtesla in OUT) and --odometry (with --motion) or
+    --imu, optionally --truth. Times are the messages' header stamps, from the earliest
+    one written. Without these topics the bag's topics are listed (exit 2). OUT's stem +
+    .json records the topics, message counts and the first stamp.
+    """
+    bag_options = {
+        "--magnetometer": magnetometer,
+        "--odometry": odometry,
+        "--imu": imu,
+        "--truth": truth,
+    }
+    sequence_options = {
+        "--drift": drift,
+        "--seed": seed,
+        "--rate": rate,
+        "--noise": noise,
+        "--field": field,
+        "--no-align": no_align or None,
+    }
+    from casmag.data.rosbag import is_bag
+
+    if is_bag(source):
+        given = [name for name, value in sequence_options.items() if value is not None]
+        if given:
+            fail(f"{given[0]}: not taken by a ROS bag ({source})", EXIT_BAD_INPUT)
+        _convert_bag(source, out_file, motion, magnetometer, odometry, imu, truth)
+        return
+    given = [name for name, value in bag_options.items() if value is not None]
+    if given:
+        fail(
+            f"{given[0]}: for ROS bags only ({source} is not a .bag file or a folder with "
+            "metadata.yaml)",
+            EXIT_BAD_INPUT,
+        )
+    if motion == "translational3":
+        fail(f"--motion translational3: for ROS bags only ({source})", EXIT_BAD_INPUT)
+    if out_file is None:
+        _missing_out()
+    _convert_sequence(source, out_file, drift, seed, rate, noise, motion, field, no_align)
+
+
+def _missing_out() -> NoReturn:
+    """The usage error click gives for a missing required --out (exit 2)."""
+    ctx = click.get_current_context()
+    param = next(p for p in ctx.command.params if p.name == "out_file")
+    raise click.MissingParameter(ctx=ctx, param=param)
+
+
+def _convert_sequence(
     source: Path,
     out_file: Path,
     drift: float | None,
@@ -350,15 +473,7 @@ def convert(
     field: str | None,
     no_align: bool,
 ) -> None:
-    """Turn a recorded sequence into a recording CSV (casmag.data.realdata's protocol).
-
-    SOURCE is a sequence prefix (DIR/N for DIR/N-time.csv, N-loc.csv, N-mag.csv), a
-    handheld recording with the device's pose (a .mat file: t, dPos, quat, m; planar
-    odometry with the publishing paper's noise and a 0.005 rad/s heading-rate bias by
-    default) or a real-data problem file (problems/real/*.yaml) whose ``recording`` section
-    gives the settings; options override either. Writes OUT and OUT's stem + .json (the protocol
-    record: clock shift, bias, measured drift).
-    """
+    """``casmag convert`` of a sequence, a .mat recording or a real-data problem file."""
     import json
 
     from casmag.data.realdata import Protocol, arkit_protocol, load_arkit, load_sequence
@@ -404,6 +519,114 @@ def convert(
         f"wrote {out_file}: {conv.record['samples']} samples at {conv.record['rate']:.3g} Hz, "
         f"odometry drift {od['final_drift']:.3f} m (RMSE {od['rmse']:.3f} m)"
     )
+
+
+def _convert_bag(
+    source: Path,
+    out_file: Path | None,
+    motion: str | None,
+    magnetometer: str | None,
+    odometry: str | None,
+    imu: str | None,
+    truth: str | None,
+) -> None:
+    """``casmag convert BAG``: the bag's topics as a recording (casmag.data.rosbag.read_bag);
+    without the magnetometer or a motion topic, the bag's topics listed and exit 2."""
+    import json
+
+    from casmag.data.rosbag import list_topics, read_bag
+
+    missing = None
+    if magnetometer is None:
+        missing = "--magnetometer TOPIC is missing (a sensor_msgs/msg/MagneticField topic)"
+    elif odometry is None and imu is None:
+        missing = (
+            "--odometry TOPIC or --imu TOPIC is missing (a nav_msgs/msg/Odometry or "
+            "geometry_msgs/msg/PoseStamped topic, or a sensor_msgs/msg/Imu topic)"
+        )
+    elif odometry is not None and imu is not None:
+        fail(f"{source}: --odometry and --imu: give one motion topic", EXIT_BAD_INPUT)
+    elif imu is not None and motion is not None:
+        fail(
+            f"--motion {motion}: not taken with --imu (the IMU topic gives the IMU increments)",
+            EXIT_BAD_INPUT,
+        )
+    if missing is not None:
+        try:
+            topics = list_topics(source)
+        except CasmagError as exc:
+            fail_error(exc, source)
+        _echo_topics(source, topics)
+        fail(f"{source}: {missing}; the bag's topics are listed above", EXIT_BAD_INPUT)
+    if out_file is None:
+        _missing_out()
+    try:
+        rec = read_bag(source, magnetometer, odometry, imu, truth, motion)
+        rec.write(out_file)
+        record = out_file.with_suffix(".json")
+        tmp = record.with_name(f".{record.name}.tmp")
+        tmp.write_text(json.dumps(rec.record, indent=2) + "\n")
+        tmp.replace(record)
+    except CasmagError as exc:
+        fail_error(exc, source)
+    except INPUT_ERRORS as exc:
+        fail_bad_input(source, exc)
+    for note in rec.notes:
+        click.echo(f"casmag: note: {source}: {note}", err=True)
+    used = ", ".join(f"{info['used']} {role}" for role, info in rec.record["topics"].items())
+    click.echo(
+        f"wrote {out_file}: {rec.rows.shape[0]} rows ({rec.record['motion']}) from {used} "
+        f"messages, t = 0 at stamp {rec.record['t0_stamp']} s"
+    )
+
+
+def _echo_topics(source: Path, topics: list[tuple[str, str, int]]) -> None:
+    """The bag's topics, one a line: topic, message type, message count."""
+    click.echo(f"{source}: {len(topics)} topics")
+    if not topics:
+        return
+    wide = max(len(t) for t, _, _ in topics)
+    kind = max(len(k) for _, k, _ in topics)
+    for topic, msgtype, count in topics:
+        click.echo(f"  {topic:<{wide}}  {msgtype:<{kind}}  {count:>8d}")
+
+
+@main.command(name="map")
+@click.argument("map_file", type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--points", type=click.IntRange(2, 1000), default=90, show_default=True)
+@click.option("--z", type=float, default=None, help="Height of the grid of a 3-D map [m].")
+def map_command(map_file: Path, out_dir: Path, points: int, z: float | None) -> None:
+    """Draw a saved map (MAP_FILE: map.npz, or a result folder) and export its grid.
+
+    Writes OUT/map.png (field magnitude, blank where the posterior standard deviation is
+    above half the prior's, and the posterior standard deviation) and OUT/map_grid.csv (x, y
+    [, z] [m], the field mx, my, mz, its posterior and prior standard deviations per
+    component, in the map's field units) on a POINTS x POINTS grid over the map's box.
+    """
+    from types import SimpleNamespace
+
+    from casmag.gp.savedmap import load_map, write_grid_csv
+    from casmag.result.outdir import save_atomic
+    from casmag.result.plotting import map_figure
+
+    try:
+        saved = load_map(map_file)
+        grid = saved.grid(points, z)
+        drawable = SimpleNamespace(
+            arrays=grid, info={"name": map_file.stem}, status="saved map", success=True
+        )
+
+        def write(tmp: Path) -> None:
+            write_grid_csv(grid, tmp / "map_grid.csv")
+            map_figure(drawable, tmp / "map.png")
+
+        save_atomic(out_dir, write)
+    except CasmagError as exc:
+        fail_error(exc, map_file)
+    except INPUT_ERRORS as exc:
+        fail_bad_input(map_file, exc)
+    click.echo(f"wrote {out_dir / 'map.png'} and {out_dir / 'map_grid.csv'} ({saved.frame})")
 
 
 main.add_command(sweep_command)

@@ -31,6 +31,9 @@ result.json). IMU recordings take complete rows only.
 
 Every problem with a file raises :class:`~casmag.errors.DataError` as one line naming the
 file, the row (header = row 1, first data row = row 2) or column, and the reason.
+
+ROS bags become recordings in this format with :mod:`casmag.data.rosbag` (``casmag convert
+BAG``: each message its own row, magnetometer in microtesla, times from header stamps).
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 A result holds ``info`` (what was solved), scalar statistics and arrays. It is saved as
 ``result.json`` (everything but the arrays), ``arrays.npz`` (the arrays, exactly),
-``trajectory.csv`` (the trajectories as text) and figures, written into a temporary folder
+``trajectory.csv`` (the trajectories as text), ``map.npz`` when the run has a reduced-rank
+map in the map frame (casmag.gp.savedmap) and figures, written into a temporary folder
 that replaces the output folder only once complete, so an interrupted or failed write never
 leaves a half-written output. :meth:`Result.load` reads a saved result back.
 """
@@ -11,13 +12,15 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import MISSING, asdict, dataclass, field, fields
+from collections.abc import Callable
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from casmag.errors import DataError
+from casmag.gp.savedmap import MAP_FILE, SavedMap, load_map
 from casmag.result.evaluation import evaluate_result
 from casmag.result.metrics import rmse_and_max
 from casmag.result.outdir import save_atomic
@@ -67,7 +70,9 @@ class Result:
     ``{"name", "reason", "evidence"}`` (casmag.solver.planar, casmag.solver.imu);
     ``evaluation``: the errors again after an optional alignment to the truth
     (casmag.result.evaluation); ``verdict``: whether the estimate can be trusted, the
-    reasons and the checks (casmag.result.verdict).
+    reasons and the checks (casmag.result.verdict); ``field_map``: the estimated map with
+    its posterior (casmag.gp.savedmap.SavedMap; None when the model has none to save, or
+    until :meth:`saved_map` computes it).
 
     Arrays (N samples or keyframes, d = 2 or 3 dimensions, a G x G map grid; absent or None
     when not computed): ``t`` (N,) [s]; ``P_odometry`` (the dead reckoning),
@@ -110,12 +115,25 @@ class Result:
     evaluation: dict[str, Any] | None = None
     verdict: dict[str, Any] | None = None
     arrays: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
+    field_map: SavedMap | None = field(default=None, repr=False, compare=False)
+    map_maker: Callable[[], tuple[SavedMap | None, dict[str, Any]]] | None = field(
+        default=None, repr=False, compare=False
+    )
 
     def __post_init__(self) -> None:
         if self.motion not in MOTIONS:
             raise ValueError(f"motion {self.motion!r} is not one of {', '.join(MOTIONS)}")
         if self.verdict is None:
             self.verdict = verdict(self)
+
+    def saved_map(self) -> SavedMap | None:
+        """The estimated map with its posterior (``field_map``), computed on first use by
+        ``map_maker`` (a factorisation of the Hessian: only results that are saved or asked
+        pay for it), which also records ``info["map"]`` (saved, or why not)."""
+        if self.field_map is None and self.map_maker is not None:
+            maker, self.map_maker = self.map_maker, None
+            self.field_map, self.info["map"] = maker()
+        return self.field_map
 
     @property
     def trusted(self) -> bool:
@@ -172,7 +190,7 @@ class Result:
         folder = Path(folder)
         path = folder / "result.json"
         data = read_result_json(path)
-        names = {f.name for f in fields(cls)} - {"arrays"}
+        names = {f.name for f in fields(cls)} - {"arrays", "field_map", "map_maker"}
         required = [
             f.name
             for f in fields(cls)
@@ -185,20 +203,25 @@ class Result:
         if (folder / ARRAYS_FILE).is_file():
             with np.load(folder / ARRAYS_FILE, allow_pickle=False) as npz:
                 arrays = {k: npz[k] for k in npz.files}
-        return cls(**{k: v for k, v in data.items() if k in names}, arrays=arrays)
+        saved = load_map(folder / MAP_FILE) if (folder / MAP_FILE).is_file() else None
+        return cls(**{k: v for k, v in data.items() if k in names}, arrays=arrays, field_map=saved)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary of everything but the arrays (non-finite floats as None)."""
-        d = asdict(self)
-        d.pop("arrays")
+        d = asdict(replace(self, arrays={}, field_map=None, map_maker=None))
+        for name in ("arrays", "field_map", "map_maker"):
+            d.pop(name)
         d["evaluation"] = evaluation_of(self)
         d["units"] = UNITS[self.motion]
         return finite_json(d)
 
     def save(self, out_dir: str | Path, figures: bool = True) -> Path:
-        """Write result.json, trajectory.csv, arrays.npz, for IMU results biases.md, and
-        (if figures) PNGs into out_dir atomically (:func:`casmag.result.outdir.save_atomic`: an
-        existing out_dir is replaced only when it holds a previous casmag result)."""
+        """Write result.json, trajectory.csv, arrays.npz, map.npz (``field_map``), for IMU
+        results biases.md, and (if figures) PNGs into out_dir atomically
+        (:func:`casmag.result.outdir.save_atomic`: an existing out_dir is replaced only when
+        it holds a previous casmag result)."""
+
+        saved = self.saved_map()  # before result.json: it records info["map"]
 
         def write(tmp: Path) -> None:
             (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
@@ -208,6 +231,8 @@ class Result:
                 write_trajectory_csv(self, tmp / "trajectory.csv")
                 write_tum_files(self, tmp)
             write_arrays(tmp, self.arrays)
+            if saved is not None:
+                saved.save(tmp / MAP_FILE)
             if figures and self.arrays:
                 from casmag.result import plotting
 

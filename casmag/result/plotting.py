@@ -333,7 +333,8 @@ MAP_MASK = 0.5
 def map_figure(result: Drawable, path: Path) -> Figure:
     """Estimated field magnitude (GP posterior mean or reduced-rank map) with the estimated
     path, masked where the samples do not inform the map (posterior std above MAP_MASK of
-    the prior std, mean over the three components), and beside it the posterior std."""
+    the prior std, mean over the three components), and beside it the posterior std. The
+    path is drawn when the arrays hold ``P_estimate`` (a saved map's grid has none)."""
     import numpy as np
 
     a = result.arrays
@@ -360,14 +361,18 @@ def map_figure(result: Drawable, path: Path) -> Figure:
             a["map_x"], a["map_y"], std.mean(axis=-1), shading="auto", cmap="magma_r"
         )
         fig.colorbar(mesh, ax=ax, label="posterior std per component (field units)")
-        ax.set_title("posterior std given the estimated path", fontsize=9)
+        where = " given the estimated path" if a.get("P_estimate") is not None else ""
+        ax.set_title(f"posterior std{where}", fontsize=9)
+    path_drawn = a.get("P_estimate") is not None
     for ax in axes:
-        ax.plot(*a["P_estimate"][:, :2].T, "-", color="white", lw=1.0, label="GP-SLAM path")
-        ax.plot(*a["P_estimate"][0, :2], "o", color="black", ms=5, label="start")
+        if path_drawn:
+            ax.plot(*a["P_estimate"][:, :2].T, "-", color="white", lw=1.0, label="GP-SLAM path")
+            ax.plot(*a["P_estimate"][0, :2], "o", color="black", ms=5, label="start")
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.set_aspect("equal")
-    axes[0].legend(loc="upper right", fontsize=7)
+    if path_drawn:
+        axes[0].legend(loc="upper right", fontsize=7)
     fig.tight_layout()
     _save(fig, path)
     return fig

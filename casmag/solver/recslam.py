@@ -21,6 +21,7 @@ from casmag.data.recording import Recording, read_recording
 from casmag.data.simulate import Dataset
 from casmag.errors import DataError, ProblemError
 from casmag.gp.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
+from casmag.gp.savedmap import SavedMap, load_map
 from casmag.model.planar import dead_reckon_planar
 from casmag.problem.imu import (
     PLANAR_WARM_START_KEYS,
@@ -37,8 +38,9 @@ from casmag.problem.spec import (
 )
 from casmag.result import Result
 from casmag.result.evaluation import anchor_info
-from casmag.result.verdict import revisit_pairs
+from casmag.result.verdict import revisit_pairs, verdict
 from casmag.solver.api import solve
+from casmag.solver.localize import localise
 from casmag.solver.multisession import (
     FIRST_PREFIX,
     session_rows,
@@ -84,6 +86,7 @@ def recording_problem(
     name: str,
     problem: str | Path | None = None,
     overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    given: Mapping[str, Any] | None = None,
 ) -> tuple[Problem, dict[str, Any]]:
     """The problem ``casmag slam`` solves on a recording, and how its values were chosen.
 
@@ -93,7 +96,8 @@ def recording_problem(
     small); odometry noise ODOMETRY_NOISE_FRACTION of the median step; one knot per
     KNOT_SECONDS (LONG_KNOT_SECONDS above LONG_RECORDING samples); growing warm starts. A
     problem file (its ``model`` and ``solver`` sections) overrides any of these;
-    hyperparameters it leaves null are still estimated.
+    hyperparameters it leaves null are still estimated. ``given``: settings that override
+    the problem file's too (a saved map's kernel and hyperparameters).
     """
     overrides = as_overrides(overrides)
     check_recording_overrides(overrides)
@@ -120,7 +124,7 @@ def recording_problem(
         },
         "solver": {"warm_start": {"strategy": "growing"}},
     }
-    merged = _merge(base, user)
+    merged = _merge(_merge(base, user), dict(given or {}))
     kernel = merged["model"]["gp"].get("kernel") or "se"
     merged["model"]["gp"]["kernel"] = kernel
     how: dict[str, Any] = {
@@ -331,6 +335,7 @@ def slam(
     anchor: str = "truth",
     mag_lag: float | str | None = None,
     refit_noise: bool = False,
+    map_file: str | Path | None = None,
     **sections: Mapping[str, Any],
 ) -> Result:
     """GP-SLAM on a recording (CSV, see casmag.data.recording) with the defaults of
@@ -367,7 +372,11 @@ def slam(
     where the path returns and solve again with it when that is clearly larger
     (:func:`refit_sigma_m`). Neither is the default: together they brought the right
     estimates on the real robot sequences about three times closer and made the wrong ones
-    worse (casmag.data.clock, :func:`refit_sigma_m`)."""
+    worse (casmag.data.clock, :func:`refit_sigma_m`).
+
+    map_file: a saved map (``map.npz`` of an earlier run, casmag.gp.savedmap; translational
+    recordings): the recording is located against it (casmag.solver.localize.localise), with
+    the map's kernel and hyperparameters, instead of mapped from scratch."""
     if anchor not in ANCHORS:
         raise DataError(f"anchor: expected one of {', '.join(ANCHORS)}, got {anchor!r}")
     overrides = [*as_overrides(overrides), *section_overrides(sections)]
@@ -377,13 +386,17 @@ def slam(
     auto = mag_lag == "auto"
     raw = read_recording(recording)
     rec = with_lag_removed(raw, None if auto else mag_lag)
+    saved = None if map_file is None else load_map(map_file)
+    given = None if saved is None else {"model": _map_model(saved)}
     if rec.motion == "planar":
+        if saved is not None:
+            raise DataError(f"{map_file}: a saved map locates translational recordings only")
         refuse_translational_options(recording, mag_lag, refit_noise)
         return slam_planar(
             rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag
         )
     data = rec.to_dataset(anchor)
-    prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
+    prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides, given)
     lag = estimate_lag(rec.t, data.dead_reckoning(), rec.Y, _assumed(prob))
     removed = None if auto else mag_lag
     if auto and lag is not None and lag.significant:
@@ -391,14 +404,16 @@ def slam(
         removed = lag.lag_seconds
         rec = with_lag_removed(raw, removed, "estimated from the dead reckoning")
         data = rec.to_dataset(anchor)
-        prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides)
+        prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides, given)
     found = _plausibility(rec, data, prob) + (lag_warning(lag) if not removed else [])
     for line in warning_lines(recording, found):
         if on_warning is not None:
             on_warning(line)
     if not field_check and how["field_evidence"].get("constant"):
         refuse_constant_field(recording)
-    if field_check and how["field_evidence"]["homogeneous"]:
+    if saved is not None:
+        result = localise(prob, data, saved, progress, str(map_file))
+    elif field_check and how["field_evidence"]["homogeneous"]:
         result = odometry_only(prob, data, "homogeneous field: " + _evidence_text(how))
     else:
         result = solve_from_two_starts(prob, data, progress)
@@ -407,8 +422,20 @@ def slam(
     result.info["recording"] = str(recording)
     result.info["defaults"] = how
     result.info["magnetometer_lag"] = _lag_record(lag, removed)
-    result.warnings = found
+    result.warnings = found + list(result.warnings or [])
     return result
+
+
+def _map_model(saved: SavedMap) -> dict[str, Any]:
+    """The ``model`` settings a saved map fixes (kernel and hyperparameters)."""
+    return {
+        "gp": {
+            "kernel": saved.kernel,
+            "sigma_f": saved.sigma_f,
+            "lengthscale": saved.lengthscale,
+        },
+        "magnetometer": {"sigma_m": saved.sigma_m},
+    }
 
 
 def refuse_translational_options(
@@ -606,6 +633,7 @@ def slam_sessions(
     result.info["defaults"] = how
     result.info["sessions"] = session_rows(data, result, names)
     result.warnings = found
+    result.verdict = verdict(result)  # again, with each session's errors
     return result
 
 

@@ -71,7 +71,7 @@ from casmag.errors import ProblemError
 from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
 from casmag.model.builder import cached_slam
-from casmag.model.field import HYPERPARAMETERS, WindowField
+from casmag.model.field import HYPERPARAMETERS, ReducedRankField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rrmap import field_and_jacobians, make_basis
 from casmag.model.translational import (
@@ -95,6 +95,10 @@ converge: it only starts the next)."""
 
 LEFT_BOX = "Left_Map_Box"
 """Status of a window whose positions left the map's box (IPOPT itself stopped normally)."""
+
+OFF_MAP = "Off_Map_Dead_Reckoning"
+"""Status of a window of a smoother on a known map (``fixed_map``) that left the map: kept
+as its dead reckoning, and the next window tries the map again."""
 
 
 def inside(P: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
@@ -139,12 +143,13 @@ class WindowStructure:
     constant_field: bool
     estimate_bias: bool
     solver: str  # SolverSpec as JSON
+    share_columns: bool = True  # False: one precision over every weight (a saved map's)
 
     @property
     def shared_prior(self) -> bool:
-        """SE map without a constant field: the three weight columns share one design
-        matrix, so one M x M precision serves all of them."""
-        return self.kernel == "se" and not self.constant_field
+        """SE map without a constant field (and ``share_columns``): the three weight
+        columns share one design matrix, so one M x M precision serves all of them."""
+        return self.share_columns and self.kernel == "se" and not self.constant_field
 
     def hilbert_basis(self) -> HilbertBasis:
         return cached_basis(self.basis)
@@ -156,6 +161,11 @@ class WindowStructure:
         return TranslationalMotion(
             self.n, self.dim, self.knot_every, (0,), self.estimate_bias, bias_prior
         )
+
+    def fixed_field(self) -> ReducedRankField:
+        """The map of a window located against a known map: the plain reduced-rank map
+        (no ``map_prior`` block), whose weights the solve holds fixed."""
+        return ReducedRankField(self.kernel, self.basis, constant_field=self.constant_field)
 
     def field(self) -> WindowField:
         return WindowField(
@@ -177,9 +187,10 @@ class WindowStructure:
         return (n_w + (FIELD_DIM if self.constant_field else 0), 1)
 
 
-def window_nlp(s: WindowStructure) -> NLP:
-    """The window NLP for a structure, built once per process."""
-    return cached_slam(s.motion(), s.field(), s.solver)
+def window_nlp(s: WindowStructure, fixed_map: bool = False) -> NLP:
+    """The window NLP for a structure, built once per process; ``fixed_map``: the one of
+    :meth:`WindowStructure.fixed_field`."""
+    return cached_slam(s.motion(), s.fixed_field() if fixed_map else s.field(), s.solver)
 
 
 def prior_design(s: WindowStructure, P: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -266,15 +277,29 @@ def auto_window(problem: Problem, data: Dataset) -> tuple[int, int]:
     return n, overlap
 
 
-def bias_covariance(nlp: NLP, sol: Solution, params: dict[str, Any]) -> np.ndarray:
+def bias_covariance(
+    nlp: NLP, sol: Solution, params: dict[str, Any], fixed: tuple[str, ...] = ()
+) -> np.ndarray:
     """(d, d) Laplace covariance of a window's bias at its solution: the bias block of the
     inverse Gauss-Newton Hessian of the window objective (so it is the marginal, with the
-    trajectory and the map integrated out, and it includes the window's own bias prior)."""
+    trajectory and the map integrated out, and it includes the window's own bias prior);
+    variables in ``fixed`` are held known (conditioned on, not integrated out)."""
     import scipy.sparse.linalg as spla
 
     H = nlp.hessian(sol.x, params)
+    if fixed:  # held variables are known: condition on them (drop their rows and columns)
+        held = np.zeros(H.shape[0], dtype=bool)
+        for name in fixed:
+            f = nlp.x_layout.entries[name]
+            held[f.offset : f.offset + f.size] = True
+        keep = np.flatnonzero(~held)
+        H = H[keep][:, keep]
+        where = np.full(held.size, -1)
+        where[keep] = np.arange(keep.size)
+    else:
+        where = np.arange(H.shape[0])
     e = nlp.x_layout.entries["bias"]
-    idx = e.offset + np.arange(e.size)
+    idx = where[e.offset + np.arange(e.size)]
     E = np.zeros((H.shape[0], e.size))
     E[idx, np.arange(e.size)] = 1.0
     X = spla.splu(H.tocsc()).solve(E)
@@ -352,20 +377,45 @@ def fixed_lag_smoother(
     data: Dataset,
     progress: Any = None,
     box_positions: np.ndarray | None = None,
+    structure: WindowStructure | None = None,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
+    fixed_map: bool = False,
 ) -> SmootherResult:
     """Run the sliding windows of ``problem.spec.solver.warm_start`` over ``data`` (module
     docstring). The map is the reduced-rank form of the problem's kernel and
-    hyperparameters (assumed values; none is estimated in the windows)."""
+    hyperparameters (assumed values; none is estimated in the windows).
+
+    structure: the window NLP's structure (default :func:`window_structure`, whose window
+    length it must have); prior: the map's prior before the first window as (mean,
+    precision) in the structure's ``prior_shape`` (default: the GP prior, zero mean), e.g.
+    a saved map (casmag.solver.localize). fixed_map (with a prior): every window is the
+    plain reduced-rank NLP with the map held at the prior's mean (its unknowns fixed, so
+    IPOPT factorises the window's path and bias alone; the dense precision never enters an
+    NLP) and the prior is not updated: a known map located against, window by window."""
     ws = problem.spec.solver.warm_start
     N = data.n_samples
     n, overlap = auto_window(problem, data)
     starts = window_starts(N, n, overlap)
-    s = window_structure(problem, data, n, box_positions)
-    nlp = window_nlp(s)
+    s = window_structure(problem, data, n, box_positions) if structure is None else structure
+    nlp = window_nlp(s, fixed_map)
     m = problem.spec.model
     sigma_m = problem.assumed_sigma_m
-    Lam = prior_precision(s, problem)
-    eta = np.zeros(s.prior_shape)
+    if fixed_map and prior is None:
+        raise ValueError("a fixed map needs its prior (mean, precision)")
+    frozen = ("W", "c") if s.constant_field else ("W",)
+    frozen = frozen if fixed_map else ()
+    # a held map's own prior is a constant of the window's cost; sigma_lin only enters it
+    fixed_params = {
+        "sigma_f": problem.assumed_sigma_f,
+        "lengthscale": problem.assumed_lengthscale,
+        "sigma_lin": 1.0,
+    }
+    if prior is None:
+        Lam = prior_precision(s, problem)
+        eta = np.zeros(s.prior_shape)
+    else:
+        Lam = prior[1]
+        eta = Lam @ prior[0]
     bias_total = np.zeros(data.dim)
     # The model's prior on the total bias (zero mean) enters the first window; with the
     # laplace bias prior every later window starts from the previous one's posterior.
@@ -390,9 +440,12 @@ def fixed_lag_smoother(
         P0 = Q if previous is None else continued(previous, Q)
         C0 = knots.fit(Q, P0)
         P0 = knots.positions(Q, C0)
-        J, T = prior_design(s, P0, Y)
-        mean = np.linalg.solve(Lam, eta)
-        Z0 = np.linalg.solve(Lam + J.T @ J / sigma_m**2, eta + J.T @ T / sigma_m**2)
+        if fixed_map:
+            mean = Z0 = prior[0]
+        else:
+            J, T = prior_design(s, P0, Y)
+            mean = np.linalg.solve(Lam, eta)
+            Z0 = np.linalg.solve(Lam + J.T @ J / sigma_m**2, eta + J.T @ T / sigma_m**2)
         params = {
             "Q": Q,
             "Y": Y,
@@ -400,21 +453,24 @@ def fixed_lag_smoother(
             "sigma_o": problem.assumed_sigma_odometry,
             "sigma_anchor": m.anchor.sigma,
             "sigma_m": sigma_m,
-            "map_mean": mean,
-            "map_precision": Lam,
             "bias_mean": bias_mean,
             "bias_precision": bias_prec,
+            **(fixed_params if fixed_map else {"map_mean": mean, "map_precision": Lam}),
         }
         x0: dict[str, Any] = {"C": C0, **_unpack_z(s, Z0)}
         if s.estimate_bias:
             x0["bias"] = np.zeros((1, data.dim))
-        sol = nlp.solve(params, x0, progress=progress)
+        sol = nlp.solve(params, x0, progress=progress, fixed=frozen)
         status = sol.status
         P = knots.positions(Q, sol.x["C"])
         if status in ACCEPTED and not inside(P, box_lo, box_hi):
             # The map is zero outside its box: a window there has lost the room.
             status = LEFT_BOX
         ok = status in ACCEPTED
+        if fixed_map and status == LEFT_BOX:
+            # Off a known map: no map information here, the window keeps its dead reckoning
+            # (continued from the previous window) and the next one tries the map again.
+            P, ok, status = P0, True, OFF_MAP
         bias_sigma = None
         if ok:
             if s.estimate_bias:
@@ -422,7 +478,7 @@ def fixed_lag_smoother(
             if laplace:
                 # The next window's odometry has bias_total removed, so the prior on its
                 # bias (an increment) is centred on zero, i.e. on this window's estimate.
-                cov = bias_covariance(nlp, sol, params) * BIAS_PRIOR_INFLATION
+                cov = bias_covariance(nlp, sol, params, frozen) * BIAS_PRIOR_INFLATION
                 bias_mean = np.zeros((1, data.dim))
                 if np.all(np.isfinite(cov)) and np.linalg.eigvalsh(cov).min() > 0:
                     bias_prec = np.linalg.inv(cov)
@@ -431,9 +487,10 @@ def fixed_lag_smoother(
                     bias_prec = np.zeros((data.dim, data.dim))
             local = slice(0, nxt - start)
             P_est[start:nxt] = P[local]
-            J, T = prior_design(s, P[local], Y[local])
-            Lam = Lam + J.T @ J / sigma_m**2
-            eta = eta + J.T @ T / sigma_m**2
+            if not fixed_map:
+                J, T = prior_design(s, P[local], Y[local])
+                Lam = Lam + J.T @ J / sigma_m**2
+                eta = eta + J.T @ T / sigma_m**2
             if nxt < N:
                 anchor = P[nxt - start]
                 previous = P[nxt - start :]
@@ -462,13 +519,13 @@ def fixed_lag_smoother(
         bias=bias_total,
         windows=windows,
         structure=s,
-        map_mean=np.linalg.solve(Lam, eta),
+        map_mean=prior[0] if fixed_map else np.linalg.solve(Lam, eta),
         map_precision=Lam,
         completed=completed,
     )
 
 
-def _batch_stage(
+def batch_stage(
     sol: Solution, nlp: NLP, n: int, lengthscale: float, bias: Any, name: str = "batch"
 ) -> WindowStage:
     """A solve over all n samples (the batch, or a coarse-to-fine stage) as a stage."""
@@ -497,7 +554,7 @@ def solve_sliding(
     sol, nlp, hyper, field, structure = solve_translational(problem, solved, progress, sm.positions)
     if problem.spec.model.odometry.estimate_bias and "bias" in sol.x:
         sol.x["bias"] = sol.x["bias"] + sm.bias.reshape(1, -1)
-    stage = _batch_stage(sol, nlp, data.n_samples, hyper["lengthscale"], sol.x.get("bias"))
+    stage = batch_stage(sol, nlp, data.n_samples, hyper["lengthscale"], sol.x.get("bias"))
     return sol, nlp, hyper, field, structure, solved, [*sm.windows, stage]
 
 
@@ -543,7 +600,7 @@ def solve_coarse_to_fine(
             )
         sol = nlp.solve(params, x0, progress=progress if last else None)
         stages.append(
-            _batch_stage(
+            batch_stage(
                 sol, nlp, data.n_samples, ell, sol.x.get("bias"), "batch" if last else "lengthscale"
             )
         )

@@ -51,6 +51,25 @@ def test_worse_than_the_dead_reckoning_is_not_trusted_and_without_truth_not_chec
     assert v["trusted"] and "against_truth" not in v["checks"]
 
 
+def test_one_session_worse_than_its_dead_reckoning_is_not_trusted():
+    sessions = [
+        {"name": "a", "rmse_before": 0.86, "rmse_after": 0.43},
+        {"name": "b", "rmse_before": 0.87, "rmse_after": 1.44},
+    ]
+    # the whole run passes (0.86 -> 0.89 m) while session b ended worse than it started
+    v = verdict(_result(rmse_before=0.86, rmse_after=0.89, info={"sessions": sessions}))
+    assert not v["trusted"]
+    assert v["reasons"] == [
+        "session b worse than its dead reckoning against the truth: RMSE 0.87 -> 1.44 m "
+        f"(more than {WORSE_RATIO:g} x)"
+    ]
+    assert [w["name"] for w in v["checks"]["against_truth"]["worse_sessions"]] == ["b"]
+    sessions[1]["rmse_after"] = 0.87 * WORSE_RATIO
+    assert verdict(_result(rmse_before=0.86, rmse_after=0.5, info={"sessions": sessions}))[
+        "trusted"
+    ]
+
+
 def test_a_failed_solve_and_a_models_own_flags_are_reasons():
     v = verdict(_result(success=False, status="Maximum_Iterations_Exceeded"))
     assert not v["trusted"] and "Maximum_Iterations_Exceeded" in v["reasons"][0]

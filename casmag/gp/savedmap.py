@@ -1,0 +1,346 @@
+"""A field map saved to a file, to draw and to localise a later recording against.
+
+Every GP-SLAM run with a reduced-rank map in the map frame (the translational model, one
+recording or several sessions) writes ``map.npz`` beside ``result.json``: the Hilbert basis
+(kernel, box centre and half width [m], number of functions), the hyperparameters it was
+solved with, and the posterior of the map's unknowns z = [vec(W); c] (the weights W,
+column-major, then the constant field c when the model has one) as a mean and a precision
+matrix. The precision is the Laplace approximation at the MAP, marginal over the path:
+the inverse of the z block of the inverse Hessian of the whole objective
+(casmag.nlp.NLP.hessian), so the uncertainty of the positions the map was made from is in
+it, not taken as known. Hyperparameters are taken as known.
+
+The map is in the frame of the run that made it: the first true pose of a recording with
+truth (``casmag slam``'s default anchor), else the origin of the odometry. A recording
+localised against the map (:mod:`casmag.solver.localize`) must start in that frame.
+
+Field units are the magnetometer's; positions metres. ``casmag map MAP --out DIR`` draws
+the mean and the standard deviation of the field on a grid and writes the grid as CSV.
+"""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.linalg as sla
+
+from casmag.errors import DataError
+from casmag.gp.fieldmap import GRID_POINTS, chunks, weight_rows
+from casmag.gp.kernels import FIELD_DIM
+from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+
+#: The file name every run writes its map to.
+MAP_FILE = "map.npz"
+
+#: Format version written into the file (bumped when a field changes meaning).
+FORMAT = 1
+
+KERNELS = ("se", "curl_free")
+
+_FIELDS = (
+    "format",
+    "kernel",
+    "center",
+    "half_width",
+    "num_basis",
+    "sigma_f",
+    "lengthscale",
+    "sigma_m",
+    "constant_field",
+    "mean",
+    "precision",
+    "frame",
+)
+
+
+@dataclass(frozen=True, eq=False)
+class SavedMap:
+    """A reduced-rank field map with its posterior (module docstring).
+
+    kernel: ``se`` or ``curl_free``; center, half_width: the basis box (d,) [m], d = 2 or 3;
+    num_basis: M; sigma_f, lengthscale [m], sigma_m: the hyperparameters it was solved
+    with (field units but the lengthscale); constant_field: z ends with c (3,); mean (n_z,),
+    precision (n_z, n_z): the posterior of z; frame: what its origin is."""
+
+    kernel: str
+    center: tuple[float, ...]
+    half_width: tuple[float, ...]
+    num_basis: int
+    sigma_f: float
+    lengthscale: float
+    sigma_m: float
+    constant_field: bool
+    mean: np.ndarray
+    precision: np.ndarray
+    frame: str = ""
+
+    def __post_init__(self) -> None:
+        if self.kernel not in KERNELS:
+            raise ValueError(f"kernel {self.kernel!r} is not one of {', '.join(KERNELS)}")
+        n_z = self.size
+        if self.mean.shape != (n_z,) or self.precision.shape != (n_z, n_z):
+            raise ValueError(
+                f"mean {self.mean.shape} and precision {self.precision.shape} do not fit "
+                f"{n_z} unknowns"
+            )
+
+    @property
+    def dim(self) -> int:
+        """Dimension of the positions (2 or 3)."""
+        return len(self.center)
+
+    @property
+    def basis_key(self) -> tuple:
+        """(center, half_width, num_basis): the key of casmag.gp.reduced_rank.cached_basis."""
+        return (tuple(self.center), tuple(self.half_width), int(self.num_basis))
+
+    @property
+    def num_weights(self) -> int:
+        return self.num_basis * (FIELD_DIM if self.kernel == "se" else 1)
+
+    @property
+    def size(self) -> int:
+        """Number of unknowns z: the weights and, with a constant field, c."""
+        return self.num_weights + (FIELD_DIM if self.constant_field else 0)
+
+    def basis(self) -> HilbertBasis:
+        return cached_basis(self.basis_key)
+
+    def hyperparameters(self) -> dict[str, float]:
+        return {"sigma_f": self.sigma_f, "lengthscale": self.lengthscale, "sigma_m": self.sigma_m}
+
+    def unknowns(self, z: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """``W`` (M, 3) (SE) or (M, 1) (curl-free) and, with a constant field, ``c`` (3, 1),
+        from z (default: the mean)."""
+        z = self.mean if z is None else np.ravel(z)
+        cols = FIELD_DIM if self.kernel == "se" else 1
+        out = {"W": z[: self.num_weights].reshape((self.num_basis, cols), order="F")}
+        if self.constant_field:
+            out["c"] = z[self.num_weights :].reshape(FIELD_DIM, 1)
+        return out
+
+    def design(self, X: np.ndarray) -> list[np.ndarray]:
+        """Per field component q, the (n, n_z) rows d m_q(X) / d z at points X (n, d)."""
+        X = self._points(X)
+        blocks = weight_rows(self.basis(), self.kernel, X)
+        M, n_w = self.num_basis, self.num_weights
+        rows = []
+        for q in range(FIELD_DIM):
+            A = np.zeros((X.shape[0], self.size))
+            if self.kernel == "se":
+                A[:, q * M : (q + 1) * M] = blocks[0]
+            else:
+                A[:, :M] = blocks[q]
+            if self.constant_field:
+                A[:, n_w + q] = 1.0
+            rows.append(A)
+        return rows
+
+    def field(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3) the posterior mean of the field at points X (n, d)."""
+        X = self._points(X)
+        out = np.empty((X.shape[0], FIELD_DIM))
+        for r in chunks(X.shape[0]):
+            for q, A in enumerate(self.design(X[r])):
+                out[r, q] = A @ self.mean
+        return out
+
+    def std(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3) the posterior standard deviation of the field at points X (n, d), from
+        the precision's Cholesky factor."""
+        X = self._points(X)
+        L = self.cholesky()
+        out = np.empty((X.shape[0], FIELD_DIM))
+        for r in chunks(X.shape[0]):
+            for q, A in enumerate(self.design(X[r])):
+                V = sla.solve_triangular(L, A.T, lower=True)
+                out[r, q] = np.sqrt(np.sum(V * V, axis=0))
+        return out
+
+    def prior_std(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3) the GP prior's standard deviation of the field at points X (n, d) in the
+        map's basis, the constant field left out: what the map would know without data."""
+        X = self._points(X)
+        basis = self.basis()
+        S = np.ravel(basis.prior_variances(self.kernel, self.sigma_f, self.lengthscale))
+        out = np.empty((X.shape[0], FIELD_DIM))
+        for r in chunks(X.shape[0]):
+            blocks = weight_rows(basis, self.kernel, X[r])
+            for q in range(FIELD_DIM):
+                a = blocks[0 if self.kernel == "se" else q]
+                out[r, q] = np.sqrt((a**2 * S).sum(axis=1))
+        return out
+
+    def grid(self, points: int = GRID_POINTS, z: float | None = None) -> dict[str, np.ndarray]:
+        """The map on a points x points horizontal grid over its box (3-D maps at height z,
+        default the box's centre): ``map_x``, ``map_y`` (G, G) [m], ``map_z`` (3-D),
+        ``map_field``, ``map_std``, ``map_prior_std`` (G, G, 3) (field units)."""
+        c, h = np.asarray(self.center), np.asarray(self.half_width)
+        gx, gy = np.meshgrid(
+            np.linspace(c[0] - h[0], c[0] + h[0], points),
+            np.linspace(c[1] - h[1], c[1] + h[1], points),
+        )
+        pts = np.column_stack([gx.ravel(), gy.ravel()])
+        out: dict[str, np.ndarray] = {"map_x": gx, "map_y": gy}
+        if self.dim == 3:
+            height = float(c[2] if z is None else z)
+            pts = np.column_stack([pts, np.full(pts.shape[0], height)])
+            out["map_z"] = np.array(height)
+        shape = (*gx.shape, FIELD_DIM)
+        out["map_field"] = self.field(pts).reshape(shape)
+        out["map_std"] = self.std(pts).reshape(shape)
+        out["map_prior_std"] = self.prior_std(pts).reshape(shape)
+        return out
+
+    def cholesky(self) -> np.ndarray:
+        """Lower Cholesky factor of the precision (raises DataError when it is not
+        positive definite)."""
+        try:
+            return np.linalg.cholesky(0.5 * (self.precision + self.precision.T))
+        except np.linalg.LinAlgError:
+            raise DataError("map: its precision matrix is not positive definite") from None
+
+    def inside(self, X: np.ndarray) -> np.ndarray:
+        """(n,) whether each point lies in the basis box (outside it the map is only its
+        constant: the basis functions vanish on the box's boundary)."""
+        X = self._points(X)
+        c, h = np.asarray(self.center), np.asarray(self.half_width)
+        return np.all(np.abs(X - c) <= h, axis=1)
+
+    def _points(self, X: np.ndarray) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        if X.shape[1] != self.dim:
+            raise ValueError(f"points of dimension {X.shape[1]} for a {self.dim}-D map")
+        return X
+
+    def save(self, path: str | Path) -> Path:
+        """Write the map to ``path`` (npz, no pickles) through a temporary name, so that a
+        reader never sees half a file."""
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.tmp")
+        with open(tmp, "wb") as f:
+            np.savez(
+                f,
+                format=np.array(FORMAT),
+                kernel=np.array(self.kernel),
+                center=np.asarray(self.center, dtype=float),
+                half_width=np.asarray(self.half_width, dtype=float),
+                num_basis=np.array(self.num_basis),
+                sigma_f=np.array(self.sigma_f),
+                lengthscale=np.array(self.lengthscale),
+                sigma_m=np.array(self.sigma_m),
+                constant_field=np.array(self.constant_field),
+                mean=self.mean,
+                precision=self.precision,
+                frame=np.array(self.frame),
+            )
+        os.replace(tmp, path)
+        return path
+
+
+def write_grid_csv(grid: dict[str, np.ndarray], path: Path) -> None:
+    """The arrays of :meth:`SavedMap.grid` as CSV, a row per grid point: x, y (and z) [m],
+    mx, my, mz, std_x, std_y, std_z, prior_std_x, prior_std_y, prior_std_z (field units)."""
+    cols = [grid["map_x"].ravel(), grid["map_y"].ravel()]
+    names = ["x", "y"]
+    if "map_z" in grid:
+        cols.append(np.full(cols[0].size, float(grid["map_z"])))
+        names.append("z")
+    for key, stem in (("map_field", "m"), ("map_std", "std_"), ("map_prior_std", "prior_std_")):
+        cols.extend(grid[key].reshape(-1, FIELD_DIM).T)
+        names.extend(f"{stem}{a}" for a in "xyz")
+    np.savetxt(
+        path, np.column_stack(cols), fmt="%.9g", delimiter=",", header=",".join(names), comments=""
+    )
+
+
+def load_map(path: str | Path) -> SavedMap:
+    """A map written by :meth:`SavedMap.save` (a result folder: its ``map.npz``). Raises
+    DataError with one line naming the file and the field when it is not one."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / MAP_FILE
+    if not path.is_file():
+        raise DataError(f"{path}: no such map file (casmag slam writes {MAP_FILE})")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise DataError(f"{path}: not a casmag map ({exc})") from None
+    absent = [k for k in _FIELDS if k not in data]
+    if absent:
+        raise DataError(f"{path}: not a casmag map (no {', '.join(absent)})")
+    if int(data["format"]) != FORMAT:
+        raise DataError(f"{path}: format {int(data['format'])}, this casmag reads {FORMAT}")
+
+    def number(key: str) -> float:
+        v = float(data[key])
+        if not np.isfinite(v) or v <= 0:
+            raise DataError(f"{path}: {key} must be a positive number, got {v}")
+        return v
+
+    try:
+        return SavedMap(
+            kernel=str(data["kernel"]),
+            center=tuple(float(v) for v in data["center"]),
+            half_width=tuple(float(v) for v in data["half_width"]),
+            num_basis=int(data["num_basis"]),
+            sigma_f=number("sigma_f"),
+            lengthscale=number("lengthscale"),
+            sigma_m=number("sigma_m"),
+            constant_field=bool(data["constant_field"]),
+            mean=np.asarray(data["mean"], dtype=float),
+            precision=np.asarray(data["precision"], dtype=float),
+            frame=str(data["frame"]),
+        )
+    except ValueError as exc:
+        raise DataError(f"{path}: {exc}") from None
+
+
+def map_from_solution(
+    nlp: Any,
+    x: dict[str, np.ndarray],
+    params: dict[str, Any],
+    kernel: str,
+    basis: tuple,
+    hyper: dict[str, float],
+    frame: str,
+) -> SavedMap:
+    """The saved map of a solved NLP with a map-frame reduced-rank map (variables ``W`` and
+    optionally ``c``): mean the solution, precision the Schur complement of the rest of the
+    Hessian, H_zz - H_za H_aa^-1 H_az (the inverse of the z block of H^-1: the marginal over
+    the path, the bias and every other unknown; module docstring). H_aa (knots and bias) is
+    sparse and banded, so this costs one sparse factorisation and a product, not n_z
+    solves with the whole Hessian."""
+    import scipy.sparse.linalg as spla
+
+    H = nlp.hessian(x, params).tocsr()
+    names = ["W", *(["c"] if "c" in x else [])]
+    z = np.concatenate(
+        [nlp.x_layout.entries[n].offset + np.arange(nlp.x_layout.entries[n].size) for n in names]
+    )
+    a = np.setdiff1d(np.arange(H.shape[0]), z)
+    H_zz = H[z][:, z].toarray()
+    H_az = H[a][:, z]
+    X = spla.splu(H[a][:, a].tocsc()).solve(H_az.toarray())
+    precision = H_zz - H_az.T @ X
+    mean = np.concatenate([np.ravel(x[n], order="F") for n in names])
+    center, half, M = basis
+    return SavedMap(
+        kernel=kernel,
+        center=tuple(float(v) for v in center),
+        half_width=tuple(float(v) for v in half),
+        num_basis=int(M),
+        sigma_f=float(hyper["sigma_f"]),
+        lengthscale=float(hyper["lengthscale"]),
+        sigma_m=float(hyper["sigma_m"]),
+        constant_field="c" in x,
+        mean=mean,
+        precision=0.5 * (precision + precision.T),
+        frame=frame,
+    )

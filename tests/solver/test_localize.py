@@ -1,0 +1,161 @@
+"""The saved map (casmag.gp.savedmap) and localisation against it (casmag.solver.localize)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from small_problems import tiny_walk
+
+from casmag.cli.main import main
+from casmag.data.recording import write_recording
+from casmag.data.simulate import simulate_problem
+from casmag.errors import DataError
+from casmag.gp.savedmap import MAP_FILE, load_map, map_from_solution
+from casmag.model.translational import parameters_and_guess
+from casmag.result import Result
+from casmag.solver.api import solve
+from casmag.solver.localize import localise
+from casmag.solver.translational import solve_translational
+
+BIAS = np.array([0.006, -0.004])  # per step [m]: 0.7 m of drift over the walk
+
+
+@pytest.fixture(scope="module")
+def mapped():
+    """The tiny walk solved (its map) and a second recording of the same path and field
+    with another odometry bias and noise, and new magnetometer noise (seeded)."""
+    problem = tiny_walk()
+    data = simulate_problem(problem)
+    result = solve(problem, data)
+    assert result.success
+    rng = np.random.default_rng(7)
+    U = np.diff(data.P_true, axis=0) + BIAS + rng.normal(0.0, 0.002, data.U.shape)
+    Y = data.M_true + rng.normal(0.0, problem.assumed_sigma_m, data.Y.shape)
+    later = replace(data, U=U, Y=Y, bias_true=BIAS)
+    sol, nlp, hyper, _, structure = solve_translational(problem, data)
+    params, _ = parameters_and_guess(problem, data, structure)
+    x = {n: sol.x[n] for n in nlp.x_layout.entries}
+    return problem, data, result, later, (nlp, x, params, structure, hyper)
+
+
+def test_a_run_saves_its_map_and_reads_it_back(mapped, tmp_path):
+    result = mapped[2]
+    saved = result.saved_map()
+    assert result.info["map"]["saved"] is True
+    P = result.arrays["P_estimate"]
+    # the saved mean is the solved map
+    np.testing.assert_allclose(saved.field(P), result.arrays["M_estimate"], atol=1e-10)
+    # where the walk went the map knows much more than its prior, and far away nothing
+    std, prior = saved.std(P), saved.prior_std(P)
+    assert np.all(std < 0.5 * prior)
+    # the precision is the marginal one: the inverse of the map block of H^-1 (dense here)
+    nlp, x, params, structure, hyper = mapped[4]
+    again = map_from_solution(nlp, x, params, structure.kernel, structure.basis, hyper, "")
+    np.testing.assert_allclose(again.precision, saved.precision, rtol=1e-9, atol=1e-9)
+    H = nlp.hessian(x, params).toarray()
+    z = np.concatenate(
+        [nlp.x_layout.entries[n].offset + np.arange(x[n].size) for n in "Wc" if n in x]
+    )
+    np.testing.assert_allclose(
+        again.precision, np.linalg.inv(np.linalg.inv(H)[np.ix_(z, z)]), rtol=1e-6, atol=1e-8
+    )
+    result.save(tmp_path / "run")
+    again = load_map(tmp_path / "run")  # a result folder names its map.npz
+    np.testing.assert_array_equal(again.precision, saved.precision)
+    np.testing.assert_array_equal(again.mean, saved.mean)
+    assert again.basis_key == saved.basis_key and again.frame == saved.frame
+    assert Result.load(tmp_path / "run").field_map is not None
+
+
+def test_a_bad_map_file_is_one_line_naming_it(mapped, tmp_path):
+    saved = mapped[2].saved_map()
+    with pytest.raises(DataError, match="no such map file"):
+        load_map(tmp_path / "absent.npz")
+    (tmp_path / "text.npz").write_text("not a map\n")
+    with pytest.raises(DataError, match=r"text\.npz: not a casmag map"):
+        load_map(tmp_path / "text.npz")
+    saved.save(tmp_path / "m.npz")
+    with np.load(tmp_path / "m.npz") as npz:
+        fields = {k: npz[k] for k in npz.files if k != "precision"}
+    np.savez(tmp_path / "cut.npz", **fields)
+    with pytest.raises(DataError, match=r"cut.npz: not a casmag map \(no precision\)"):
+        load_map(tmp_path / "cut.npz")
+    np.savez(tmp_path / "neg.npz", **{**fields, "precision": saved.precision, "sigma_m": -1.0})
+    with pytest.raises(DataError, match=r"neg\.npz: sigma_m must be a positive number"):
+        load_map(tmp_path / "neg.npz")
+
+
+def test_a_later_recording_is_located_against_the_map(mapped):
+    problem, _, result, later, _ = mapped
+    loc = localise(problem, later, result.saved_map())
+    assert loc.success, loc.status
+    assert loc.rmse_before > 0.3
+    # as good as mapping the walk itself, from 0.49 m of dead-reckoning error
+    assert loc.rmse_after < 1.5 * result.rmse_after
+    assert loc.rmse_after < 0.05 * loc.rmse_before
+    windows = [s for s in loc.stages if s["name"] == "window"]
+    assert windows and all(s["success"] for s in windows)
+    assert loc.info["localisation"]["covered"] == 1.0
+    assert loc.trusted and not loc.flags
+    # the map's own uncertainty widens the magnetometer noise; the map is held, not resaved
+    info = loc.info["localisation"]
+    assert info["sigma_m_used"] > result.saved_map().sigma_m
+    assert info["sigma_m_used"] ** 2 == pytest.approx(
+        result.saved_map().sigma_m ** 2 + info["map_std_on_path"] ** 2
+    )
+    assert loc.field_map is None and loc.info["map"]["saved"] is False
+
+
+def test_a_recording_off_the_map_is_flagged(mapped):
+    problem, _, result, later, _ = mapped
+    far = replace(later, anchor=later.anchor + 20.0, P_true=later.P_true + 20.0)
+    loc = localise(problem, far, result.saved_map())
+    # every window left the map and kept its dead reckoning; nothing located it
+    windows = [s for s in loc.stages if s["name"] == "window"]
+    assert all(s["status"] == "Off_Map_Dead_Reckoning" for s in windows)
+    assert [w["check"] for w in loc.warnings] == ["off_map_windows"]
+    assert loc.success, loc.status
+    assert loc.info["localisation"]["covered"] == 0.0
+    assert "off_map" in [f["name"] for f in loc.flags]
+    assert not loc.trusted
+
+
+def test_the_command_line_maps_once_and_locates_later(mapped, tmp_path):
+    _, data, _, later, _ = mapped
+    t = np.arange(data.n_samples) * 0.1
+    write_recording(tmp_path / "a.csv", t, data.Y, dxy=data.U, P_true=data.P_true)
+    write_recording(tmp_path / "b.csv", t, later.Y, dxy=later.U, P_true=later.P_true)
+    runner = CliRunner()
+    first = runner.invoke(main, ["slam", str(tmp_path / "a.csv"), "--out", str(tmp_path / "A")])
+    assert first.exit_code in (0, 3), first.output
+    assert (tmp_path / "A" / MAP_FILE).is_file()
+    second = runner.invoke(
+        main,
+        [
+            "slam",
+            str(tmp_path / "b.csv"),
+            "--map",
+            str(tmp_path / "A"),
+            "--out",
+            str(tmp_path / "B"),
+        ],
+    )
+    assert second.exit_code in (0, 3), second.output
+    loc = Result.load(tmp_path / "B")
+    assert loc.info["localisation"]["map"] == str(tmp_path / "A")
+    assert loc.rmse_after < 0.2 * loc.rmse_before
+    drawn = runner.invoke(
+        main, ["map", str(tmp_path / "A" / MAP_FILE), "--out", str(tmp_path / "D")]
+    )
+    assert drawn.exit_code == 0, drawn.output
+    grid = np.loadtxt(tmp_path / "D" / "map_grid.csv", delimiter=",", skiprows=1)
+    assert grid.shape == (90 * 90, 11) and np.isfinite(grid).all()
+    assert (tmp_path / "D" / "map.png").stat().st_size > 0
+    bad = runner.invoke(
+        main, ["slam", str(tmp_path / "b.csv"), "--map", str(tmp_path / "none.npz"), "--out",
+               str(tmp_path / "C")],
+    )  # fmt: skip
+    assert bad.exit_code == 2
+    assert "none.npz: no such map file" in bad.output
+    assert not (tmp_path / "C").exists()
