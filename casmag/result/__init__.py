@@ -126,6 +126,11 @@ class Result:
         if self.verdict is None:
             self.verdict = verdict(self)
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (a sweep's worker hands results back) without ``map_maker``, a closure
+        over the solver: a pickled result carries only a map already computed."""
+        return {**self.__dict__, "map_maker": None}
+
     def saved_map(self) -> SavedMap | None:
         """The estimated map with its posterior (``field_map``), computed on first use by
         ``map_maker`` (a factorisation of the Hessian: only results that are saved or asked
