@@ -23,6 +23,7 @@ from __future__ import annotations
 import os
 import zipfile
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -199,7 +200,11 @@ class SavedMap:
 
     def cholesky(self) -> np.ndarray:
         """Lower Cholesky factor of the precision (raises DataError when it is not
-        positive definite)."""
+        positive definite), factorised once per map."""
+        return self._factor
+
+    @cached_property
+    def _factor(self) -> np.ndarray:
         try:
             return np.linalg.cholesky(0.5 * (self.precision + self.precision.T))
         except np.linalg.LinAlgError:
