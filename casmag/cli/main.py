@@ -230,6 +230,14 @@ def _warn(line: str) -> None:
     "earlier run) instead of mapping from scratch; the map's kernel, hyperparameters and "
     "mean are used, held fixed (translational recordings, casmag.solver.localize).",
 )
+@click.option(
+    "--method",
+    type=click.Choice(["map", "ekf"]),
+    default="map",
+    show_default=True,
+    help="map: the MAP estimate (GP-SLAM); ekf: the filter baseline, an EKF with the same "
+    "map, hyperparameters and noise in its state (casmag.solver.ekf), for comparison.",
+)
 def slam(
     recordings: tuple[Path, ...],
     out_dir: Path,
@@ -243,6 +251,7 @@ def slam(
     mag_lag: float | str | None,
     refit_noise: bool,
     map_file: Path | None,
+    method: str,
 ) -> None:
     """GP-SLAM on RECORDINGS (CSV: t, motion increments, mx,my,mz, optional truth).
 
@@ -280,10 +289,11 @@ def slam(
                 mag_lag=mag_lag,
                 refit_noise=refit_noise,
                 map_file=map_file,
+                method=method,
             )
         else:
-            if map_file is not None:
-                raise CasmagError("--map: one recording at a time")
+            if map_file is not None or method != "map":
+                raise CasmagError("--map, --method: one recording at a time")
             for r in recordings:
                 if is_planar_recording(r):
                     raise CasmagError(

@@ -75,7 +75,7 @@ REVISIT_SEPARATION = 2.0
 MIN_REVISIT_FRACTION = 0.01
 
 #: IPOPT statuses (and casmag's) of a result that is an estimate.
-SOLVED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Odometry_Only")
+SOLVED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Odometry_Only", "Filter_Completed")
 
 
 def magnetometer_misfit(result: Any) -> tuple[float, int] | None:

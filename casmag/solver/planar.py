@@ -28,6 +28,7 @@ from casmag.nlp import NLP, Progress, lowest_cost
 from casmag.problem.imu import PlanarOptions
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
+from casmag.solver.ekf import FilterMap, PlanarNav, filter_result
 from casmag.solver.windowing import grow, stage_lengths
 from casmag.versions import versions
 
@@ -55,6 +56,7 @@ def solve_planar(
     psi0: float = 0.0,
     progress: Progress | None = None,
     name: str = "planar",
+    method: str = "map",
 ) -> Result:
     """Planar odometry with heading plus magnetometer GP-SLAM from arrays.
 
@@ -70,7 +72,10 @@ def solve_planar(
     (the dead reckoning) is the default: on the 186-sample loop walk, seeds 1-5, three starts
     lowered the MAP cost on seeds 1, 2 and 4 but the RMSE ratio only on seed 1 (0.34 ->
     0.18; seed 2 0.17 -> 0.21, seed 4 0.09 -> 0.20; two loops, seed 1: 0.29 -> 0.42): the
-    lower-cost optimum of this model is not reliably nearer the truth."""
+    lower-cost optimum of this model is not reliably nearer the truth.
+
+    method: ``map`` (default) the MAP estimate; ``ekf`` the filter baseline with the same
+    map box, hyperparameters and noise (casmag.solver.ekf; the box map only)."""
     options = options or PlanarOptions()
     U = np.column_stack([dfwd, dleft, dyaw]).astype(float)
     Y = np.asarray(mag, dtype=float)
@@ -123,6 +128,36 @@ def solve_planar(
         )
 
     s = structure(n, P_dr, options.solver)
+    if method == "ekf":
+        if s.tiled:
+            raise DataError("model.form: the filter baseline needs the box map (reduced_rank)")
+        nav = PlanarNav(
+            U, dt, np.array([p0[0], p0[1], psi0]), options.sigma_disp, options.sigma_dyaw,
+            options.sigma_anchor, options.sigma_psi0, options.bias_prior,
+            options.bias_walk if options.bias == "random_walk" else 0.0,
+        )  # fmt: skip
+        fmap = FilterMap(
+            s.hilbert_basis(), options.kernel, float(sigma_f), float(ell), sigma_m, sigma_lin
+        )
+        heading = None if truth is None else truth.get("psi")
+        result = filter_result(
+            nav, fmap, Y, P_dr, None if truth is None else truth["P"],
+            {"name": name, "samples": int(n), "bias_model": options.bias,
+             "anchor": {"kind": anchor_kind, "position": [float(v) for v in p0],
+                        "heading_rad": float(psi0), "sigma": options.sigma_anchor}},
+            motion="planar", truth_heading=heading,
+        )  # fmt: skip
+        result.arrays.update(
+            t=np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
+            psi_odometry=psi_dr,
+            psi_true=None if heading is None else np.asarray(heading, dtype=float),
+        )
+        if heading is not None:
+            wrapped = np.angle(np.exp(1j * (psi_dr - heading)))
+            result.details["heading_rms_deg_before"] = float(
+                np.degrees(np.sqrt(np.mean(wrapped**2)))
+            )
+        return result
     nlp = cached_planar_nlp(s) if not s.tiled else None  # tiles: built around each start
     params: dict[str, Any] = {
         "U": U,
@@ -397,6 +432,7 @@ def solve_planar_recording(
     options: PlanarOptions | None = None,
     progress: Progress | None = None,
     anchor: str = "truth",
+    method: str = "map",
 ) -> Result:
     """Solve a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.data.recording``: a path,
     or a Recording already read); truth columns, when present, are used for evaluation
@@ -424,6 +460,7 @@ def solve_planar_recording(
         t=rec.t,
         progress=progress,
         name=Path(path).stem,
+        method=method,
         **({"p0": np.zeros(2), "psi0": 0.0} if anchor == "origin" else {}),
     )
     if anchor == "origin":

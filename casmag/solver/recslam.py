@@ -40,6 +40,7 @@ from casmag.result import Result
 from casmag.result.evaluation import anchor_info
 from casmag.result.verdict import revisit_pairs, verdict
 from casmag.solver.api import solve
+from casmag.solver.ekf import translational_filter_result
 from casmag.solver.localize import localise
 from casmag.solver.multisession import (
     FIRST_PREFIX,
@@ -321,6 +322,9 @@ def solve_from_two_starts(
     return result
 
 
+#: The estimators of casmag.solver.recslam.slam (``method``): the MAP, or the filter baseline.
+METHODS = ("map", "ekf")
+
 #: Where a recording's estimate starts (casmag.solver.recslam.slam's ``anchor``).
 ANCHORS = ("truth", "origin")
 
@@ -336,6 +340,7 @@ def slam(
     mag_lag: float | str | None = None,
     refit_noise: bool = False,
     map_file: str | Path | None = None,
+    method: str = "map",
     **sections: Mapping[str, Any],
 ) -> Result:
     """GP-SLAM on a recording (CSV, see casmag.data.recording) with the defaults of
@@ -376,7 +381,15 @@ def slam(
 
     map_file: a saved map (``map.npz`` of an earlier run, casmag.gp.savedmap; translational
     recordings): the recording is located against it (casmag.solver.localize.localise), with
-    the map's kernel and hyperparameters, instead of mapped from scratch."""
+    the map's kernel and hyperparameters, instead of mapped from scratch.
+
+    method: ``map`` (default) the MAP estimate above; ``ekf`` the filter baseline
+    (casmag.solver.ekf: an EKF with the same map, hyperparameters and noise in its state,
+    translational and planar recordings), for comparison."""
+    if method not in METHODS:
+        raise DataError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    if method != "map" and (map_file is not None or refit_noise):
+        raise DataError(f"method {method}: maps from scratch, without --map or --refit-noise")
     if anchor not in ANCHORS:
         raise DataError(f"anchor: expected one of {', '.join(ANCHORS)}, got {anchor!r}")
     overrides = [*as_overrides(overrides), *section_overrides(sections)]
@@ -393,7 +406,7 @@ def slam(
             raise DataError(f"{map_file}: a saved map locates translational recordings only")
         refuse_translational_options(recording, mag_lag, refit_noise)
         return slam_planar(
-            rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag
+            rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag, method
         )
     data = rec.to_dataset(anchor)
     prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides, given)
@@ -415,6 +428,8 @@ def slam(
         result = localise(prob, data, saved, progress, str(map_file))
     elif field_check and how["field_evidence"]["homogeneous"]:
         result = odometry_only(prob, data, "homogeneous field: " + _evidence_text(how))
+    elif method == "ekf":
+        result = translational_filter_result(prob, data)
     else:
         result = solve_from_two_starts(prob, data, progress)
         if refit_noise and "sigma_m" in how["estimated"]:
@@ -646,13 +661,15 @@ def slam_planar(
     on_warning: Callable[[str], None] | None = None,
     anchor: str = "truth",
     mag_lag: float | None = None,
+    method: str = "map",
 ) -> Result:
     """A planar recording (``dfwd,dleft,dyaw``) with the planar model and a heading-rate
     bias (:func:`casmag.solver.planar.solve_planar_recording`). Settings from the problem file's
     ``model``/``solver`` sections and ``model.KEY=...`` overrides
     (:class:`casmag.problem.imu.PlanarModelSpec`). A constant magnetometer carries no
     position information: the result is the dead reckoning, status ``Odometry_Only``
-    (:func:`planar_odometry_only`; with ``field_check`` off, DataError)."""
+    (:func:`planar_odometry_only`; with ``field_check`` off, DataError). ``method``: as
+    for :func:`slam`."""
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(
         overrides, "casmag slam on a planar recording", PLANAR_WARM_START_KEYS
@@ -672,7 +689,9 @@ def slam_planar(
             refuse_constant_field(rec.path)
         result = planar_odometry_only(rec, anchor)
     else:
-        result = solve_planar_recording(rec, options, progress=progress, anchor=anchor)
+        result = solve_planar_recording(
+            rec, options, progress=progress, anchor=anchor, method=method
+        )
     result.warnings = found
     result.info["magnetometer_lag"] = _lag_record(lag, mag_lag)
     a = result.arrays

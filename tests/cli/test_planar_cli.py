@@ -191,3 +191,26 @@ def test_a_worse_local_optimum_is_flagged_by_the_solve_from_the_truth(loops, see
         assert ev["map_cost_from_truth"] < ev["map_cost"] - 1.0
         assert ev["rmse_from_truth"] < r.rmse_after
         assert r.verdict["reasons"][0].startswith("wrong_basin: RMSE 0.34 of the dead")
+
+
+def test_slam_method_ekf_on_a_planar_recording(tmp_path, planar_recording):
+    """The filter baseline with the planar model: heading and heading-rate bias in the
+    state, the same map box and settings as the MAP; a planar result with headings."""
+    path, d = planar_recording
+    out = tmp_path / "out"
+    res = _run(
+        [
+            "slam", path, "--method", "ekf", "--out", out, "-q",
+            "--set", "model.sigma_disp=0.002",
+            "--set", f"model.sigma_dyaw={np.radians(0.05)}",
+            "--set", "model.num_basis=120",
+        ]
+    )  # fmt: skip
+    assert res.exit_code in (0, 3), res.output
+    r = json.loads((out / "result.json").read_text())
+    assert r["status"] == "Filter_Completed" and r["motion"] == "planar"
+    assert r["info"]["filter"]["state_size"] == 4 + 3 * 120 + 3
+    assert r["details"]["heading_rms_deg_after"] is not None
+    with open(out / "trajectory.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == d.t.size

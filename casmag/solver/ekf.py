@@ -1,0 +1,489 @@
+"""The filter baseline: an extended Kalman filter with the reduced-rank GP map in its state.
+
+The published magnetic-SLAM systems are filters of this kind (Viset, Helmons & Kok, Sensors
+2022; Kok & Solin 2018): the state is the pose and the map's basis-function weights, the
+odometry predicts the pose, and each magnetometer sample updates pose and map together
+through y = R^T (m(p; w) + c) + e, e ~ N(0, sigma_m^2 I). Here the map is casmag's own
+(casmag.gp.reduced_rank: the same basis box, kernel, hyperparameters, constant field and
+noise as the batch MAP of the same problem), so the two differ only in the estimator: one
+forward pass, each sample's linearisation fixed once it is made, against the MAP over the
+whole recording.
+
+State: x = [nav, w, c], nav the motion model's states first (:class:`TranslationalNav`:
+position and, when estimated, the constant per-step odometry bias; :class:`PlanarNav`:
+position, heading and the heading-rate bias), w the weights (SE: (M, 3) column-major, one
+column per field component; curl-free: (M,) of the scalar potential) with their prior
+variances S(sqrt(lambda_j)), c the constant field with N(0, sigma_lin^2 I).
+
+Cost: the covariance is dense, n = n_nav + n_w + 3 unknowns; each step reads and writes it
+once: O(n^2) per sample (the peers' "O(m^2) per step"). Only its upper triangle is kept
+(BLAS dsymm and dsyrk), which halves the memory traffic.
+
+:func:`run_filter` is the whole filter; :func:`filter_recording` runs it on a translational
+or planar problem of ``casmag slam`` and returns a :class:`casmag.result.Result`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from scipy.linalg import blas
+
+from casmag.gp.kernels import FIELD_DIM
+from casmag.gp.reduced_rank import HilbertBasis
+from casmag.model.rrmap import field_and_jacobians
+
+
+class NavModel(Protocol):
+    """A motion model's part of the filter: its states come first in the state vector."""
+
+    n_nav: int
+    dim: int  # position dimension
+
+    def initial(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (n_nav,) and covariance (n_nav, n_nav) of the first sample's states."""
+        ...
+
+    def predict(self, x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """States at sample k + 1 from those at k: mean, Jacobian F, process noise Q."""
+        ...
+
+    def position(self, x: np.ndarray) -> np.ndarray:
+        """(dim,) position; its Jacobian in x is [I_dim, 0]."""
+        ...
+
+    def rotation(self, x: np.ndarray) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
+        """R^T (3, 3), world to sensor frame, and [(state index, d R^T / d x_i)]."""
+        ...
+
+
+@dataclass
+class TranslationalNav:
+    """p_{k+1} = p_k + u_k - b + e_k, e_k ~ N(0, sigma^2 I) (casmag.model.translational);
+    b the constant per-step bias of the odometry (estimated when ``bias_sigma`` is given:
+    its prior's standard deviation), p_0 ~ N(anchor, anchor_sigma^2 I). The field is read in
+    the world frame."""
+
+    U: np.ndarray  # (N - 1, d) increments
+    anchor: np.ndarray
+    sigma: float
+    anchor_sigma: float
+    bias_sigma: float | None = None
+
+    def __post_init__(self) -> None:
+        self.dim = self.U.shape[1]
+        self.n_nav = 2 * self.dim if self.bias_sigma is not None else self.dim
+        d = self.dim
+        self._F = np.eye(self.n_nav)
+        if self.bias_sigma is not None:
+            self._F[:d, d:] = -np.eye(d)
+        self._Q = np.zeros((self.n_nav, self.n_nav))
+        self._Q[:d, :d] = self.sigma**2 * np.eye(d)
+
+    def initial(self) -> tuple[np.ndarray, np.ndarray]:
+        x = np.zeros(self.n_nav)
+        x[: self.dim] = np.ravel(self.anchor)[: self.dim]
+        var = np.full(self.n_nav, self.anchor_sigma**2)
+        if self.bias_sigma is not None:
+            var[self.dim :] = self.bias_sigma**2
+        return x, np.diag(var)
+
+    def predict(self, x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        x = x.copy()
+        x[: self.dim] += self.U[k]
+        if self.bias_sigma is not None:
+            x[: self.dim] -= x[self.dim :]
+        return x, self._F, self._Q
+
+    def position(self, x: np.ndarray) -> np.ndarray:
+        return x[: self.dim]
+
+    def rotation(self, x: np.ndarray) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
+        return np.eye(FIELD_DIM), []
+
+
+@dataclass
+class PlanarNav:
+    """States (x, y, psi, b) (casmag.model.planar): psi_{k+1} = psi_k + dyaw_k - b dt_k +
+    e_psi, p_{k+1} = p_k + Rz(psi_k) (dfwd_k, dleft_k) + e_p; the field is read in the body
+    frame, y = Rz(psi)^T (m(p) + c). ``bias_walk`` [rad/s/sqrt(s)]: the bias's random walk
+    (0: constant)."""
+
+    U: np.ndarray  # (N - 1, 3): dfwd, dleft, dyaw
+    dt: np.ndarray  # (N - 1,)
+    anchor: np.ndarray  # (3,): x, y, psi
+    sigma_disp: float
+    sigma_dyaw: float
+    sigma_anchor: float
+    sigma_psi0: float
+    bias_sigma: float
+    bias_walk: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.dim = 2
+        self.n_nav = 4
+
+    def initial(self) -> tuple[np.ndarray, np.ndarray]:
+        x = np.array([*np.ravel(self.anchor)[:3], 0.0])
+        var = [self.sigma_anchor**2] * 2 + [self.sigma_psi0**2, self.bias_sigma**2]
+        return x, np.diag(var)
+
+    def predict(self, x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        fwd, left, dyaw = self.U[k]
+        h = float(self.dt[k])
+        c, s = math.cos(x[2]), math.sin(x[2])
+        out = x.copy()
+        out[0] += c * fwd - s * left
+        out[1] += s * fwd + c * left
+        out[2] += dyaw - x[3] * h
+        F = np.eye(4)
+        F[0, 2] = -s * fwd - c * left
+        F[1, 2] = c * fwd - s * left
+        F[2, 3] = -h
+        Q = np.diag(
+            [self.sigma_disp**2, self.sigma_disp**2, self.sigma_dyaw**2, self.bias_walk**2 * h]
+        )
+        return out, F, Q
+
+    def position(self, x: np.ndarray) -> np.ndarray:
+        return x[:2]
+
+    def rotation(self, x: np.ndarray) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
+        c, s = math.cos(x[2]), math.sin(x[2])
+        Rt = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        dRt = np.array([[-s, c, 0.0], [-c, -s, 0.0], [0.0, 0.0, 0.0]])
+        return Rt, [(2, dRt)]
+
+
+@dataclass
+class FilterMap:
+    """The map in the state: basis, kernel, hyperparameters, the constant field's prior."""
+
+    basis: HilbertBasis
+    kernel: str  # "se" or "curl_free"
+    sigma_f: float
+    lengthscale: float
+    sigma_m: float
+    sigma_lin: float
+    weights_mean: np.ndarray | None = None  # prior mean of w (default 0)
+    constant_mean: np.ndarray | None = None  # prior mean of c (default 0)
+
+    @property
+    def n_w(self) -> int:
+        m = self.basis.num_basis
+        return FIELD_DIM * m if self.kernel == "se" else m
+
+    def prior_variances(self) -> np.ndarray:
+        S = self.basis.prior_variances(self.kernel, self.sigma_f, self.lengthscale)
+        return np.tile(S, FIELD_DIM) if self.kernel == "se" else S
+
+
+@dataclass
+class FilterRun:
+    """A filter's output. ``states`` (N, n_nav) filtered means; ``position_cov`` (N, d, d);
+    ``weights`` and ``constant``: the map at the end; ``nis`` (N,): each sample's
+    normalised innovation squared (chi-square with 3 degrees of freedom when the filter is
+    consistent); ``seconds``: the filter's wall time."""
+
+    states: np.ndarray
+    position_cov: np.ndarray
+    weights: np.ndarray
+    constant: np.ndarray
+    nis: np.ndarray
+    seconds: float
+    n_state: int
+    dim: int
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.states[:, : self.dim]
+
+    @property
+    def mean_nis(self) -> float:
+        return float(np.mean(self.nis))
+
+
+def _measurement(
+    nav: NavModel, fmap: FilterMap, x: np.ndarray, n_nav: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted magnetometer (3,) and its Jacobian H (3, n) at the state x."""
+    n_w = fmap.n_w
+    w = x[n_nav : n_nav + n_w]
+    c = x[n_nav + n_w :]
+    p = nav.position(x[:n_nav])
+    f, rows, D = field_and_jacobians(fmap.basis, fmap.kernel, p[None, :], w)
+    world = f[0] + c
+    Rt, dRt = nav.rotation(x[:n_nav])
+    H = np.zeros((FIELD_DIM, x.shape[0]))
+    H[:, : nav.dim] = Rt @ D[0]
+    for i, dR in dRt:
+        H[:, i] += dR @ world
+    if fmap.kernel == "se":
+        phi = rows[0][0]
+        m = phi.shape[0]
+        for j in range(FIELD_DIM):
+            H[:, n_nav + j * m : n_nav + (j + 1) * m] = np.outer(Rt[:, j], phi)
+    else:
+        G = np.vstack([r[0] for r in rows])  # (3, M)
+        H[:, n_nav : n_nav + n_w] = Rt @ G
+    H[:, n_nav + n_w :] = Rt
+    return Rt @ world, H
+
+
+def run_filter(nav: NavModel, fmap: FilterMap, Y: np.ndarray, iterations: int = 1) -> FilterRun:
+    """The EKF over every sample: update with Y[0] at the first state, then predict and
+    update for each later sample. Y: (N, 3) magnetometer samples in the sensor frame."""
+    t0 = time.perf_counter()
+    N = Y.shape[0]
+    n_nav, n_w = nav.n_nav, fmap.n_w
+    n = n_nav + n_w + FIELD_DIM
+    x = np.zeros(n)
+    x0, P0 = nav.initial()
+    x[:n_nav] = x0
+    if fmap.weights_mean is not None:
+        x[n_nav : n_nav + n_w] = fmap.weights_mean
+    if fmap.constant_mean is not None:
+        x[n_nav + n_w :] = fmap.constant_mean
+    # Upper triangle only, Fortran order so that BLAS updates it in place.
+    P = np.zeros((n, n), order="F")
+    P[:n_nav, :n_nav] = P0
+    diag = np.concatenate([fmap.prior_variances(), np.full(FIELD_DIM, fmap.sigma_lin**2)])
+    P[np.arange(n_nav, n), np.arange(n_nav, n)] = diag
+    R = fmap.sigma_m**2 * np.eye(FIELD_DIM)
+    states = np.empty((N, n_nav))
+    cov = np.empty((N, nav.dim, nav.dim))
+    nis = np.empty(N)
+    for k in range(N):
+        if k > 0:
+            xn, F, Q = nav.predict(x[:n_nav], k - 1)
+            Pnn = np.triu(P[:n_nav, :n_nav])
+            Pnn = Pnn + np.triu(Pnn, 1).T
+            P[:n_nav, n_nav:] = F @ P[:n_nav, n_nav:]
+            P[:n_nav, :n_nav] = F @ Pnn @ F.T + Q
+            x[:n_nav] = xn
+        x_pred = x.copy()
+        for it in range(iterations):
+            h, H = _measurement(nav, fmap, x, n_nav)
+            PHt = blas.dsymm(1.0, P, np.asfortranarray(H.T), side=0, lower=0)  # (n, 3)
+            S = H @ PHt + R
+            S = 0.5 * (S + S.T)
+            L = np.linalg.cholesky(S)
+            r = Y[k] - h - H @ (x_pred - x)
+            z = np.linalg.solve(L, r)
+            if it == 0:
+                nis[k] = float(z @ z)
+            # K = PHt S^-1; P -= K S K^T = (PHt L^-T)(PHt L^-T)^T.
+            B = np.linalg.solve(L, PHt.T).T  # (n, 3) = PHt L^-T
+            x = x_pred + B @ z
+        P = blas.dsyrk(-1.0, np.asfortranarray(B), beta=1.0, c=P, trans=0, lower=0, overwrite_c=1)
+        states[k] = x[:n_nav]
+        pc = np.triu(P[: nav.dim, : nav.dim])
+        cov[k] = pc + np.triu(pc, 1).T
+    return FilterRun(
+        states=states,
+        position_cov=cov,
+        weights=x[n_nav : n_nav + n_w].copy(),
+        constant=x[n_nav + n_w :].copy(),
+        nis=nis,
+        seconds=time.perf_counter() - t0,
+        n_state=n,
+        dim=nav.dim,
+    )
+
+
+#: Status of a filter that ran over every sample (a filter has no convergence to report).
+FILTERED = "Filter_Completed"
+#: Status of a filter whose innovation covariance stopped being positive definite.
+DIVERGED = "Filter_Diverged"
+#: The odometry bias prior of the filter when the problem gives none, as a fraction of the
+#: median step: the batch needs no prior (all samples fix the bias together), a filter does
+#: (see :func:`translational_filter`).
+BIAS_PRIOR_STEP_FRACTION = 0.01
+
+
+def translational_filter(problem: Any, data: Any) -> tuple[TranslationalNav, FilterMap]:
+    """The filter of a translational problem (casmag.problem.spec.Problem with a reduced-rank
+    map, its hyperparameters set or estimated already, as ``casmag slam`` makes them): the
+    batch's map box around the dead reckoning (casmag.model.translational.Structure), kernel,
+    sigma_f, lengthscale, sigma_m, constant-field prior sigma_lin, odometry noise and anchor.
+    The constant per-step odometry bias is in the state when the problem estimates it, with
+    the problem's prior, else BIAS_PRIOR_STEP_FRACTION of the median step."""
+    from casmag.errors import ProblemError
+    from casmag.gp.reduced_rank import cached_basis
+    from casmag.model.translational import Structure
+
+    m = problem.spec.model
+    if m.gp.form != "reduced_rank":
+        raise ProblemError(problem.source, "model.gp.form", "the filter needs reduced_rank")
+    if data.n_sessions > 1:
+        raise ProblemError(problem.source, "", "the filter runs one recording at a time")
+    s = Structure.of(problem, data)
+    hyper = problem.assumed_hyperparameters
+    bias_sigma = None
+    if m.odometry.estimate_bias:
+        step = float(np.median(np.linalg.norm(data.U, axis=1)))
+        bias_sigma = m.odometry.bias_prior_sigma or max(BIAS_PRIOR_STEP_FRACTION * step, 1e-9)
+    nav = TranslationalNav(
+        np.asarray(data.U, dtype=float),
+        np.asarray(data.anchor, dtype=float),
+        float(problem.assumed_sigma_odometry),
+        float(m.anchor.sigma),
+        bias_sigma,
+    )
+    sigma_lin = m.gp.sigma_lin if m.gp.sigma_lin is not None else float(np.abs(data.Y).max())
+    fmap = FilterMap(
+        cached_basis(s.basis),
+        problem.assumed_kernel,
+        float(hyper["sigma_f"]),
+        float(hyper["lengthscale"]),
+        float(hyper["sigma_m"]),
+        float(sigma_lin),
+    )
+    return nav, fmap
+
+
+def filter_result(
+    nav: NavModel,
+    fmap: FilterMap,
+    Y: np.ndarray,
+    P_odometry: np.ndarray,
+    P_true: np.ndarray | None,
+    info: dict[str, Any],
+    motion: str = "translational",
+    iterations: int = 1,
+    truth_heading: np.ndarray | None = None,
+    **fields: Any,
+) -> Any:
+    """Run the filter on the magnetometer samples Y and return it as a
+    :class:`casmag.result.Result` of the given motion model (``info.method`` ``ekf``;
+    ``info.filter``: state size, wall time, mean NIS). P_odometry: the dead reckoning;
+    P_true, truth_heading (planar): the truth, for the errors only; ``fields``: further
+    Result fields (e.g. ``odometry_bias_true``). The covariance ``P_cov`` is the filter's
+    own, each sample's given the samples up to it. A filter whose innovation covariance
+    stopped being positive definite, or whose state is not finite, is a failure (status
+    DIVERGED), no errors reported."""
+    from casmag.result import Result
+    from casmag.result.metrics import rmse_and_max
+    from casmag.solver.uncertainty import PositionUncertainty
+    from casmag.versions import __version__, versions
+
+    Y = np.asarray(Y, dtype=float)
+    try:
+        with np.errstate(invalid="raise", over="raise"):
+            run: FilterRun | None = run_filter(nav, fmap, Y, iterations)
+    except (np.linalg.LinAlgError, FloatingPointError):
+        run = None
+    if run is not None and not np.all(np.isfinite(run.states)):
+        run = None
+    before = after = (None, None)
+    if P_true is not None:
+        before = rmse_and_max(P_odometry, P_true)
+    info = {
+        **info,
+        "method": "ekf",
+        "n_samples": int(Y.shape[0]),
+        "kernel": fmap.kernel,
+        "gp_form": "reduced_rank",
+        "num_basis": fmap.basis.num_basis,
+        "casmag": __version__,
+        "versions": versions(),
+    }
+    common = {
+        "motion": motion,
+        "iterations": 0,
+        "build_seconds": 0.0,
+        "rmse_before": before[0],
+        "max_before": before[1],
+        "hyperparameters": {
+            "sigma_f": fmap.sigma_f,
+            "lengthscale": fmap.lengthscale,
+            "sigma_m": fmap.sigma_m,
+        },
+        "cost_per_iteration": [],
+        **fields,
+    }
+    if run is None:
+        info["filter"] = {"reason": "the innovation covariance stopped being positive definite"}
+        return Result(
+            info=info,
+            status=DIVERGED,
+            success=False,
+            solve_seconds=0.0,
+            rmse_after=None,
+            max_after=None,
+            cost_blocks={},
+            arrays={"P_odometry": P_odometry, "P_estimate": P_odometry, "P_true": P_true},
+            **common,
+        )
+    P_est = run.positions
+    if P_true is not None:
+        after = rmse_and_max(P_est, P_true)
+    # The final map at the filtered path, read in the sensor frame.
+    f, _, _ = field_and_jacobians(fmap.basis, fmap.kernel, P_est, run.weights)
+    M_est = np.stack(
+        [nav.rotation(x)[0] @ (fk + run.constant) for x, fk in zip(run.states, f, strict=True)]
+    )
+    misfit = 0.5 * float(np.sum(((Y - M_est) / fmap.sigma_m) ** 2))
+    info["filter"] = {
+        "state_size": run.n_state,
+        "iterations_per_update": iterations,
+        "seconds": run.seconds,
+        "mean_nis": run.mean_nis,
+        "nis_expected": float(FIELD_DIM),
+    }
+    arrays: dict[str, Any] = {
+        "P_cov": run.position_cov,
+        "P_odometry": P_odometry,
+        "P_estimate": P_est,
+        "P_true": P_true,
+        "M_estimate": M_est,
+        "Y": Y,
+    }
+    details: dict[str, Any] = {}
+    if isinstance(nav, PlanarNav):
+        psi = run.states[:, 2]
+        arrays["psi_estimate"] = psi
+        if truth_heading is not None:
+            wrapped = np.angle(np.exp(1j * (psi - truth_heading)))
+            details["heading_rms_deg_after"] = float(np.degrees(np.sqrt(np.mean(wrapped**2))))
+    bias = run.states[-1, nav.dim + (1 if isinstance(nav, PlanarNav) else 0) :]
+    return Result(
+        info=info,
+        status=FILTERED,
+        success=True,
+        solve_seconds=run.seconds,
+        rmse_after=after[0],
+        max_after=after[1],
+        odometry_bias=[float(v) for v in bias] if bias.size else None,
+        cost_blocks={"magnetometer": {"after": misfit}},
+        uncertainty=PositionUncertainty(run.position_cov).summary(P_est, P_true),
+        details=details,
+        arrays=arrays,
+        **common,
+    )
+
+
+def translational_filter_result(problem: Any, data: Any) -> Any:
+    """:func:`filter_result` of a translational problem on its data set
+    (:func:`translational_filter`)."""
+    nav, fmap = translational_filter(problem, data)
+    bias_true = getattr(data, "bias_true", None)
+    return filter_result(
+        nav,
+        fmap,
+        data.Y,
+        data.dead_reckoning(),
+        data.P_true,
+        {
+            "name": problem.name,
+            "source": problem.source,
+            "estimate_bias": nav.bias_sigma is not None,
+            "bias_prior_sigma": nav.bias_sigma,
+        },
+        odometry_bias_true=None if bias_true is None else [float(v) for v in np.ravel(bias_true)],
+    )
