@@ -228,7 +228,8 @@ def _warn(line: str) -> None:
     default=None,
     help="Locate the recording against this saved map (map.npz, or the result folder of an "
     "earlier run) instead of mapping from scratch; the map's kernel, hyperparameters and "
-    "mean are used, held fixed (translational recordings, casmag.solver.localize).",
+    "mean are used, held fixed (translational recordings, casmag.solver.localize); with "
+    "--method ekf the filter locates and writes the map updated by the recording.",
 )
 @click.option(
     "--method",

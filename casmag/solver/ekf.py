@@ -171,6 +171,8 @@ class FilterMap:
     sigma_lin: float
     weights_mean: np.ndarray | None = None  # prior mean of w (default 0)
     constant_mean: np.ndarray | None = None  # prior mean of c (default 0)
+    # prior covariance of [w, c] (default: diagonal, the prior variances and sigma_lin^2)
+    prior_cov: np.ndarray | None = None
 
     @property
     def n_w(self) -> int:
@@ -235,9 +237,13 @@ def _measurement(
     return Rt @ world, H
 
 
-def run_filter(nav: NavModel, fmap: FilterMap, Y: np.ndarray, iterations: int = 1) -> FilterRun:
+def run_filter(
+    nav: NavModel, fmap: FilterMap, Y: np.ndarray, iterations: int = 1, map_cov: bool = False
+) -> FilterRun:
     """The EKF over every sample: update with Y[0] at the first state, then predict and
-    update for each later sample. Y: (N, 3) magnetometer samples in the sensor frame."""
+    update for each later sample. Y: (N, 3) magnetometer samples in the sensor frame.
+    iterations: relinearisations per update (1: the EKF; more: the iterated EKF).
+    map_cov: keep the final covariance of [w, c] (``extra["map_cov"]``)."""
     t0 = time.perf_counter()
     N = Y.shape[0]
     n_nav, n_w = nav.n_nav, fmap.n_w
@@ -252,8 +258,11 @@ def run_filter(nav: NavModel, fmap: FilterMap, Y: np.ndarray, iterations: int = 
     # Upper triangle only, Fortran order so that BLAS updates it in place.
     P = np.zeros((n, n), order="F")
     P[:n_nav, :n_nav] = P0
-    diag = np.concatenate([fmap.prior_variances(), np.full(FIELD_DIM, fmap.sigma_lin**2)])
-    P[np.arange(n_nav, n), np.arange(n_nav, n)] = diag
+    if fmap.prior_cov is not None:
+        P[n_nav:, n_nav:] = fmap.prior_cov
+    else:
+        diag = np.concatenate([fmap.prior_variances(), np.full(FIELD_DIM, fmap.sigma_lin**2)])
+        P[np.arange(n_nav, n), np.arange(n_nav, n)] = diag
     R = fmap.sigma_m**2 * np.eye(FIELD_DIM)
     states = np.empty((N, n_nav))
     cov = np.empty((N, nav.dim, nav.dim))
@@ -284,7 +293,12 @@ def run_filter(nav: NavModel, fmap: FilterMap, Y: np.ndarray, iterations: int = 
         states[k] = x[:n_nav]
         pc = np.triu(P[: nav.dim, : nav.dim])
         cov[k] = pc + np.triu(pc, 1).T
+    extra: dict[str, Any] = {}
+    if map_cov:
+        Pm = np.triu(P[n_nav:, n_nav:])
+        extra["map_cov"] = Pm + np.triu(Pm, 1).T
     return FilterRun(
+        extra=extra,
         states=states,
         position_cov=cov,
         weights=x[n_nav : n_nav + n_w].copy(),
@@ -306,13 +320,34 @@ DIVERGED = "Filter_Diverged"
 BIAS_PRIOR_STEP_FRACTION = 0.01
 
 
+def translational_nav(problem: Any, data: Any) -> TranslationalNav:
+    """The translational motion model of a problem (casmag.problem.spec.Problem) in the
+    filter: its odometry noise and anchor; the constant per-step odometry bias in the state
+    when the problem estimates it, with the problem's prior, else
+    BIAS_PRIOR_STEP_FRACTION of the median step."""
+    from casmag.errors import ProblemError
+
+    if data.n_sessions > 1:
+        raise ProblemError(problem.source, "", "the filter runs one recording at a time")
+    m = problem.spec.model
+    bias_sigma = None
+    if m.odometry.estimate_bias:
+        step = float(np.median(np.linalg.norm(data.U, axis=1)))
+        bias_sigma = m.odometry.bias_prior_sigma or max(BIAS_PRIOR_STEP_FRACTION * step, 1e-9)
+    return TranslationalNav(
+        np.asarray(data.U, dtype=float),
+        np.asarray(data.anchor, dtype=float),
+        float(problem.assumed_sigma_odometry),
+        float(m.anchor.sigma),
+        bias_sigma,
+    )
+
+
 def translational_filter(problem: Any, data: Any) -> tuple[TranslationalNav, FilterMap]:
-    """The filter of a translational problem (casmag.problem.spec.Problem with a reduced-rank
-    map, its hyperparameters set or estimated already, as ``casmag slam`` makes them): the
-    batch's map box around the dead reckoning (casmag.model.translational.Structure), kernel,
-    sigma_f, lengthscale, sigma_m, constant-field prior sigma_lin, odometry noise and anchor.
-    The constant per-step odometry bias is in the state when the problem estimates it, with
-    the problem's prior, else BIAS_PRIOR_STEP_FRACTION of the median step."""
+    """The filter of a translational problem (with a reduced-rank map, its hyperparameters
+    set or estimated already, as ``casmag slam`` makes them): :func:`translational_nav` and
+    the batch's map box around the dead reckoning (casmag.model.translational.Structure),
+    kernel, sigma_f, lengthscale, sigma_m and constant-field prior sigma_lin."""
     from casmag.errors import ProblemError
     from casmag.gp.reduced_rank import cached_basis
     from casmag.model.translational import Structure
@@ -320,21 +355,9 @@ def translational_filter(problem: Any, data: Any) -> tuple[TranslationalNav, Fil
     m = problem.spec.model
     if m.gp.form != "reduced_rank":
         raise ProblemError(problem.source, "model.gp.form", "the filter needs reduced_rank")
-    if data.n_sessions > 1:
-        raise ProblemError(problem.source, "", "the filter runs one recording at a time")
+    nav = translational_nav(problem, data)
     s = Structure.of(problem, data)
     hyper = problem.assumed_hyperparameters
-    bias_sigma = None
-    if m.odometry.estimate_bias:
-        step = float(np.median(np.linalg.norm(data.U, axis=1)))
-        bias_sigma = m.odometry.bias_prior_sigma or max(BIAS_PRIOR_STEP_FRACTION * step, 1e-9)
-    nav = TranslationalNav(
-        np.asarray(data.U, dtype=float),
-        np.asarray(data.anchor, dtype=float),
-        float(problem.assumed_sigma_odometry),
-        float(m.anchor.sigma),
-        bias_sigma,
-    )
     sigma_lin = m.gp.sigma_lin if m.gp.sigma_lin is not None else float(np.abs(data.Y).max())
     fmap = FilterMap(
         cached_basis(s.basis),
@@ -347,6 +370,19 @@ def translational_filter(problem: Any, data: Any) -> tuple[TranslationalNav, Fil
     return nav, fmap
 
 
+def run_safely(
+    nav: NavModel, fmap: FilterMap, Y: np.ndarray, iterations: int = 1, map_cov: bool = False
+) -> FilterRun | None:
+    """:func:`run_filter`, or None when it diverged: the innovation covariance stopped being
+    positive definite, or a state is not finite."""
+    try:
+        with np.errstate(invalid="raise", over="raise"):
+            run = run_filter(nav, fmap, np.asarray(Y, dtype=float), iterations, map_cov)
+    except (np.linalg.LinAlgError, FloatingPointError):
+        return None
+    return run if np.all(np.isfinite(run.states)) else None
+
+
 def filter_result(
     nav: NavModel,
     fmap: FilterMap,
@@ -357,13 +393,18 @@ def filter_result(
     motion: str = "translational",
     iterations: int = 1,
     truth_heading: np.ndarray | None = None,
+    run: FilterRun | None = None,
+    duration: float | None = None,
     **fields: Any,
 ) -> Any:
     """Run the filter on the magnetometer samples Y and return it as a
     :class:`casmag.result.Result` of the given motion model (``info.method`` ``ekf``;
     ``info.filter``: state size, wall time, mean NIS). P_odometry: the dead reckoning;
     P_true, truth_heading (planar): the truth, for the errors only; ``fields``: further
-    Result fields (e.g. ``odometry_bias_true``). The covariance ``P_cov`` is the filter's
+    Result fields (e.g. ``odometry_bias_true``); ``run``: the filter already run
+    (:func:`run_safely`; None: run here); ``duration``: the recording's length [s], for
+    the real-time factor (``info.filter.real_time_factor``: recording time per second of
+    filter time). The covariance ``P_cov`` is the filter's
     own, each sample's given the samples up to it. A filter whose innovation covariance
     stopped being positive definite, or whose state is not finite, is a failure (status
     DIVERGED), no errors reported."""
@@ -373,13 +414,8 @@ def filter_result(
     from casmag.versions import __version__, versions
 
     Y = np.asarray(Y, dtype=float)
-    try:
-        with np.errstate(invalid="raise", over="raise"):
-            run: FilterRun | None = run_filter(nav, fmap, Y, iterations)
-    except (np.linalg.LinAlgError, FloatingPointError):
-        run = None
-    if run is not None and not np.all(np.isfinite(run.states)):
-        run = None
+    if run is None:
+        run = run_safely(nav, fmap, Y, iterations)
     before = after = (None, None)
     if P_true is not None:
         before = rmse_and_max(P_odometry, P_true)
@@ -435,6 +471,7 @@ def filter_result(
         "seconds": run.seconds,
         "mean_nis": run.mean_nis,
         "nis_expected": float(FIELD_DIM),
+        "real_time_factor": None if duration is None else float(duration / max(run.seconds, 1e-9)),
     }
     arrays: dict[str, Any] = {
         "P_cov": run.position_cov,
@@ -468,22 +505,119 @@ def filter_result(
     )
 
 
-def translational_filter_result(problem: Any, data: Any) -> Any:
+def translational_filter_result(problem: Any, data: Any, duration: float | None = None) -> Any:
     """:func:`filter_result` of a translational problem on its data set
-    (:func:`translational_filter`)."""
+    (:func:`translational_filter`); duration: the recording's length [s]."""
     nav, fmap = translational_filter(problem, data)
-    bias_true = getattr(data, "bias_true", None)
+    info, fields = _translational_info(problem, data, nav)
     return filter_result(
+        nav, fmap, data.Y, data.dead_reckoning(), data.P_true, info, duration=duration, **fields
+    )
+
+
+def _translational_info(
+    problem: Any, data: Any, nav: TranslationalNav
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The info entries and Result fields of a translational filter result."""
+    bias_true = getattr(data, "bias_true", None)
+    info = {
+        "name": problem.name,
+        "source": problem.source,
+        "estimate_bias": nav.bias_sigma is not None,
+        "bias_prior_sigma": nav.bias_sigma,
+    }
+    truth = None if bias_true is None else [float(v) for v in np.ravel(bias_true)]
+    return info, {"odometry_bias_true": truth}
+
+
+def localise_filter(
+    problem: Any, data: Any, saved: Any, map_source: str = "", duration: float | None = None
+) -> Any:
+    """A translational recording located against a saved map (casmag.gp.savedmap) by the
+    filter, which updates the map as it goes: the map block of the state starts at the
+    saved posterior (mean, and the inverse of its precision as covariance), so the map's
+    own uncertainty is in every update and the recording's data refine it. The result's
+    ``field_map`` is the updated map (written as map.npz: mean and precision of the
+    filter's final map block, marginal over the path); ``info.localisation`` has the share
+    of the path on mapped ground (casmag.solver.localize.covered), flagged ``off_map`` below
+    casmag.solver.localize.MIN_COVERED, as for the MAP localisation."""
+    import scipy.linalg as sla
+
+    from casmag.errors import DataError
+    from casmag.gp.savedmap import SavedMap
+    from casmag.solver.localize import MIN_COVERED, covered
+
+    where = map_source or "map"
+    if saved.dim != data.dim:
+        raise DataError(f"{where}: a {saved.dim}-D map cannot locate a {data.dim}-D recording")
+    if data.n_sessions > 1:
+        raise DataError(f"{where}: localises one recording at a time")
+    nav = translational_nav(problem, data)
+    n_w = saved.num_weights
+    cov_z = sla.cho_solve((saved.cholesky(), True), np.eye(saved.size))
+    prior_cov = np.zeros((n_w + FIELD_DIM, n_w + FIELD_DIM))
+    prior_cov[: saved.size, : saved.size] = cov_z
+    c_mean = saved.mean[n_w:] if saved.constant_field else np.zeros(FIELD_DIM)
+    if not saved.constant_field:  # the map has no constant: hold it at zero
+        prior_cov[n_w:, n_w:] = np.eye(FIELD_DIM) * (1e-9 * saved.sigma_m) ** 2
+    fmap = FilterMap(
+        saved.basis(),
+        saved.kernel,
+        saved.sigma_f,
+        saved.lengthscale,
+        saved.sigma_m,
+        sigma_lin=1.0,
+        weights_mean=saved.mean[:n_w],
+        constant_mean=c_mean,
+        prior_cov=prior_cov,
+    )
+    run = run_safely(nav, fmap, data.Y, map_cov=True)
+    info, fields = _translational_info(problem, data, nav)
+    info["localisation"] = {"map": map_source, "frame": saved.frame, "map_unknowns": saved.size}
+    result = filter_result(
         nav,
         fmap,
         data.Y,
         data.dead_reckoning(),
         data.P_true,
-        {
-            "name": problem.name,
-            "source": problem.source,
-            "estimate_bias": nav.bias_sigma is not None,
-            "bias_prior_sigma": nav.bias_sigma,
-        },
-        odometry_bias_true=None if bias_true is None else [float(v) for v in np.ravel(bias_true)],
+        info,
+        run=run,
+        duration=duration,
+        **fields,
     )
+    if run is None:
+        return result
+    on_map = float(covered(saved, run.positions).mean())
+    result.info["localisation"]["covered"] = on_map
+    if on_map < MIN_COVERED:
+        result.flags.append(
+            {
+                "name": "off_map",
+                "reason": f"only {on_map:.0%} of the estimated path lies on ground the map "
+                f"has seen (limit {MIN_COVERED:.0%}): the rest is dead reckoning",
+                "evidence": {"covered": on_map, "limit": MIN_COVERED},
+            }
+        )
+        from casmag.result.verdict import verdict
+
+        result.verdict = verdict(result)
+    keep = np.r_[np.arange(n_w), n_w + np.arange(FIELD_DIM if saved.constant_field else 0)]
+    cov = run.extra["map_cov"][np.ix_(keep, keep)]
+    mean = np.concatenate([run.weights, run.constant])[keep]
+    L = np.linalg.cholesky(0.5 * (cov + cov.T))
+    precision = sla.cho_solve((L, True), np.eye(keep.size))
+    result.field_map = SavedMap(
+        kernel=saved.kernel,
+        center=saved.center,
+        half_width=saved.half_width,
+        num_basis=saved.num_basis,
+        sigma_f=saved.sigma_f,
+        lengthscale=saved.lengthscale,
+        sigma_m=saved.sigma_m,
+        constant_field=saved.constant_field,
+        mean=mean,
+        precision=0.5 * (precision + precision.T),
+        frame=saved.frame,
+    )
+    result.info["map"] = {"saved": True, "updated_from": map_source}
+    return result

@@ -18,7 +18,9 @@ smoother's path (``info.localisation.sigma_m_used``, ``map_std_on_path``), so a 
 knows little does not give a confident path. The new recording does not update the map:
 the saved precision is dense (n_z x n_z) and as a prior inside the NLP its Hessian block
 made a window solve take minutes at the real field's 3,675 unknowns; an update in
-low-rank form is not built.
+low-rank form is not built. The filter (``casmag slam REC --map MAP --method ekf``,
+casmag.solver.ekf.localise_filter) carries the map's posterior in its state and does
+update it.
 
 The recording's anchor must be in the map's frame (``SavedMap.frame``; ``casmag slam``'s
 default anchors both at the first true pose of recordings with truth). Positions the

@@ -146,6 +146,7 @@ def solve_planar(
              "anchor": {"kind": anchor_kind, "position": [float(v) for v in p0],
                         "heading_rad": float(psi0), "sigma": options.sigma_anchor}},
             motion="planar", truth_heading=heading,
+            duration=None if t is None else float(np.ptp(t)),
         )  # fmt: skip
         result.arrays.update(
             t=np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),

@@ -40,7 +40,7 @@ from casmag.result import Result
 from casmag.result.evaluation import anchor_info
 from casmag.result.verdict import revisit_pairs, verdict
 from casmag.solver.api import solve
-from casmag.solver.ekf import translational_filter_result
+from casmag.solver.ekf import localise_filter, translational_filter_result
 from casmag.solver.localize import localise
 from casmag.solver.multisession import (
     FIRST_PREFIX,
@@ -380,16 +380,18 @@ def slam(
     worse (casmag.data.clock, :func:`refit_sigma_m`).
 
     map_file: a saved map (``map.npz`` of an earlier run, casmag.gp.savedmap; translational
-    recordings): the recording is located against it (casmag.solver.localize.localise), with
-    the map's kernel and hyperparameters, instead of mapped from scratch.
+    recordings): the recording is located against it (casmag.solver.localize.localise; with
+    ``method`` ``ekf`` by the filter, which also updates the map:
+    casmag.solver.ekf.localise_filter), with the map's kernel and hyperparameters, instead
+    of mapped from scratch.
 
     method: ``map`` (default) the MAP estimate above; ``ekf`` the filter baseline
     (casmag.solver.ekf: an EKF with the same map, hyperparameters and noise in its state,
     translational and planar recordings), for comparison."""
     if method not in METHODS:
         raise DataError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
-    if method != "map" and (map_file is not None or refit_noise):
-        raise DataError(f"method {method}: maps from scratch, without --map or --refit-noise")
+    if method != "map" and refit_noise:
+        raise DataError(f"method {method}: --refit-noise is for the MAP estimate")
     if anchor not in ANCHORS:
         raise DataError(f"anchor: expected one of {', '.join(ANCHORS)}, got {anchor!r}")
     overrides = [*as_overrides(overrides), *section_overrides(sections)]
@@ -424,12 +426,14 @@ def slam(
             on_warning(line)
     if not field_check and how["field_evidence"].get("constant"):
         refuse_constant_field(recording)
-    if saved is not None:
+    if saved is not None and method == "ekf":
+        result = localise_filter(prob, data, saved, str(map_file), float(np.ptp(rec.t)))
+    elif saved is not None:
         result = localise(prob, data, saved, progress, str(map_file))
     elif field_check and how["field_evidence"]["homogeneous"]:
         result = odometry_only(prob, data, "homogeneous field: " + _evidence_text(how))
     elif method == "ekf":
-        result = translational_filter_result(prob, data)
+        result = translational_filter_result(prob, data, float(np.ptp(rec.t)))
     else:
         result = solve_from_two_starts(prob, data, progress)
         if refit_noise and "sigma_m" in how["estimated"]:

@@ -15,6 +15,7 @@ from casmag.gp.savedmap import MAP_FILE, load_map, map_from_solution
 from casmag.model.translational import parameters_and_guess
 from casmag.result import Result
 from casmag.solver.api import solve
+from casmag.solver.ekf import localise_filter
 from casmag.solver.localize import localise
 from casmag.solver.translational import solve_translational
 
@@ -159,3 +160,49 @@ def test_the_command_line_maps_once_and_locates_later(mapped, tmp_path):
     assert bad.exit_code == 2
     assert "none.npz: no such map file" in bad.output
     assert not (tmp_path / "C").exists()
+
+
+def test_the_filter_locates_against_the_map_and_updates_it(mapped):
+    """--method ekf with a saved map: the map block starts at the saved posterior, the
+    filter locates the later recording from 0.49 m of dead-reckoning error and returns the
+    map refined by it (its precision larger than the saved one, the mean moved little). The
+    bias here is 12 % of a step, far outside the default prior (1 % of the median step,
+    casmag.solver.ekf.BIAS_PRIOR_STEP_FRACTION, measured on the real robot sequences), so
+    its prior is given."""
+    problem, _, result, later, _ = mapped
+    saved = result.saved_map()
+    problem = problem.with_overrides(["model.odometry.bias_prior_sigma=0.01"])
+    loc = localise_filter(problem, later, saved, "A")
+    assert loc.success and loc.status == "Filter_Completed"
+    assert loc.rmse_after < 0.1 * loc.rmse_before
+    assert loc.info["localisation"]["covered"] == 1.0 and not loc.flags
+    new = loc.field_map
+    assert new is not None and loc.info["map"] == {"saved": True, "updated_from": "A"}
+    assert new.basis_key == saved.basis_key and new.frame == saved.frame
+    P = later.P_true
+    assert np.all(new.std(P) <= saved.std(P) * (1 + 1e-9))  # more data, never less known
+    assert np.sqrt(np.mean((new.field(P) - saved.field(P)) ** 2)) < 2 * saved.sigma_m
+
+
+def test_the_filter_off_the_map_is_flagged(mapped):
+    problem, _, result, later, _ = mapped
+    far = replace(later, anchor=later.anchor + 20.0, P_true=later.P_true + 20.0)
+    loc = localise_filter(problem, far, result.saved_map())
+    assert loc.info["localisation"]["covered"] == 0.0
+    assert "off_map" in [f["name"] for f in loc.flags]
+    assert not loc.trusted
+
+
+def test_the_command_line_filter_writes_the_updated_map(mapped, tmp_path):
+    _, data, result, later, _ = mapped
+    t = np.arange(data.n_samples) * 0.1
+    result.save(tmp_path / "A")
+    write_recording(tmp_path / "b.csv", t, later.Y, dxy=later.U, P_true=later.P_true)
+    args = ["slam", str(tmp_path / "b.csv"), "--map", str(tmp_path / "A"), "--method", "ekf"]
+    args += ["--set", "model.odometry.bias_prior_sigma=0.01", "--out", str(tmp_path / "B")]
+    run = CliRunner().invoke(main, args)
+    assert run.exit_code in (0, 3), run.output
+    loc = Result.load(tmp_path / "B")
+    assert loc.info["method"] == "ekf" and loc.rmse_after < 0.1 * loc.rmse_before
+    updated = load_map(tmp_path / "B")
+    assert updated.basis_key == result.saved_map().basis_key
