@@ -233,11 +233,13 @@ def _warn(line: str) -> None:
 )
 @click.option(
     "--method",
-    type=click.Choice(["map", "ekf"]),
+    type=click.Choice(["map", "ekf", "both"]),
     default="map",
     show_default=True,
     help="map: the MAP estimate (GP-SLAM); ekf: the filter baseline, an EKF with the same "
-    "map, hyperparameters and noise in its state (casmag.solver.ekf), for comparison.",
+    "map, hyperparameters and noise in its state (casmag.solver.ekf), for comparison; "
+    "both: each into OUT/map and OUT/ekf, with methods.md, methods.json and methods.png "
+    "side by side (the exit code is the MAP's).",
 )
 def slam(
     recordings: tuple[Path, ...],
@@ -278,7 +280,12 @@ def slam(
     recording = recordings[0]
     progress = None if quiet else print_progress
     try:
-        if len(recordings) == 1:  # translational or planar (casmag.solver.recslam.slam)
+        if len(recordings) == 1 and method == "both":
+            result = _both_methods(
+                recording, problem, overrides, progress, not no_field_check, anchor, mag_lag,
+                map_file, out_dir, align, no_figures, quiet,
+            )  # fmt: skip
+        elif len(recordings) == 1:  # translational or planar (casmag.solver.recslam.slam)
             result = run_slam(
                 recording,
                 problem,
@@ -315,12 +322,61 @@ def slam(
                 field_check=not no_field_check,
                 on_warning=_warn,
             )
-        with_evaluation(result, align).save(out_dir, figures=not no_figures)
+        if method != "both":
+            with_evaluation(result, align).save(out_dir, figures=not no_figures)
     except CasmagError as exc:
         fail_error(exc, recording)
     except INPUT_ERRORS as exc:
         fail_bad_input(recording, exc)
-    finish(result, recording, out_dir, quiet)
+    finish(result, recording, out_dir / "map" if method == "both" else out_dir, quiet)
+
+
+def _both_methods(
+    recording: Path,
+    problem: Path | None,
+    overrides: tuple[str, ...],
+    progress: Any,
+    field_check: bool,
+    anchor: str,
+    mag_lag: float | str | None,
+    map_file: Path | None,
+    out_dir: Path,
+    align: str,
+    no_figures: bool,
+    quiet: bool,
+) -> Any:
+    """``casmag slam REC --method both``: the MAP and the filter on the recording, each timed
+    whole, saved side by side (casmag.report.methods); returns the MAP's result."""
+    import time
+
+    import numpy as np
+
+    from casmag.data.recording import read_recording
+    from casmag.report.methods import BOTH, markdown, rows, save_methods
+    from casmag.solver.recslam import slam as run_slam
+
+    results, walls = {}, {}
+    for m in BOTH:
+        t0 = time.perf_counter()
+        results[m] = run_slam(
+            recording,
+            problem,
+            overrides,
+            progress=progress if m == "map" else None,
+            field_check=field_check,
+            on_warning=_warn if m == "map" else None,
+            anchor=anchor,
+            mag_lag=mag_lag,
+            map_file=map_file,
+            method=m,
+        )
+        walls[m] = time.perf_counter() - t0
+        with_evaluation(results[m], align)
+    duration = float(np.ptp(read_recording(recording).t))
+    save_methods(out_dir, results, walls, duration, str(recording), figures=not no_figures)
+    if not quiet:
+        click.echo(markdown(rows(results, walls, duration), str(recording)))
+    return results["map"]
 
 
 @main.command()

@@ -352,6 +352,9 @@ def collect(
             skip(exc)
             continue
         name = str(data["info"].get("name", f.parent.name))
+        method = data["info"].get("method")
+        if method not in (None, "map"):  # a filter's row beside the MAP's of the same name
+            name = f"{name} ({method})"
         seed = data["info"].get("seed")
         by_kind[kind].setdefault(name, []).append(Run(f.parent, seed, data=data))
     for kind, table_name, title in (("slam", "results", None), ("imu", "imu", "IMU results")):

@@ -225,25 +225,27 @@ class Result:
         results biases.md, and (if figures) PNGs into out_dir atomically
         (:func:`casmag.result.outdir.save_atomic`: an existing out_dir is replaced only when
         it holds a previous casmag result)."""
+        self.saved_map()  # computed before the swap's lock is taken
+        return save_atomic(out_dir, lambda tmp: self.write_into(tmp, figures))
 
+    def write_into(self, folder: Path, figures: bool = True) -> None:
+        """The files of :meth:`save` into an existing folder, not atomically: for a writer
+        that makes a whole output atomically itself (several results side by side,
+        casmag.report.methods)."""
         saved = self.saved_map()  # before result.json: it records info["map"]
+        (folder / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+        if "biases" in self.details:
+            (folder / "biases.md").write_text(bias_table(self.details, self.stages))
+        if any(self.arrays.get(key) is not None for key, _ in TRAJECTORIES):
+            write_trajectory_csv(self, folder / "trajectory.csv")
+            write_tum_files(self, folder)
+        write_arrays(folder, self.arrays)
+        if saved is not None:
+            saved.save(folder / MAP_FILE)
+        if figures and self.arrays:
+            from casmag.result import plotting
 
-        def write(tmp: Path) -> None:
-            (tmp / "result.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
-            if "biases" in self.details:
-                (tmp / "biases.md").write_text(bias_table(self.details, self.stages))
-            if any(self.arrays.get(key) is not None for key, _ in TRAJECTORIES):
-                write_trajectory_csv(self, tmp / "trajectory.csv")
-                write_tum_files(self, tmp)
-            write_arrays(tmp, self.arrays)
-            if saved is not None:
-                saved.save(tmp / MAP_FILE)
-            if figures and self.arrays:
-                from casmag.result import plotting
-
-                plotting.result_figures(self, tmp)
-
-        return save_atomic(out_dir, write)
+            plotting.result_figures(self, folder)
 
 
 #: What ``Result.details`` holds per motion model. Planar: ``heading_rms_deg_before``,

@@ -78,7 +78,7 @@ def trajectory_figure(result: DrawableErrors, path: Path) -> Figure:
     else:
         ax, ax_err = fig.add_subplot(), None
     label = _covariance_label(result)
-    _trajectories(ax, a, _pieces(result), result.success, label)
+    _trajectories(ax, a, _pieces(result), result.success, label, estimate=estimate_label(result))
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
@@ -123,12 +123,22 @@ def untrusted_line(result: Any, width: int = 70) -> str:
     return f"\nNOT TRUSTED: {first}{more}"
 
 
+def estimate_label(result: Drawable) -> str:
+    """What the estimate is called in a legend: ``GP-SLAM`` (the MAP) or the method that made
+    it (``info.method``, e.g. ``EKF``)."""
+    method = result.info.get("method")
+    return "GP-SLAM" if method in (None, "map") else str(method).upper()
+
+
 def _covariance_label(result: Drawable) -> str:
     """What the drawn covariance is: the Laplace covariance, inflated for correlated
-    magnetometer residuals when that was applied (casmag.solver.uncertainty)."""
+    magnetometer residuals when that was applied (casmag.solver.uncertainty), or a filter's
+    own covariance."""
     u = getattr(result, "uncertainty", None) or {}
     inflation = u.get("inflation") or {}
     label = "Laplace, inflated for correlated residuals" if inflation.get("active") else "Laplace"
+    if result.info.get("method") not in (None, "map"):
+        label = f"{estimate_label(result)}'s own"
     return label if trusted(result) or not result.success else label + ", NOT TRUSTED"
 
 
@@ -165,6 +175,7 @@ def _trajectories(
     success: bool = True,
     covariance: str = "Laplace",
     ellipses: bool = True,
+    estimate: str = "GP-SLAM",
 ) -> None:
     for i, sl in enumerate(pieces):
         first = i == 0
@@ -190,7 +201,7 @@ def _trajectories(
                 "-",
                 color="tab:blue",
                 lw=1.4,
-                label="GP-SLAM" if first else None,
+                label=estimate if first else None,
             )
         else:
             ax.plot(

@@ -198,3 +198,30 @@ def test_slam_method_ekf_bad_options_exit_2(tmp_path: Path, extra: list[str], ne
     )
     assert r.exit_code == 2, r.output
     assert needle in r.output
+
+
+def test_slam_method_both_writes_the_methods_side_by_side(tmp_path: Path) -> None:
+    """--method both: the MAP and the filter in one run, each a whole result folder, with the
+    table (dead reckoning, MAP, EKF) and the overlay figure; casmag report lists the filter
+    under its own row."""
+    prob = casmag.load_problem(
+        ROOT / "problems/bench/walk.yaml",
+        ["seed=3", "simulation.trajectory.samples=300", "simulation.trajectory.area=[3.0, 3.0]"],
+    )
+    rec = tmp_path / "walk.csv"
+    write_recording(rec, **dataset_to_recording_arrays(simulate_problem(prob), dt=0.1))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["slam", str(rec), "--method", "both", "--out", str(out)])
+    assert r.exit_code in (0, 3), r.output
+    assert "| EKF |" in r.output and "| GP-SLAM (MAP) |" in r.output
+    for name in ("map/result.json", "ekf/result.json", "methods.md", "methods.png"):
+        assert (out / name).is_file(), name
+    table = json.loads((out / "methods.json").read_text())
+    assert [row["method"] for row in table["rows"]] == ["dead reckoning", "GP-SLAM (MAP)", "EKF"]
+    assert table["duration_seconds"] == pytest.approx(29.9)
+    assert all(row["real_time_factor"] > 0 for row in table["rows"][1:])
+    mapped = json.loads((out / "map" / "result.json").read_text())
+    assert table["rows"][1]["rmse"] == mapped["rmse_after"]
+    report = CliRunner().invoke(main, ["report", str(out)])
+    assert report.exit_code == 0, report.output
+    assert "walk (ekf)" in report.output
