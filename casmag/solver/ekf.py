@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -544,8 +544,7 @@ def localise_filter(
     import scipy.linalg as sla
 
     from casmag.errors import DataError
-    from casmag.gp.savedmap import SavedMap
-    from casmag.solver.localize import MIN_COVERED, covered
+    from casmag.solver.localize import covered, off_map_flag
 
     where = map_source or "map"
     if saved.dim != data.dim:
@@ -589,15 +588,9 @@ def localise_filter(
         return result
     on_map = float(covered(saved, run.positions).mean())
     result.info["localisation"]["covered"] = on_map
-    if on_map < MIN_COVERED:
-        result.flags.append(
-            {
-                "name": "off_map",
-                "reason": f"only {on_map:.0%} of the estimated path lies on ground the map "
-                f"has seen (limit {MIN_COVERED:.0%}): the rest is dead reckoning",
-                "evidence": {"covered": on_map, "limit": MIN_COVERED},
-            }
-        )
+    flag = off_map_flag(on_map)
+    if flag is not None:
+        result.flags.append(flag)
         from casmag.result.verdict import verdict
 
         result.verdict = verdict(result)
@@ -606,18 +599,6 @@ def localise_filter(
     mean = np.concatenate([run.weights, run.constant])[keep]
     L = np.linalg.cholesky(0.5 * (cov + cov.T))
     precision = sla.cho_solve((L, True), np.eye(keep.size))
-    result.field_map = SavedMap(
-        kernel=saved.kernel,
-        center=saved.center,
-        half_width=saved.half_width,
-        num_basis=saved.num_basis,
-        sigma_f=saved.sigma_f,
-        lengthscale=saved.lengthscale,
-        sigma_m=saved.sigma_m,
-        constant_field=saved.constant_field,
-        mean=mean,
-        precision=0.5 * (precision + precision.T),
-        frame=saved.frame,
-    )
+    result.field_map = replace(saved, mean=mean, precision=0.5 * (precision + precision.T))
     result.info["map"] = {"saved": True, "updated_from": map_source}
     return result

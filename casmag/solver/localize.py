@@ -102,6 +102,18 @@ def covered(saved: SavedMap, P: np.ndarray) -> np.ndarray:
     return saved.inside(P) & (ratio < COVERED_STD_RATIO)
 
 
+def off_map_flag(on_map: float) -> dict[str, Any] | None:
+    """The ``off_map`` flag when less than MIN_COVERED of the path is on mapped ground."""
+    if on_map >= MIN_COVERED:
+        return None
+    return {
+        "name": "off_map",
+        "reason": f"only {on_map:.0%} of the estimated path lies on ground the map has seen "
+        f"(limit {MIN_COVERED:.0%}): the rest is dead reckoning",
+        "evidence": {"covered": on_map, "limit": MIN_COVERED},
+    }
+
+
 def localise(
     problem: Problem,
     data: Dataset,
@@ -198,15 +210,9 @@ def localise(
                 }
             )
         on_map = float(covered(saved, P_est).mean())
-        if on_map < MIN_COVERED:
-            flags.append(
-                {
-                    "name": "off_map",
-                    "reason": f"only {on_map:.0%} of the estimated path lies on ground the "
-                    f"map has seen (limit {MIN_COVERED:.0%}): the rest is dead reckoning",
-                    "evidence": {"covered": on_map, "limit": MIN_COVERED},
-                }
-            )
+        flag = off_map_flag(on_map)
+        if flag is not None:
+            flags.append(flag)
         try:
             u = position_uncertainty(nlp, sol, params, knots, data.dim, params["sigma_o"])
             uncertainty = u.summary(P_est, data.P_true)
