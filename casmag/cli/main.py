@@ -281,6 +281,8 @@ def slam(
     progress = None if quiet else print_progress
     try:
         if len(recordings) == 1 and method == "both":
+            if refit_noise:
+                raise CasmagError("--refit-noise: for the MAP alone, not with --method both")
             result = _both_methods(
                 recording, problem, overrides, progress, not no_field_check, anchor, mag_lag,
                 map_file, out_dir, align, no_figures, quiet,

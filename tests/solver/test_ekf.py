@@ -188,7 +188,11 @@ def test_slam_method_ekf_on_a_recording(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("extra", "needle"),
-    [(["--map", "nowhere.npz"], "nowhere.npz: no such map file"), (["--refit-noise"], "--refit")],
+    [
+        (["--map", "nowhere.npz"], "nowhere.npz: no such map file"),
+        (["--refit-noise"], "--refit"),
+        (["--refit-noise", "--method", "both"], "--refit-noise"),
+    ],
 )
 def test_slam_method_ekf_bad_options_exit_2(tmp_path: Path, extra: list[str], needle: str) -> None:
     rec = tmp_path / "r.csv"
@@ -225,3 +229,21 @@ def test_slam_method_both_writes_the_methods_side_by_side(tmp_path: Path) -> Non
     report = CliRunner().invoke(main, ["report", str(out)])
     assert report.exit_code == 0, report.output
     assert "walk (ekf)" in report.output
+
+
+def test_slam_method_ekf_refuses_a_map_it_cannot_carry(tmp_path: Path) -> None:
+    """The filter carries the box map only: the tiled form is refused in one line, exit 2,
+    nothing written."""
+    prob = casmag.load_problem(
+        ROOT / "problems/bench/walk.yaml",
+        ["seed=3", "simulation.trajectory.samples=200", "simulation.trajectory.area=[3.0, 3.0]"],
+    )
+    rec = tmp_path / "walk.csv"
+    write_recording(rec, **dataset_to_recording_arrays(simulate_problem(prob), dt=0.1))
+    out = tmp_path / "o"
+    args = ["slam", str(rec), "--method", "ekf", "--set", "model.gp.form=tiled"]
+    args += ["--set", "model.gp.kernel=curl_free", "--out", str(out)]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2, r.output
+    assert "model.gp.form" in r.output and "reduced_rank" in r.output
+    assert not out.exists()
