@@ -126,6 +126,9 @@ clean: ## Remove the environment and caches
 bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences x 2 drifts + 2 homogeneous -> results/real/table.md
 	$(PY) -m casmag.experiments.realbench problems/real/*.yaml --out results/real
 
+bench-peers: $(STAMP) ## The MAP against the filter baseline (EKF), 20 seeds of problems/bench/peers.yaml -> results/bench/peers/
+	$(PY) -m casmag.experiments.peers problems/bench/peers.yaml --seeds 20 --out results/bench/peers
+
 bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
 	$(PY) -m casmag.experiments.bench scale --out results/bench
 
