@@ -139,6 +139,8 @@ def _covariance_label(result: Drawable) -> str:
     label = "Laplace, inflated for correlated residuals" if inflation.get("active") else "Laplace"
     if result.info.get("method") not in (None, "map"):
         label = f"{estimate_label(result)}'s own"
+        if inflation.get("active"):
+            label += ", inflated for correlated residuals"
     return label if trusted(result) or not result.success else label + ", NOT TRUSTED"
 
 

@@ -184,6 +184,11 @@ def test_slam_method_ekf_on_a_recording(tmp_path: Path) -> None:
     assert (out / "trajectory.csv").is_file() and (out / "trajectory.png").is_file()
     assert res["uncertainty"]["nees_mean"] is not None
     assert res["info"]["filter"]["real_time_factor"] > 0
+    # the covariance reported is the filter's scaled by its residuals' long-run inflation
+    scale = res["uncertainty"]["inflation"]["scale"]
+    assert scale >= 1.0
+    plain = res["uncertainty"]["uninflated"]["sigma_mean"]
+    assert res["uncertainty"]["sigma_mean"] == pytest.approx(np.sqrt(scale) * plain)
 
 
 @pytest.mark.parametrize(
