@@ -19,8 +19,12 @@ Cost: the covariance is dense, n = n_nav + n_w + 3 unknowns; each step reads and
 once: O(n^2) per sample (the peers' "O(m^2) per step"). Only its upper triangle is kept
 (BLAS dsymm and dsyrk), which halves the memory traffic.
 
-:func:`run_filter` is the whole filter; :func:`filter_recording` runs it on a translational
-or planar problem of ``casmag slam`` and returns a :class:`casmag.result.Result`.
+:func:`run_filter` is the whole filter; :func:`filter_result` runs it and returns a
+:class:`casmag.result.Result` (its covariance scaled for correlated magnetometer residuals),
+for a translational problem of ``casmag slam`` (:func:`translational_filter_result`), a
+planar one (casmag.solver.planar.solve_planar with ``method="ekf"``) or a recording located
+against a saved map, which the filter updates (:func:`localise_filter`). ``casmag slam
+REC --method ekf|both`` is the command line (casmag.report.methods: both side by side).
 """
 
 from __future__ import annotations
