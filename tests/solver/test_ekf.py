@@ -157,20 +157,26 @@ def test_filter_locates_against_a_known_map_and_finds_the_bias(kernel: str) -> N
     np.testing.assert_allclose(run.states[-1, dim:], bias, atol=2e-4)
 
 
-def test_slam_method_ekf_on_a_recording(tmp_path: Path) -> None:
-    """``casmag slam REC --method ekf``: the filter with casmag slam's map and hyperparameters,
-    saved as every result is (status Filter_Completed, the filter's figures in info)."""
+def _walk_recording(tmp_path: Path, samples: int, *extra: str) -> Path:
+    """A simulated looping walk in a 3 m x 3 m room at 10 Hz, written as a recording."""
     prob = casmag.load_problem(
         ROOT / "problems/bench/walk.yaml",
         [
             "seed=3",
-            "simulation.trajectory.samples=400",
+            f"simulation.trajectory.samples={samples}",
             "simulation.trajectory.area=[3.0, 3.0]",
-            "simulation.odometry.bias=[6.0e-4, -3.0e-4]",
+            *extra,
         ],
     )
     rec = tmp_path / "walk.csv"
     write_recording(rec, **dataset_to_recording_arrays(simulate_problem(prob), dt=0.1))
+    return rec
+
+
+def test_slam_method_ekf_on_a_recording(tmp_path: Path) -> None:
+    """``casmag slam REC --method ekf``: the filter with casmag slam's map and hyperparameters,
+    saved as every result is (status Filter_Completed, the filter's figures in info)."""
+    rec = _walk_recording(tmp_path, 400, "simulation.odometry.bias=[6.0e-4, -3.0e-4]")
     out = tmp_path / "out"
     r = CliRunner().invoke(
         main, ["slam", str(rec), "--method", "ekf", "--out", str(out), "--quiet"]
@@ -213,12 +219,7 @@ def test_slam_method_both_writes_the_methods_side_by_side(tmp_path: Path) -> Non
     """--method both: the MAP and the filter in one run, each a whole result folder, with the
     table (dead reckoning, MAP, EKF) and the overlay figure; casmag report lists the filter
     under its own row."""
-    prob = casmag.load_problem(
-        ROOT / "problems/bench/walk.yaml",
-        ["seed=3", "simulation.trajectory.samples=300", "simulation.trajectory.area=[3.0, 3.0]"],
-    )
-    rec = tmp_path / "walk.csv"
-    write_recording(rec, **dataset_to_recording_arrays(simulate_problem(prob), dt=0.1))
+    rec = _walk_recording(tmp_path, 300)
     out = tmp_path / "out"
     r = CliRunner().invoke(main, ["slam", str(rec), "--method", "both", "--out", str(out)])
     assert r.exit_code in (0, 3), r.output
@@ -239,12 +240,7 @@ def test_slam_method_both_writes_the_methods_side_by_side(tmp_path: Path) -> Non
 def test_slam_method_ekf_refuses_a_map_it_cannot_carry(tmp_path: Path) -> None:
     """The filter carries the box map only: the tiled form is refused in one line, exit 2,
     nothing written."""
-    prob = casmag.load_problem(
-        ROOT / "problems/bench/walk.yaml",
-        ["seed=3", "simulation.trajectory.samples=200", "simulation.trajectory.area=[3.0, 3.0]"],
-    )
-    rec = tmp_path / "walk.csv"
-    write_recording(rec, **dataset_to_recording_arrays(simulate_problem(prob), dt=0.1))
+    rec = _walk_recording(tmp_path, 200)
     out = tmp_path / "o"
     args = ["slam", str(rec), "--method", "ekf", "--set", "model.gp.form=tiled"]
     args += ["--set", "model.gp.kernel=curl_free", "--out", str(out)]
