@@ -47,3 +47,12 @@ def test_recording_example_estimates_the_hyperparameters():
 def test_planar_example_recovers_the_heading_rate_bias():
     out = _run("planar.py")
     assert out.startswith("Solve_Succeeded") and "heading-rate bias" in out
+
+
+def test_filter_example_runs_a_motion_model_of_its_own():
+    out = _run("filter.py")
+    words = out.split()
+    filt, dead = float(words[2]), float(words[6])
+    scale = float(out.split("odometry scale ")[1].split()[0])
+    assert filt < 0.5 * dead, out
+    assert abs(scale - 0.93) < 0.05, out

@@ -248,3 +248,24 @@ def test_slam_method_ekf_refuses_a_map_it_cannot_carry(tmp_path: Path) -> None:
     assert r.exit_code == 2, r.output
     assert "model.gp.form" in r.output and "reduced_rank" in r.output
     assert not out.exists()
+
+
+def test_slam_method_ekf_without_truth_and_several_recordings(tmp_path: Path) -> None:
+    """Without truth the filter's errors are null, never made up; several recordings (one
+    map for sessions) are the MAP's alone: one line, exit 2."""
+    rec = _walk_recording(tmp_path, 200)
+    lines = rec.read_text().splitlines()
+    header = lines[0].split(",")
+    keep = [i for i, h in enumerate(header) if not h.endswith("_true")]
+    bare = tmp_path / "bare.csv"
+    bare.write_text("\n".join(",".join(row.split(",")[i] for i in keep) for row in lines) + "\n")
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["slam", str(bare), "--method", "ekf", "--out", str(out), "-q"])
+    assert r.exit_code in (0, 3), r.output
+    res = json.loads((out / "result.json").read_text())
+    assert res["success"] and res["rmse_after"] is None and res["rmse_before"] is None
+    r = CliRunner().invoke(
+        main, ["slam", str(rec), str(bare), "--method", "both", "--out", str(tmp_path / "o2")]
+    )
+    assert r.exit_code == 2 and "one recording at a time" in r.output
+    assert not (tmp_path / "o2").exists()
