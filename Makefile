@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-peers bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-peers bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -125,6 +125,9 @@ clean: ## Remove the environment and caches
 
 bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences x 2 drifts + 2 homogeneous -> results/real/table.md
 	$(PY) -m casmag.experiments.realbench problems/real/*.yaml --out results/real
+
+bench-real-ekf: $(STAMP) ## The filter baseline on the same single recordings -> results/real-ekf/table.md
+	$(PY) -m casmag.experiments.realbench problems/real/seq*.yaml --method ekf --out results/real-ekf
 
 bench-peers: $(STAMP) ## The MAP against the filter baseline (EKF), 20 seeds of problems/bench/peers.yaml -> results/bench/peers/
 	$(PY) -m casmag.experiments.peers problems/bench/peers.yaml --seeds 20 --out results/bench/peers

@@ -18,10 +18,11 @@ A multi-session problem (casmag.solver.multisession) lists several recordings un
 (each a ``recording`` block) instead of one ``recording``; they are solved together with one
 shared map and the table gets one row per session, named ``<name>: <sequence>``.
 
-``python -m casmag.experiments.realbench FILES --out DIR`` converts and solves each file in its own
-process and writes DIR/<name>/ (result.json with the protocol record in ``info.protocol``,
-trajectory.csv, figures) and DIR/table.md, DIR/table.json (rows of files not run this time
-are kept from the previous table). Exit 1 when a solve failed (its row says so).
+``python -m casmag.experiments.realbench FILES --out DIR [--method ekf]`` converts and solves
+each file in its own process (``--method ekf``: with the filter baseline instead of the MAP,
+single recordings only) and writes DIR/<name>/ (result.json with the protocol record in
+``info.protocol``, trajectory.csv, figures) and DIR/table.md, DIR/table.json (rows of files
+not run this time are kept from the previous table). Exit 1 when a solve failed (its row says so).
 A single translational recording is also solved once more from its true trajectory
 (:func:`truth_start`, ``info.truth_start``, the table's "from the truth" column): a
 diagnostic of why a recording fails, never part of the estimate.
@@ -137,12 +138,19 @@ def _convert(spec: RealProblemSpec, path: str | Path, index: int) -> Any:
 
 
 def solve_problem(
-    path: str | Path, out_dir: str | Path, progress: Any = None, align: str = "none"
+    path: str | Path,
+    out_dir: str | Path,
+    progress: Any = None,
+    align: str = "none",
+    method: str = "map",
 ) -> list[dict[str, Any]]:
     """Convert and solve one real-data problem (one recording with ``casmag slam``'s
     defaults, or several sessions with one shared map, casmag.solver.multisession); saves DIR and
     returns its table rows (one per session). ``align``: the result's ``evaluation``
-    (casmag.result.evaluation)."""
+    (casmag.result.evaluation); ``method``: ``map`` or the filter baseline ``ekf``
+    (casmag.solver.recslam.slam; one recording at a time)."""
+    if method != "map" and load_real_problem(path).recording is None:
+        raise DataError(f"{path}: the filter runs one recording at a time, not sessions")
     spec, convs = convert_sessions(path)
     overrides_file = {"model": spec.model, "solver": spec.solver, "name": spec.name}
     with tempfile.TemporaryDirectory(prefix="casmag-real-") as tmp:
@@ -157,11 +165,16 @@ def solve_problem(
         prob.write_text(json.dumps(overrides_file))
         t0 = time.perf_counter()
         if spec.recording is not None:
-            result = slam(recs[0], prob, progress=progress)
+            result = slam(recs[0], prob, progress=progress, method=method)
         else:
             result = slam_sessions(recs, prob, progress=progress, name=spec.name)
         wall = time.perf_counter() - t0
-        if spec.recording is not None and result.success and not result.info.get("fallback"):
+        if (
+            spec.recording is not None
+            and method == "map"
+            and result.success
+            and not result.info.get("fallback")
+        ):
             truth = truth_start(recs[0], prob, result)
             if truth is not None:
                 result.info["truth_start"] = truth
@@ -372,13 +385,13 @@ def _atomic_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _worker(args: tuple[str, str]) -> list[dict[str, Any]]:
+def _worker(args: tuple[str, str, str]) -> list[dict[str, Any]]:
     from threadpoolctl import threadpool_limits
 
-    path, out = args
+    path, out, method = args
     with threadpool_limits(1):
         try:
-            return solve_problem(path, out)
+            return solve_problem(path, out, method=method)
         except CasmagError as exc:
             return [{"name": Path(path).stem, "error": str(exc)}]
 
@@ -388,6 +401,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("files", nargs="+")
     ap.add_argument("--out", required=True)
     ap.add_argument("-j", "--jobs", type=int, default=min(2, os.cpu_count() or 1))
+    ap.add_argument(
+        "--method",
+        choices=("map", "ekf"),
+        default="map",
+        help="map: casmag slam's MAP (default); ekf: the filter baseline (one recording each)",
+    )
     a = ap.parse_args(argv)
     out = Path(a.out)
     specs = []
@@ -397,7 +416,7 @@ def main(argv: list[str] | None = None) -> int:
         except CasmagError as exc:
             print(f"casmag: error: {exc}", file=sys.stderr)
             return 2
-    jobs = [(f, str(out / name)) for f, name in specs]
+    jobs = [(f, str(out / name), a.method) for f, name in specs]
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 

@@ -288,3 +288,18 @@ def test_jittered_time_stamps_are_brought_to_a_uniform_grid(tmp_path):
     r = CliRunner().invoke(main, ["convert", str(tmp_path / "3"), "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert json.loads(out.with_suffix(".json").read_text())["resampled"]["rows"] == t.size
+
+
+@needs_shared
+def test_the_real_benchmark_runs_the_filter_on_single_recordings(tmp_path):
+    """``python -m casmag.experiments.realbench ... --method ekf``: the filter's row for a real
+    recording (no truth start: that diagnostic is the MAP's); several sessions are refused."""
+    from casmag.errors import DataError
+    from casmag.experiments.realbench import solve_problem
+
+    rows = solve_problem(ROOT / "problems/real/seq5-drift1.5.yaml", tmp_path / "r", method="ekf")
+    (row,) = rows
+    assert row["status"] == "Filter_Completed" and row["truth_start"] is None
+    assert row["ratio"] < 1.0
+    with pytest.raises(DataError, match="one recording at a time"):
+        solve_problem(ROOT / "problems/real/sessions-drift0.5.yaml", tmp_path / "s", method="ekf")
