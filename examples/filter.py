@@ -21,6 +21,7 @@ class ScaledOdometry:
     """States (x, y, s): the odometry increments u_k scaled by s, noise ``sigma`` [m]."""
 
     dim, n_nav = 2, 3
+    bias_states = slice(2, 3)  # the scale: the odometry's error the filter estimates
 
     def __init__(self, U, p0, sigma, scale_sigma):
         self.U, self.p0, self.sigma, self.scale_sigma = U, np.asarray(p0), sigma, scale_sigma

@@ -20,6 +20,7 @@ from typing import Any
 import click
 
 from casmag.data.simulate import simulate_problem
+from casmag.result.outdir import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[2]
 WALK = ROOT / "problems" / "bench" / "walk.yaml"
@@ -130,10 +131,7 @@ def _spawn(args: list[str]) -> dict[str, Any]:
 
 
 def _write_json(path: Path, data: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
 def _figure(runs: list[dict[str, Any]], path: Path) -> None:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import tempfile
@@ -26,6 +25,7 @@ from typing import Any
 from casmag.data.recording import dataset_to_recording_arrays, write_recording
 from casmag.data.simulate import simulate_problem
 from casmag.problem.spec import load_problem
+from casmag.result.outdir import write_text_atomic
 from casmag.solver.recslam import slam
 from casmag.versions import versions
 
@@ -120,13 +120,6 @@ def markdown(rows: list[dict[str, Any]], s: dict[str, Any], source: str) -> str:
     return "\n".join(lines)
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m casmag.experiments.peers")
     ap.add_argument("file", nargs="?", type=Path, default=DEFAULT_FILE)
@@ -145,8 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     s = summary(rows)
     source = str(args.file)
     record = {"file": source, "rows": rows, "summary": s, "versions": versions()}
-    _atomic_write(args.out / "peers.json", json.dumps(record, indent=2) + "\n")
-    _atomic_write(args.out / "peers.md", markdown(rows, s, source))
+    write_text_atomic(args.out / "peers.json", json.dumps(record, indent=2) + "\n")
+    write_text_atomic(args.out / "peers.md", markdown(rows, s, source))
     print(markdown(rows, s, source))
     return 0
 

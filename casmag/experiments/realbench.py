@@ -47,6 +47,7 @@ from casmag.errors import CasmagError, DataError
 from casmag.problem.spec import Strict, validate_spec
 from casmag.result.evaluation import evaluate_result
 from casmag.result.metrics import rmse_and_max
+from casmag.result.outdir import write_text_atomic
 from casmag.solver.recslam import recording_problem, slam, slam_sessions
 from casmag.solver.translational import solve_translational
 
@@ -378,13 +379,6 @@ def markdown(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def _worker(args: tuple[str, str, str]) -> list[dict[str, Any]]:
     from threadpoolctl import threadpool_limits
 
@@ -440,8 +434,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     merged.update({r["name"]: r for r in rows})
     table = [merged[k] for k in sorted(merged)]
-    _atomic_write(previous, json.dumps({"rows": table}, indent=2) + "\n")
-    _atomic_write(out / "table.md", markdown([r for r in table if "error" not in r]))
+    write_text_atomic(previous, json.dumps({"rows": table}, indent=2) + "\n")
+    write_text_atomic(out / "table.md", markdown([r for r in table if "error" not in r]))
     return 1 if failed or any(not r["success"] for r in rows if "error" not in r) else 0
 
 

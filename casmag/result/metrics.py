@@ -18,3 +18,9 @@ def rmse_and_max(P_est: np.ndarray, P_true: np.ndarray) -> tuple[float, float]:
     """(RMSE, max error) of positions [m], without alignment."""
     e = position_errors(P_est, P_true)
     return float(np.sqrt(np.mean(e**2))), float(e.max())
+
+
+def heading_rms_deg(psi_est: np.ndarray, psi_true: np.ndarray) -> float:
+    """RMS heading error [deg], each difference wrapped to (-pi, pi]."""
+    d = np.angle(np.exp(1j * (np.ravel(psi_est) - np.ravel(psi_true))))
+    return float(np.degrees(np.sqrt(np.mean(d**2))))

@@ -206,6 +206,16 @@ def clean_leftovers(out: Path) -> None:
                 shutil.rmtree(p, ignore_errors=True)
 
 
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write one text file through a temporary name beside it (its folder made when
+    missing), so that a reader sees the old file or the whole new one, never a part."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def save_atomic(out_dir: Any, write: Callable[[Path], None]) -> Path:
     """Run ``write(folder)`` on a new hidden folder beside ``out_dir`` and swap it in (module
     docstring). Checks the output first and again just before the swap (OutputError);

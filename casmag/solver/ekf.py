@@ -47,6 +47,7 @@ class NavModel(Protocol):
 
     n_nav: int
     dim: int  # position dimension
+    bias_states: slice  # where the estimated biases sit among the states (empty: none)
 
     def initial(self) -> tuple[np.ndarray, np.ndarray]:
         """Mean (n_nav,) and covariance (n_nav, n_nav) of the first sample's states."""
@@ -81,6 +82,7 @@ class TranslationalNav:
     def __post_init__(self) -> None:
         self.dim = self.U.shape[1]
         self.n_nav = 2 * self.dim if self.bias_sigma is not None else self.dim
+        self.bias_states = slice(self.dim, self.n_nav)
         d = self.dim
         self._F = np.eye(self.n_nav)
         if self.bias_sigma is not None:
@@ -130,6 +132,7 @@ class PlanarNav:
     def __post_init__(self) -> None:
         self.dim = 2
         self.n_nav = 4
+        self.bias_states = slice(3, 4)
 
     def initial(self) -> tuple[np.ndarray, np.ndarray]:
         x = np.array([*np.ravel(self.anchor)[:3], 0.0])
@@ -396,7 +399,6 @@ def filter_result(
     info: dict[str, Any],
     motion: str = "translational",
     iterations: int = 1,
-    truth_heading: np.ndarray | None = None,
     run: FilterRun | None = None,
     duration: float | None = None,
     **fields: Any,
@@ -404,16 +406,16 @@ def filter_result(
     """Run the filter on the magnetometer samples Y and return it as a
     :class:`casmag.result.Result` of the given motion model (``info.method`` ``ekf``;
     ``info.filter``: state size, wall time, mean NIS). P_odometry: the dead reckoning;
-    P_true, truth_heading (planar): the truth, for the errors only; ``fields``: further
-    Result fields (e.g. ``odometry_bias_true``); ``run``: the filter already run
-    (:func:`run_safely`; None: run here); ``duration``: the recording's length [s], for
-    the real-time factor (``info.filter.real_time_factor``: recording time per second of
-    filter time). The covariance ``P_cov`` is the filter's
-    own, each sample's given the samples up to it. A filter whose innovation covariance
-    stopped being positive definite, or whose state is not finite, is a failure (status
-    DIVERGED), no errors reported. The reported covariance ``P_cov`` is the filter's scaled by
-    the long-run inflation of its magnetometer residuals (``uncertainty.inflation``;
-    ``P_cov_uninflated`` the filter's own)."""
+    P_true: the truth, for the errors only; ``fields``: further Result fields (e.g.
+    ``odometry_bias_true``); ``run``: the filter already run (:func:`run_safely`; None: run
+    here); ``duration``: the recording's length [s], for the real-time factor
+    (``info.filter.real_time_factor``: recording time per second of filter time). A filter
+    whose innovation covariance stopped being positive definite, or whose state is not
+    finite, is a failure (status DIVERGED), no errors reported. ``P_cov`` is the filter's
+    covariance of each position given the samples up to it, scaled by the long-run
+    inflation of its magnetometer residuals (``uncertainty.inflation``;
+    ``P_cov_uninflated`` the filter's own). Motion-model figures (the planar headings) are
+    the caller's."""
     from casmag.result import Result
     from casmag.result.metrics import rmse_and_max
     from casmag.solver.uncertainty import PositionUncertainty, residual_inflation
@@ -499,14 +501,7 @@ def filter_result(
         "M_estimate": M_est,
         "Y": Y,
     }
-    details: dict[str, Any] = {}
-    if isinstance(nav, PlanarNav):
-        psi = run.states[:, 2]
-        arrays["psi_estimate"] = psi
-        if truth_heading is not None:
-            wrapped = np.angle(np.exp(1j * (psi - truth_heading)))
-            details["heading_rms_deg_after"] = float(np.degrees(np.sqrt(np.mean(wrapped**2))))
-    bias = run.states[-1, nav.dim + (1 if isinstance(nav, PlanarNav) else 0) :]
+    bias = run.states[-1, nav.bias_states]
     return Result(
         info=info,
         status=FILTERED,
@@ -517,7 +512,6 @@ def filter_result(
         odometry_bias=[float(v) for v in bias] if bias.size else None,
         cost_blocks={"magnetometer": {"after": misfit}},
         uncertainty=uncertainty,
-        details=details,
         arrays=arrays,
         **common,
     )

@@ -27,8 +27,8 @@ from casmag.model.tiledmap import home_points, left_map_tiles, ridge_tile_weight
 from casmag.nlp import NLP, Progress, lowest_cost
 from casmag.problem.imu import PlanarOptions
 from casmag.result import Result
-from casmag.result.metrics import rmse_and_max
-from casmag.solver.ekf import FilterMap, PlanarNav, filter_result
+from casmag.result.metrics import heading_rms_deg, rmse_and_max
+from casmag.solver.ekf import FilterMap, PlanarNav, filter_result, run_safely
 from casmag.solver.windowing import grow, stage_lengths
 from casmag.versions import versions
 
@@ -140,24 +140,25 @@ def solve_planar(
             s.hilbert_basis(), options.kernel, float(sigma_f), float(ell), sigma_m, sigma_lin
         )
         heading = None if truth is None else truth.get("psi")
+        run = run_safely(nav, fmap, Y)
         result = filter_result(
             nav, fmap, Y, P_dr, None if truth is None else truth["P"],
             {"name": name, "samples": int(n), "bias_model": options.bias,
              "anchor": {"kind": anchor_kind, "position": [float(v) for v in p0],
                         "heading_rad": float(psi0), "sigma": options.sigma_anchor}},
-            motion="planar", truth_heading=heading,
-            duration=None if t is None else float(np.ptp(t)),
+            motion="planar", run=run, duration=None if t is None else float(np.ptp(t)),
         )  # fmt: skip
+        psi = None if run is None else run.states[:, 2]
         result.arrays.update(
             t=np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
             psi_odometry=psi_dr,
+            psi_estimate=psi,
             psi_true=None if heading is None else np.asarray(heading, dtype=float),
         )
         if heading is not None:
-            wrapped = np.angle(np.exp(1j * (psi_dr - heading)))
-            result.details["heading_rms_deg_before"] = float(
-                np.degrees(np.sqrt(np.mean(wrapped**2)))
-            )
+            result.details["heading_rms_deg_before"] = heading_rms_deg(psi_dr, heading)
+            if psi is not None:
+                result.details["heading_rms_deg_after"] = heading_rms_deg(psi, heading)
         return result
     nlp = cached_planar_nlp(s) if not s.tiled else None  # tiles: built around each start
     params: dict[str, Any] = {
@@ -297,15 +298,12 @@ def solve_planar(
     hb_deg = ha_deg = None
     if truth is not None:
         before = rmse_and_max(P_dr, truth["P"])
-        wrap = lambda a: np.angle(np.exp(1j * a))  # noqa: E731
         if "psi" in truth:
-            hb_deg = float(np.degrees(np.sqrt(np.mean(wrap(psi_dr - truth["psi"]) ** 2))))
+            hb_deg = heading_rms_deg(psi_dr, truth["psi"])
         if sol.success:
             after = rmse_and_max(sol.x["P"], truth["P"])
         if sol.success and "psi" in truth:
-            ha_deg = float(
-                np.degrees(np.sqrt(np.mean(wrap(sol.x["psi"].ravel() - truth["psi"]) ** 2)))
-            )
+            ha_deg = heading_rms_deg(sol.x["psi"], truth["psi"])
     return Result(
         motion="planar",
         flags=flags,

@@ -38,6 +38,7 @@ from casmag.problem.spec import (
 )
 from casmag.result import Result
 from casmag.result.evaluation import anchor_info
+from casmag.result.metrics import heading_rms_deg
 from casmag.result.verdict import revisit_pairs, verdict
 from casmag.solver.api import solve
 from casmag.solver.ekf import localise_filter, translational_filter_result
@@ -718,8 +719,7 @@ def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
     P, psi = dead_reckon_planar(rec.increments, np.asarray(p0, dtype=float), psi0)
     heading = None
     if P_true is not None and rec.yaw_true is not None:
-        wrapped = np.angle(np.exp(1j * (psi - rec.yaw_true)))
-        heading = float(np.degrees(np.sqrt(np.mean(wrapped**2))))
+        heading = heading_rms_deg(psi, rec.yaw_true)
     return Result.odometry_only(
         "planar",
         {
