@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-peers bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-peers bench-peers-pose bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -131,6 +131,9 @@ bench-real-ekf: $(STAMP) ## The filter baseline on the same single recordings ->
 
 bench-peers: $(STAMP) ## The MAP against the filter baseline (EKF), 20 seeds of problems/bench/peers.yaml -> results/bench/peers/
 	$(PY) -m casmag.experiments.peers problems/bench/peers.yaml --seeds 20 --out results/bench/peers
+
+bench-peers-pose: $(STAMP) ## The same as pose odometry (6-DoF increments, rotation noise) -> results/bench/peers-pose/
+	$(PY) -m casmag.experiments.peers problems/bench/peers.yaml --motion pose --seeds 20 --out results/bench/peers-pose
 
 bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
 	$(PY) -m casmag.experiments.bench scale --out results/bench

@@ -250,6 +250,44 @@ def _skew(v: np.ndarray) -> np.ndarray:
     )
 
 
+# --------------------------------------------------------------------------- pose odometry
+def dead_reckon_pose(
+    U: np.ndarray,
+    p0: np.ndarray,
+    q0: np.ndarray,
+    bias_p: np.ndarray | None = None,
+    bias_w: np.ndarray | None = None,
+    dt: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) positions and (N, 4) unit quaternions from (N-1, 7) increments (dp, dq), with
+    optional biases removed: dp - b_p and dq exp(-b_w dt)."""
+    U = np.asarray(U, dtype=float)
+    n = U.shape[0] + 1
+    dq = quat_normalize(U[:, 3:7])
+    if bias_w is not None and np.any(bias_w):
+        h = np.ones(n - 1) if dt is None else np.asarray(dt, dtype=float)
+        dq = quat_mul(dq, quat_exp(-h[:, None] * np.asarray(bias_w, float).reshape(1, 3)))
+    dp = U[:, 0:3] - (0.0 if bias_p is None else np.asarray(bias_p, float).reshape(1, 3))
+    Q = np.empty((n, 4))
+    Q[0] = quat_normalize(np.asarray(q0, dtype=float))
+    for k in range(n - 1):
+        Q[k + 1] = quat_mul(Q[k], dq[k])
+    Q = quat_normalize(Q)
+    P = np.vstack([np.asarray(p0, float).reshape(1, 3), np.zeros((n - 1, 3))])
+    P[1:] = P[0] + np.cumsum(rotate(Q[:-1], dp), axis=0)
+    return P, Q
+
+
+def pose_increments(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """(N-1, 7) increments (dp in the earlier body frame, dq) of a trajectory: the inverse
+    of :func:`dead_reckon_pose`."""
+    Q = quat_normalize(np.asarray(Q, dtype=float))
+    dp = rotate(quat_conj(Q[:-1]), np.diff(np.asarray(P, float), axis=0))
+    dq = quat_mul(quat_conj(Q[:-1]), Q[1:])
+    dq = dq * np.where(dq[:, :1] < 0, -1.0, 1.0)
+    return np.column_stack([dp, dq])
+
+
 # --------------------------------------------------------------------------- CasADi
 def ca_quat_mul(a: Any, b: Any) -> Any:
     """Hamilton product of two (4, 1) CasADi quaternions (w first)."""

@@ -429,9 +429,11 @@ def report(paths: tuple[Path, ...], out_file: Path | None, no_figures: bool, ali
 @click.option("--noise", type=float, help="Odometry noise per step, fraction of the median step.")
 @click.option(
     "--motion",
-    type=click.Choice(["translational", "planar", "translational3"]),
-    help="Motion input written: dx,dy | dfwd,dleft,dyaw | dx,dy,dz (translational3: bags "
-    "only). A bag's default is translational; with --imu it gets the IMU increments.",
+    type=click.Choice(["translational", "planar", "translational3", "pose"]),
+    help="Motion input written: dx,dy | dfwd,dleft,dyaw | dx,dy,dz | dpx,dpy,dpz,dqw..dqz "
+    "(translational3: bags only; pose: sequences and .mat files, 6-DoF odometry of the "
+    "true 3-D pose, level at z = 0 along the heading of motion without a recorded "
+    "orientation). A bag's default is translational; with --imu it gets the IMU increments.",
 )
 @click.option("--field", type=click.Choice(["recorded", "constant"]))
 @click.option("--no-align", is_flag=True, help="Keep the recorded magnetometer timing.")
@@ -477,9 +479,11 @@ def convert(
     SOURCE is a sequence prefix (DIR/N for DIR/N-time.csv, N-loc.csv, N-mag.csv), a
     handheld recording with the device's pose (a .mat file: t, dPos, quat, m; planar
     odometry with the publishing paper's noise and a 0.005 rad/s heading-rate bias by
-    default) or a real-data problem file (problems/real/*.yaml) whose ``recording`` section
-    gives the settings (casmag.data.realdata's protocol); options override either. Writes
-    OUT and OUT's stem + .json (the protocol record: clock shift, bias, measured drift).
+    default, --motion pose: 6-DoF odometry of the recorded pose with the same noise and
+    bias about the body z axis) or a real-data problem file (problems/real/*.yaml) whose
+    ``recording`` section gives the settings (casmag.data.realdata's protocol); options
+    override either. Writes OUT and OUT's stem + .json (the protocol record: clock shift,
+    bias, measured drift).
 
     SOURCE may also be a ROS 1 .bag file or a ROS 2 bag folder (with metadata.yaml),
     read with the rosbags package (pip install casmag[bags]; casmag.data.rosbag): give

@@ -61,8 +61,9 @@ def _warning(check: str, column: str, reason: str) -> dict[str, str]:
 def recording_warnings(
     t: np.ndarray, increments: np.ndarray, Y: np.ndarray, motion: str
 ) -> list[dict[str, str]]:
-    """Findings on the time axis, the motion increments (translational ``dx, dy[, dz]`` or
-    planar ``dfwd, dleft, dyaw``; IMU increments are not checked here) and the
+    """Findings on the time axis, the motion increments (translational ``dx, dy[, dz]``,
+    planar ``dfwd, dleft, dyaw``, pose ``dpx, dpy, dpz``; IMU increments and rotation
+    increments are not checked here) and the
     magnetometer of one recording."""
     out: list[dict[str, str]] = []
     t = np.asarray(t, dtype=float)
@@ -76,11 +77,12 @@ def recording_warnings(
                 "milliseconds or nanoseconds? casmag's time unit is the second",
             )
         )
-    if motion in ("translation", "planar") and increments.size and t.size > 1:
-        steps = np.linalg.norm(increments[:, : 2 if motion == "planar" else None], axis=1)
+    if motion in ("translation", "planar", "pose") and increments.size and t.size > 1:
+        width = {"translation": None, "planar": 2, "pose": 3}[motion]
+        steps = np.linalg.norm(increments[:, :width], axis=1)
         duration = float(t[-1] - t[0])
         speed = float(steps.sum()) / duration if duration > 0 else float("inf")
-        names = "dx, dy" if motion == "translation" else "dfwd, dleft"
+        names = {"translation": "dx, dy", "planar": "dfwd, dleft", "pose": "dpx, dpy, dpz"}[motion]
         if speed > MAX_SPEED and dt <= MAX_SAMPLE_INTERVAL:
             out.append(
                 _warning(

@@ -23,6 +23,13 @@ the world frame; the layout of ``../shared/data/magnetic-data/invensense``). The
      heading of motion, with white noise and a constant heading-rate bias whose size is
      found (bisection) so that the final dead-reckoning error is ``drift`` metres. The
      magnetometer is rotated into the heading frame.
+   - ``pose``: 6-DoF increments (dpx, dpy, dpz, dq; :mod:`casmag.model.pose`) of the true
+     3-D pose. Without a recorded orientation the pose is z = 0, roll = pitch = 0 and yaw
+     the heading of motion. White noise (the displacement noise on each of dpx, dpy, dpz;
+     ``heading_noise`` [rad] as a rotation vector, dq exp(noise)) and a constant
+     rotation-rate bias about the body z axis (dq exp([0, 0, b])), sized by bisection as
+     for ``planar`` so that the final 3-D dead-reckoning error is ``drift`` metres. The
+     magnetometer is rotated into the body frame, R(q)^T times the world field.
 4. **Field** (``field``): ``recorded`` keeps the magnetometer; ``constant`` replaces it by its
    mean plus white noise of ``constant_noise`` uT, a homogeneous field that carries no
    position information (the "never worse" check).
@@ -33,10 +40,13 @@ with the device's heading: positions are the cumulative increments (x, y of a z-
 the magnetometer is rotated into the world frame with the recorded orientation (sensor
 axes turned by :data:`ARKIT_SENSOR_TO_BODY_DEG` about z first), and planar odometry uses
 the device's heading instead of the heading of motion, so that dfwd, dleft are along the
-device's axes and the planar magnetometer is R(heading)^T times the world field. Its
-protocol (:func:`arkit_protocol`) is the publishing paper's: white noise 0.01 m per step on
-each displacement component and 0.01 rad on each heading increment, a heading-rate bias
-of 0.005 rad/s (sign drawn from the seed), no clock shift (one device clock).
+device's axes and the planar magnetometer is R(heading)^T times the world field. Pose
+odometry uses the recorded orientation and heights (z of the cumulative increments): its
+body-frame magnetometer R(q)^T times the world field is the recorded one turned into the
+pose's axes. Its protocol (:func:`arkit_protocol`) is the publishing paper's: white noise
+0.01 m per step on each displacement component and 0.01 rad on each heading increment (on
+each axis of the rotation increment for pose), a heading-rate bias of 0.005 rad/s (sign
+drawn from the seed; about the body z axis for pose), no clock shift (one device clock).
 """
 
 from __future__ import annotations
@@ -49,9 +59,10 @@ import numpy as np
 import scipy.io
 from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 from threadpoolctl import threadpool_limits
 
+from casmag import strapdown as sd
 from casmag.errors import DataError
 from casmag.gp.hyper import estimate_hyperparameters
 
@@ -80,6 +91,11 @@ class Sequence:
     # (N,) the device's heading [rad] when the source records its orientation (mag is then
     # in the world frame); None: planar odometry takes the heading of motion.
     heading: np.ndarray | None = None
+    # The 3-D pose when the source records its orientation: quat (N, 4) body-to-world unit
+    # quaternions (w first), z (N,) heights [m]; None: pose odometry takes z = 0, level
+    # and the heading of motion.
+    quat: np.ndarray | None = None
+    z: np.ndarray | None = None
 
     @property
     def rate(self) -> float:
@@ -129,8 +145,8 @@ def load_arkit(path: str | Path) -> Sequence:
     """Read a handheld recording with the device's pose (a MATLAB v5 file with ``t`` (N,),
     ``dPos`` (N-1, 3) position increments [m] in a z-up world, ``quat`` (N, 4) orientation,
     scalar first, ``m`` (N, 3) magnetometer [uT] in the sensor's axes). Returns a sequence
-    with positions (x, y), the magnetometer in the world frame and the device's heading.
-    Raises DataError naming the file, the field and the reason."""
+    with positions (x, y), the magnetometer in the world frame, the device's heading and its
+    3-D pose (heights, orientation). Raises DataError naming the file, the field and the reason."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: file not found")
@@ -170,7 +186,8 @@ def load_arkit(path: str | Path) -> Sequence:
     R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # body -> world
     mag = np.einsum("kij,jl,kl->ki", R, _rotz(ARKIT_SENSOR_TO_BODY_DEG), arrays["m"])
     heading = np.unwrap(np.arctan2(R[:, 1, 0], R[:, 0, 0]))
-    seq = Sequence(path.stem, t, P[:, :2], mag, heading=heading)
+    quat = q / norms[:, None]
+    seq = Sequence(path.stem, t, P[:, :2], mag, heading=heading, quat=quat, z=P[:, 2])
     if np.ptp(np.diff(t)) > SOURCE_RATE_TOLERANCE * np.median(np.diff(t)) * 10:
         return uniform(seq)
     return seq
@@ -220,7 +237,14 @@ def uniform(seq: Sequence) -> Sequence:
 
     spread = {"interval_spread": float(np.ptp(dt) / step), "rows": int(seq.t.size)}
     heading = None if seq.heading is None else np.interp(t, seq.t, seq.heading)
-    return Sequence(seq.name, t, at(seq.loc), at(seq.mag), resampled=spread, heading=heading)
+    z = None if seq.z is None else np.interp(t, seq.t, seq.z)
+    quat = None
+    if seq.quat is not None:  # slerp (times clipped: the grid may pass the end by rounding)
+        slerp = Slerp(seq.t, Rotation.from_quat(seq.quat[:, [1, 2, 3, 0]]))
+        quat = slerp(np.clip(t, seq.t[0], seq.t[-1])).as_quat()[:, [3, 0, 1, 2]]
+    return Sequence(
+        seq.name, t, at(seq.loc), at(seq.mag), resampled=spread, heading=heading, quat=quat, z=z
+    )
 
 
 def log_marginal(
@@ -275,16 +299,16 @@ def align(seq: Sequence, shift: int) -> Sequence:
     """Pair the magnetometer sample k with the position at k + shift (samples lost at the
     ends are dropped)."""
     n = seq.t.shape[0]
-    h = seq.heading
-    if shift <= 0:
-        L = -shift
-        return Sequence(
-            seq.name, seq.t[: n - L], seq.loc[: n - L], seq.mag[L:],
-            heading=None if h is None else h[: n - L],
-        )  # fmt: skip
+    # The pose (positions, heading, orientation, heights) keeps the positions' clock.
+    pose_rows = slice(0, n + shift) if shift <= 0 else slice(shift, n)
+    mag_rows = slice(-shift, n) if shift <= 0 else slice(0, n - shift)
+
+    def rows(A: np.ndarray | None) -> np.ndarray | None:
+        return None if A is None else A[pose_rows]
+
     return Sequence(
-        seq.name, seq.t[shift:], seq.loc[shift:], seq.mag[: n - shift],
-        heading=None if h is None else h[shift:],
+        seq.name, seq.t[pose_rows], seq.loc[pose_rows], seq.mag[mag_rows],
+        heading=rows(seq.heading), quat=rows(seq.quat), z=rows(seq.z),
     )  # fmt: skip
 
 
@@ -329,14 +353,16 @@ class Protocol:
     drift: float = 0.5
     noise: float = 0.01
     seed: int = 0
-    motion: Literal["translational", "planar"] = "translational"
+    motion: Literal["translational", "planar", "pose"] = "translational"
     field: Literal["recorded", "constant"] = "recorded"
     constant_noise: float = 1.0
     align: bool = True
-    heading_noise: float = 1.0e-3  # planar: heading-increment noise per step [rad]
-    # planar: a heading-rate bias [rad/s] (sign drawn from the seed) instead of the one that
-    # drifts ``drift`` metres; translational and planar: displacement noise [m per step and
-    # component] instead of ``noise`` times the median step.
+    # planar: heading-increment noise per step [rad]; pose: rotation-vector noise per step
+    # and axis [rad].
+    heading_noise: float = 1.0e-3
+    # planar (pose): a heading-rate (body z rotation-rate) bias [rad/s] (sign drawn from the
+    # seed) instead of the one that drifts ``drift`` metres; all motions: displacement noise
+    # [m per step and component] instead of ``noise`` times the median step.
     heading_rate_bias: float | None = None
     step_noise: float | None = None
 
@@ -382,6 +408,10 @@ def convert(seq: Sequence, protocol: Protocol = Protocol()) -> Converted:
         arrays.update(Y=Y, dxy=U)
         P_dr = np.vstack([P[0], P[0] + np.cumsum(U, axis=0)])
         record["odometry"] = {"bias_per_step": bias.tolist(), "noise_per_step": sigma}
+    elif protocol.motion == "pose":
+        pose_arrays, P_dr = _pose_odometry(seq, idx, P, Y, sigma, protocol, rng, record)
+        arrays.update(pose_arrays)
+        P = pose_arrays["P_true"]  # 3-D errors
     else:
         psi = heading_of_motion(P) if seq.heading is None else seq.heading[idx]
         U0 = planar_increments(P, psi)
@@ -419,3 +449,64 @@ def convert(seq: Sequence, protocol: Protocol = Protocol()) -> Converted:
         final_drift=float(err[-1]), rmse=float(np.sqrt(np.mean(err**2))), max=float(err.max())
     )
     return Converted(arrays, record)
+
+
+def _pose_odometry(
+    seq: Sequence,
+    idx: np.ndarray,
+    P: np.ndarray,
+    Y: np.ndarray,
+    sigma: float,
+    protocol: Protocol,
+    rng: np.random.Generator,
+    record: dict[str, Any],
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The ``pose`` odometry of :func:`convert` at the kept samples ``idx`` (P (N, 2) the
+    planar positions, Y (N, 3) the world-frame field): arrays ``Y`` (body frame), ``pose``,
+    ``P_true`` (N, 3) and ``q_true``, and the dead reckoning (N, 3); fills
+    ``record["odometry"]``."""
+    if seq.quat is None:  # level, heading of motion, in the plane z = 0
+        Q = sd.quat_from_euler(0.0, 0.0, heading_of_motion(P))
+        z = np.zeros(P.shape[0])
+    else:
+        Q = seq.quat[idx]
+        z = np.zeros(P.shape[0]) if seq.z is None else seq.z[idx]
+    Q = Q / np.linalg.norm(Q, axis=1, keepdims=True)
+    P3 = np.column_stack([P, z])
+    U0 = sd.pose_increments(P3, Q)
+    n = U0.shape[0]
+    white = rng.standard_normal((n, 6)) * np.repeat([sigma, protocol.heading_noise], 3)
+    sign = 1.0 if rng.uniform() < 0.5 else -1.0
+    dp = U0[:, :3] + white[:, :3]
+    dq = sd.quat_mul(U0[:, 3:], sd.quat_exp(white[:, 3:]))
+
+    def increments(bias: float) -> np.ndarray:
+        q = sd.quat_mul(dq, sd.quat_exp(np.array([0.0, 0.0, bias])))
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        return np.column_stack([dp, q * np.where(q[:, :1] < 0, -1.0, 1.0)])
+
+    def final_error(rate_bias: float) -> float:
+        P_dr, _ = sd.dead_reckon_pose(increments(sign * rate_bias), P3[0], Q[0])
+        return float(np.linalg.norm(P_dr[-1] - P3[-1]))
+
+    if protocol.heading_rate_bias is not None:
+        bias = sign * protocol.heading_rate_bias / record["rate"]
+    else:
+        lo, hi = 0.0, 1e-4
+        while final_error(hi) < protocol.drift and hi < 0.1:
+            hi *= 2.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if final_error(mid) < protocol.drift else (lo, mid)
+        bias = sign * 0.5 * (lo + hi)
+    U = increments(bias)
+    P_dr, _ = sd.dead_reckon_pose(U, P3[0], Q[0])
+    record["odometry"] = {
+        "rotation_rate_bias_per_step": bias,
+        "rotation_rate_bias_deg_s": float(np.degrees(bias) * record["rate"]),
+        "rotation_rate_bias_axis": "body z",
+        "noise_per_step": sigma,
+        "rotation_noise_per_step": protocol.heading_noise,
+    }
+    Yb = sd.rotate(sd.quat_conj(Q), Y)  # R(q)^T y
+    return {"Y": Yb, "pose": U, "P_true": P3, "q_true": Q}, P_dr

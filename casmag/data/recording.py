@@ -9,7 +9,11 @@ motion input, exactly one group of :data:`MOTION_COLUMNS`
     ``dx,dy`` or ``dx,dy,dz``: world-frame position increment since the previous row [m];
     ``dfwd,dleft,dyaw``: body-frame displacement [m] and heading increment [rad] since the
     previous row; ``dqw,dqx,dqy,dqz,dvx,dvy,dvz``: strapdown IMU increments over the interval
-    ending at the row (rotation quaternion, velocity increment [m/s]), sensor frame.
+    ending at the row (rotation quaternion, velocity increment [m/s]), sensor frame;
+    ``dpx,dpy,dpz,dqw,dqx,dqy,dqz``: 6-DoF pose odometry since the previous row, Hamilton
+    quaternions w first with q the body-to-world rotation: ``dp = R(q_prev)^T (p - p_prev)``
+    [m] (body frame of the previous row) and ``dq = q_prev^-1 q`` (a unit quaternion), so
+    ``p = p_prev + R(q_prev) dp``, ``q = q_prev dq``.
     The first row's increments are ignored (they may be empty or NaN).
 ``mx,my,mz``
     magnetometer in the sensor frame, any consistent unit.
@@ -20,14 +24,16 @@ optional truth, for evaluation only, in complete groups
 Rows as sensors write them. A field left empty means "not sampled at this row"; each group
 (the motion input, ``mx,my,mz``, each truth group) is given whole or not at all on a row.
 A row identical to the previous one (a logger writing twice) is dropped; other rows with
-the same time stamp are merged into one (motion increments summed, the other values
-averaged). When the motion input and the magnetometer are on different rows (two
-rates in one file), the dead reckoning is integrated at the motion rows, interpolated
-linearly in time to the magnetometer rows and turned back into increments between them
-(planar: in the body frame at the earlier row's heading); truth is interpolated the same
-way (quaternion truth must be on every magnetometer row); magnetometer rows after the last
-motion row are dropped. The reader says what it did in ``Recording.notes`` (warnings in
-result.json). IMU recordings take complete rows only.
+the same time stamp are merged into one (motion increments summed, pose increments
+composed in row order, the other values averaged). When the motion input and the
+magnetometer are on different rows (two rates in one file), the dead reckoning is
+integrated at the motion rows, interpolated linearly in time to the magnetometer rows and
+turned back into increments between them (planar: in the body frame at the earlier row's
+heading; pose: orientations interpolated by slerp, displacements in the earlier row's body
+frame); truth is interpolated the same way (quaternion truth must be on every
+magnetometer row); magnetometer rows after the last motion row are dropped. The reader
+says what it did in ``Recording.notes`` (warnings in result.json). IMU recordings take
+complete rows only.
 
 Every problem with a file raises :class:`~casmag.errors.DataError` as one line naming the
 file, the row (header = row 1, first data row = row 2) or column, and the reason.
@@ -52,15 +58,17 @@ import numpy as np
 
 from casmag.data.simulate import Dataset
 from casmag.errors import DataError, one_line
+from casmag.strapdown import quat_conj, quat_exp, quat_log, quat_mul, quat_normalize, rotate
 
 MOTION_COLUMNS: dict[str, tuple[str, ...]] = {
     "translation2": ("dx", "dy"),
     "translation3": ("dx", "dy", "dz"),
     "planar": ("dfwd", "dleft", "dyaw"),
     "imu": ("dqw", "dqx", "dqy", "dqz", "dvx", "dvy", "dvz"),
+    "pose": ("dpx", "dpy", "dpz", "dqw", "dqx", "dqy", "dqz"),
 }
 """Column names of each motion input (``translation2``/``translation3`` are the 2-D/3-D forms
-of the ``translation`` input)."""
+of the ``translation`` input). ``imu`` and ``pose`` share the ``dq`` columns."""
 
 TIME_COLUMN = "t"
 MAGNETOMETER_COLUMNS: tuple[str, ...] = ("mx", "my", "mz")
@@ -68,19 +76,21 @@ POSITION_TRUTH_COLUMNS: tuple[str, ...] = ("x_true", "y_true", "z_true")
 YAW_TRUTH_COLUMN = "yaw_true"
 QUATERNION_TRUTH_COLUMNS: tuple[str, ...] = ("qw_true", "qx_true", "qy_true", "qz_true")
 QUATERNION_TOLERANCE = 1e-3
-"""Largest accepted | |q| - 1 | of a truth quaternion row."""
+"""Largest accepted | |q| - 1 | of a truth quaternion row or a pose rotation increment."""
 
 # Motion input name -> (required columns, optional columns), in write order.
 _MOTION_GROUPS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "translation": (MOTION_COLUMNS["translation2"], ("dz",)),
     "planar": (MOTION_COLUMNS["planar"], ()),
     "imu": (MOTION_COLUMNS["imu"], ()),
+    "pose": (MOTION_COLUMNS["pose"], ()),
 }
 _KNOWN_COLUMNS: tuple[str, ...] = (
     TIME_COLUMN,
     *MOTION_COLUMNS["translation3"],
     *MOTION_COLUMNS["planar"],
     *MOTION_COLUMNS["imu"],
+    *MOTION_COLUMNS["pose"][:3],
     *MAGNETOMETER_COLUMNS,
     *POSITION_TRUTH_COLUMNS,
     YAW_TRUTH_COLUMN,
@@ -113,13 +123,14 @@ class Recording:
     """One recording as float64 arrays.
 
     path: the file it came from; t: (N,) times [s], strictly increasing; motion:
-    ``"translation"``, ``"planar"`` or ``"imu"``; increments: (N-1, k) motion columns of rows
-    2..N (the first row's are dropped), in the order of ``increment_names``; Y: (N, 3)
-    magnetometer (field units). Truth, None when the file has none: P_true (N, 2) or (N, 3)
-    positions [m], yaw_true (N,) heading [rad], q_true (N, 4) orientation quaternion (w, x,
-    y, z). notes: what reading changed (rows sharing a time stamp merged, odometry and
-    magnetometer at different rates brought to the magnetometer's rows), each a warning
-    ``{"check", "column", "reason"}`` (casmag.data.checks).
+    ``"translation"``, ``"planar"``, ``"imu"`` or ``"pose"``; increments: (N-1, k) motion
+    columns of rows 2..N (the first row's are dropped), in the order of
+    ``increment_names``; Y: (N, 3) magnetometer (field units). Truth, None when the file
+    has none: P_true (N, 2) or (N, 3) positions [m], yaw_true (N,) heading [rad], q_true
+    (N, 4) orientation quaternion (w, x, y, z). notes: what reading changed (rows sharing
+    a time stamp merged, odometry and magnetometer at different rates brought to the
+    magnetometer's rows), each a warning ``{"check", "column", "reason"}``
+    (casmag.data.checks).
     """
 
     path: str
@@ -140,7 +151,7 @@ class Recording:
 
     @property
     def dim(self) -> int:
-        """Spatial dimension: 2 or 3 for translation, 2 for planar, 3 for imu."""
+        """Spatial dimension: 2 or 3 for translation, 2 for planar, 3 for imu and pose."""
         if self.motion == "translation":
             return self.increments.shape[1]
         return 2 if self.motion == "planar" else 3
@@ -156,7 +167,7 @@ class Recording:
         ``anchor``: ``truth`` (default), the first true position when the recording has
         one, else the origin; ``origin``: the origin (the estimate in the odometry's frame;
         compare with the truth after an alignment, casmag.result.evaluation). Raises DataError for
-        motion inputs the solver does not support yet (planar, imu).
+        motion inputs the solver does not support yet (planar, imu, pose).
         """
         if self.motion != "translation":
             raise DataError(
@@ -292,22 +303,44 @@ def _column_hint(name: str) -> str:
 
 
 def _motion_group(path: str, present: set[str]) -> tuple[str, tuple[str, ...]]:
-    """The motion input name and its columns in the file, checked for completeness."""
-    found = {
-        motion: [c for c in (*required, *optional) if c in present]
-        for motion, (required, optional) in _MOTION_GROUPS.items()
+    """The motion input name and its columns in the file, checked for completeness.
+
+    An input is recognised by its own columns; the columns it shares with other inputs
+    (``dq*``: imu and pose) decide nothing alone."""
+    group_cols = {
+        motion: (*required, *optional) for motion, (required, optional) in _MOTION_GROUPS.items()
     }
-    found = {motion: cols for motion, cols in found.items() if cols}
-    if not found:
+    owners = {c: tuple(m for m, cols in group_cols.items() if c in cols) for c in present}
+    found = {
+        motion: [c for c in cols if c in present]
+        for motion, cols in group_cols.items()
+        if any(c in present and len(owners[c]) == 1 for c in cols)
+    }
+    # Shared columns none of whose inputs is recognised: "imu or pose".
+    shared: dict[tuple[str, ...], list[str]] = {}
+    for c in dict.fromkeys(c for cols in group_cols.values() for c in cols):
+        if c in present and len(owners[c]) > 1 and not any(m in found for m in owners[c]):
+            shared.setdefault(owners[c], []).append(c)
+    if not found and not shared:
         raise _error(
             path,
             "",
-            "no motion input: expected one of dx,dy | dfwd,dleft,dyaw | dqw,...,dvz",
+            "no motion input: expected one of dx,dy | dfwd,dleft,dyaw | dqw,...,dvz | dpx,...,dqz",
         )
-    if len(found) > 1:
-        groups = " and ".join(f"{motion} ({_names(cols)})" for motion, cols in found.items())
+    entries = [(motion, cols) for motion, cols in found.items()]
+    entries += [(" or ".join(motions), cols) for motions, cols in shared.items()]
+    if len(entries) > 1:
+        groups = " and ".join(f"{motion} ({_names(cols)})" for motion, cols in entries)
         raise _error(path, "", f"mixed motion inputs: {groups}; give exactly one")
-    motion, cols = next(iter(found.items()))
+    if shared:  # e.g. dq* alone: name what each input that uses them lacks
+        motions, cols = next(iter(shared.items()))
+        lacks = []
+        for m in motions:
+            missing = [c for c in _MOTION_GROUPS[m][0] if c not in present]
+            plural = "s" if len(missing) > 1 else ""
+            lacks.append(f"{m} input (missing column{plural} {_names(missing)})")
+        raise _error(path, "", f"incomplete {' or '.join(lacks)} (have {_names(cols)})")
+    motion, cols = entries[0]
     required, optional = _MOTION_GROUPS[motion]
     missing = [c for c in required if c not in present]
     if missing:
@@ -467,6 +500,8 @@ def read_recording(path: str | Path) -> Recording:
             f"time {float(t[k])!r} is before the previous row's {float(t[k - 1])!r} "
             f"(column '{TIME_COLUMN}' must not decrease)",
         )
+    if motion == "pose":
+        _normalise_rotation_increments(path, A, absent, [col[c] for c in motion_cols[3:]])
     truth_cols = [c for c in (*POSITION_TRUTH_COLUMNS, YAW_TRUTH_COLUMN) if c in col]
     if QUATERNION_TRUTH_COLUMNS[0] in col:
         truth_cols += list(QUATERNION_TRUTH_COLUMNS)
@@ -497,6 +532,8 @@ def read_recording(path: str | Path) -> Recording:
     assert increments is not None
     if motion in ("translation", "planar"):
         _check_resolution(path, increments[1:], motion_cols)
+    elif motion == "pose":  # the dq columns are near 1 and not summed
+        _check_resolution(path, increments[1:, :3], motion_cols[:3])
     return Recording(
         path=path,
         t=t.copy(),
@@ -509,6 +546,27 @@ def read_recording(path: str | Path) -> Recording:
         q_true=q_true,
         notes=tuple(notes),
     )
+
+
+def _normalise_rotation_increments(
+    path: str, A: np.ndarray, absent: np.ndarray, qi: list[int]
+) -> None:
+    """Refuse a rotation increment (columns qi, rows after the first) that is not a unit
+    quaternion within QUATERNION_TOLERANCE; normalise the others in place. Rows given in
+    part are left to :func:`_regularise`, which names the empty value."""
+    rows = np.flatnonzero(~absent[:, qi].any(axis=1))
+    rows = rows[rows > 0]  # the first row's increments are ignored
+    norm = np.linalg.norm(A[np.ix_(rows, qi)], axis=1)
+    bad = np.flatnonzero(~(np.abs(norm - 1.0) <= QUATERNION_TOLERANCE))
+    if bad.size:
+        i = int(bad[0])
+        raise _error(
+            path,
+            f"row {int(rows[i]) + 2}, column '{MOTION_COLUMNS['pose'][3]}'",
+            f"pose rotation increment ({_names(MOTION_COLUMNS['pose'][3:])}) has norm "
+            f"{float(norm[i]):.6g}, expected 1 within {QUATERNION_TOLERANCE:g}",
+        )
+    A[np.ix_(rows, qi)] /= norm[:, None]
 
 
 def _regularise(
@@ -571,14 +629,15 @@ def _regularise(
                 "dropped",
             }
         )
-    A, absent, has_motion, has_mag, merged = _merge_equal_times(A, absent, col, mi, yi)
+    A, absent, has_motion, has_mag, merged = _merge_equal_times(A, absent, col, motion, mi, yi)
     if merged:
+        how = "composed" if motion == "pose" else "summed"
         notes.append(
             {
                 "check": "duplicate_time",
                 "column": TIME_COLUMN,
                 "reason": f"{merged} rows repeat the previous row's time stamp and were merged "
-                "into it (motion increments summed, magnetometer and truth averaged)",
+                f"into it (motion increments {how}, magnetometer and truth averaged)",
             }
         )
     if has_motion.all() and has_mag.all():
@@ -587,11 +646,17 @@ def _regularise(
 
 
 def _merge_equal_times(
-    A: np.ndarray, absent: np.ndarray, col: dict[str, int], mi: list[int], yi: list[int]
+    A: np.ndarray,
+    absent: np.ndarray,
+    col: dict[str, int],
+    motion: str,
+    mi: list[int],
+    yi: list[int],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """Rows of one time stamp as one row: present motion increments summed, every other
-    present value averaged. Returns the rows, their absent mask, which rows have motion
-    and magnetometer, and how many rows were merged away."""
+    """Rows of one time stamp as one row: present motion increments summed (pose: composed
+    in row order, dp = dp1 + R(dq1) dp2, dq = dq1 dq2), every other present value averaged.
+    Returns the rows, their absent mask, which rows have motion and magnetometer, and how
+    many rows were merged away."""
     t = A[:, col[TIME_COLUMN]]
     starts = np.flatnonzero(np.r_[True, np.diff(t) > 0])
     merged = A.shape[0] - starts.size
@@ -602,12 +667,55 @@ def _merge_equal_times(
         counts = np.add.reduceat(present.astype(np.int64), starts, axis=0)
         out = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
         out[:, mi] = np.where(counts[:, mi] > 0, sums[:, mi], np.nan)  # increments add up
+        if motion == "pose":
+            out[:, mi] = _compose_pose_rows(A[:, mi], present[:, mi[0]], starts, out[:, mi])
         out[:, col[TIME_COLUMN]] = t[starts]
         A, absent = out, counts == 0
         absent[:, col[TIME_COLUMN]] = False
     has_motion = ~absent[:, mi].any(axis=1)
     has_motion[0] = True
     return A, absent, has_motion, ~absent[:, yi].any(axis=1), merged
+
+
+def _compose_pose_rows(
+    U: np.ndarray, present: np.ndarray, starts: np.ndarray, summed: np.ndarray
+) -> np.ndarray:
+    """Pose increments U (rows, 7) composed in row order within each group of rows that
+    starts at ``starts``, rows where ``present`` is False skipped; groups without any
+    present row keep their value of ``summed`` (NaN)."""
+    sizes = np.diff(np.r_[starts, U.shape[0]])
+    dp = np.zeros((starts.size, 3))
+    dq = np.tile([1.0, 0.0, 0.0, 0.0], (starts.size, 1))
+    for j in range(int(sizes.max())):
+        g = np.flatnonzero(sizes > j)
+        g = g[present[starts[g] + j]]
+        rows = U[starts[g] + j]
+        dp[g] += rotate(dq[g], rows[:, :3])
+        dq[g] = quat_mul(dq[g], rows[:, 3:])
+    out = np.column_stack([dp, quat_normalize(dq)])
+    return np.where(np.isnan(summed), summed, out)
+
+
+def _integrate_pose(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (n, 3) and orientations (n, 4) of pose increments U (n, 7) whose first row
+    is the start (dp = 0, dq = 1): q_k = q_{k-1} dq_k, p_k = p_{k-1} + R(q_{k-1}) dp_k. The
+    orientations are a prefix product, taken in log2(n) vectorised steps."""
+    Q = quat_normalize(U[:, 3:])
+    shift = 1
+    while shift < Q.shape[0]:
+        Q[shift:] = quat_normalize(quat_mul(Q[:-shift], Q[shift:]))
+        shift *= 2
+    steps = np.vstack([np.zeros((1, 3)), rotate(Q[:-1], U[1:, :3])])
+    return np.cumsum(steps, axis=0), Q
+
+
+def _slerp(tk: np.ndarray, tm: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Orientations Q (n, 4) at the increasing times tm interpolated to the times tk (within
+    tm's span) along the shortest arc between the neighbouring samples."""
+    j = np.clip(np.searchsorted(tm, tk, side="right") - 1, 0, tm.size - 2)
+    s = (tk - tm[j]) / (tm[j + 1] - tm[j])
+    d = quat_mul(quat_conj(Q[j]), Q[j + 1])  # quat_log takes the shortest arc
+    return quat_normalize(quat_mul(Q[j], quat_exp(s[:, None] * quat_log(d))))
 
 
 def _to_magnetometer_rows(
@@ -625,13 +733,18 @@ def _to_magnetometer_rows(
     """Odometry and magnetometer at different rates: the dead reckoning integrated at the
     odometry's rows, interpolated linearly in time to the magnetometer's rows, and turned
     back into increments between them (planar: body-frame displacement and heading
-    change); truth interpolated the same way. Magnetometer rows after the last odometry
-    row cannot be placed and are dropped."""
+    change; pose: positions interpolated linearly and orientations by slerp, then
+    body-frame displacement and rotation between them); truth interpolated the same way.
+    Magnetometer rows after the last odometry row cannot be placed and are dropped."""
     t = A[:, col[TIME_COLUMN]]
     tm = t[has_motion]
     U = np.where(absent[:, mi], 0.0, A[:, mi])[has_motion]
     U[0] = 0.0
-    if motion == "planar":
+    if motion == "pose":
+        U[0, 3] = 1.0  # the start: dp = 0, dq = identity
+        positions, orientations = _integrate_pose(U)
+        pose = positions
+    elif motion == "planar":
         psi = np.cumsum(U[:, 2])
         heading = np.r_[0.0, psi[:-1]]
         step = np.column_stack(
@@ -654,7 +767,15 @@ def _to_magnetometer_rows(
         )
     tk = t[keep]
     at = np.column_stack([np.interp(tk, tm, pose[:, k]) for k in range(pose.shape[1])])
-    if motion == "planar":
+    if motion == "pose":
+        q = _slerp(tk, tm, orientations)
+        inc = np.column_stack(
+            [
+                rotate(quat_conj(q[:-1]), np.diff(at, axis=0)),
+                quat_normalize(quat_mul(quat_conj(q[:-1]), q[1:])),
+            ]
+        )
+    elif motion == "planar":
         d = np.diff(at[:, :2], axis=0)
         h = at[:-1, 2]
         inc = np.column_stack(
@@ -748,6 +869,7 @@ def write_recording(
     dxy: np.ndarray | None = None,
     planar: np.ndarray | None = None,
     imu: np.ndarray | None = None,
+    pose: np.ndarray | None = None,
     P_true: np.ndarray | None = None,
     yaw_true: np.ndarray | None = None,
     q_true: np.ndarray | None = None,
@@ -755,9 +877,10 @@ def write_recording(
     """Write a recording CSV file that :func:`read_recording` reads back exactly.
 
     t: (N,) strictly increasing times [s]; Y: (N, 3) magnetometer. Exactly one motion input,
-    given for steps 1..N-1 (the first row's increments are written as 0):
+    given for steps 1..N-1 (the first row's increments are written as 0, pose's dq as 1):
     dxy (N-1, 2) or (N-1, 3) world-frame position increments [m] (columns dx, dy[, dz]);
-    planar (N-1, 3) body-frame dfwd, dleft [m] and dyaw [rad]; imu (N-1, 7) dqw..dqz, dvx..dvz.
+    planar (N-1, 3) body-frame dfwd, dleft [m] and dyaw [rad]; imu (N-1, 7) dqw..dqz, dvx..dvz;
+    pose (N-1, 7) dpx..dpz [m], dqw..dqz (unit quaternions; module docstring for the convention).
     Optional truth: P_true (N, 2) or (N, 3) [m], yaw_true (N,) [rad], q_true (N, 4) unit
     quaternions (w, x, y, z). Values are written in shortest round-trip form. The file is
     written atomically (a temporary file in the same folder, then renamed over ``path``).
@@ -772,22 +895,30 @@ def write_recording(
     if not np.all(np.diff(t) > 0):
         raise _error(path, "t", "times must increase strictly")
 
-    motions = {"dxy": dxy, "planar": planar, "imu": imu}
+    motions = {"dxy": dxy, "planar": planar, "imu": imu, "pose": pose}
     given = [name for name, value in motions.items() if value is not None]
     if len(given) != 1:
         raise _error(
-            path, "", f"give exactly one motion input of dxy, planar, imu (got {len(given)})"
+            path, "", f"give exactly one motion input of dxy, planar, imu, pose (got {len(given)})"
         )
     kind = given[0]
-    widths = {"dxy": (2, 3), "planar": (3,), "imu": (7,)}[kind]
+    widths = {"dxy": (2, 3), "planar": (3,), "imu": (7,), "pose": (7,)}[kind]
     U = _as_array(path, kind, motions[kind], n - 1, widths)
+    if kind == "pose":
+        off = np.abs(np.linalg.norm(U[:, 3:], axis=1) - 1.0)
+        if np.any(off > QUATERNION_TOLERANCE):
+            i = int(np.argmax(off > QUATERNION_TOLERANCE))
+            raise _error(path, "pose", f"rotation increment {i} is not unit norm")
     if kind == "dxy":
         motion_names = MOTION_COLUMNS["translation2" if U.shape[1] == 2 else "translation3"]
     else:
         motion_names = MOTION_COLUMNS[kind]
 
     names: list[str] = [TIME_COLUMN, *motion_names, *MAGNETOMETER_COLUMNS]
-    blocks: list[np.ndarray] = [t[:, None], np.vstack([np.zeros((1, U.shape[1])), U])]
+    first = np.zeros((1, U.shape[1]))
+    if kind == "pose":
+        first[0, 3] = 1.0  # the identity rotation
+    blocks: list[np.ndarray] = [t[:, None], np.vstack([first, U])]
     blocks.append(_as_array(path, "Y", Y, n, (3,)))
     if P_true is not None:
         P = _as_array(path, "P_true", P_true, n, (2, 3))

@@ -1,7 +1,11 @@
-"""The MAP against the filter baseline over seeds (``make bench-peers``).
+"""The MAP against the filter baseline over seeds (``make bench-peers``, ``make
+bench-peers-pose``).
 
 Each seed of a problem file (default problems/bench/peers.yaml: the filter publications'
-setting, with translational odometry) is simulated, written as a recording, and solved by
+setting) is simulated, with translational odometry or (``--motion pose``) as pose
+odometry (casmag.data.posesim: heading along the path, a roll and pitch wobble, body-frame
+increments with the publications' noise, 3 mm per step and 3 mrad per step, and a
+displacement bias of 3 mm per step on each body axis), written as a recording, and solved by
 ``casmag slam``'s two methods on it, each with its defaults estimated from the data: the
 MAP (``map``) and the EKF with the same map in its state (``ekf``, casmag.solver.ekf). Each
 is timed whole. Writes OUT/peers.json (one row per seed, the versions, the summary) and
@@ -22,6 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from casmag.data.posesim import simulate_pose
 from casmag.data.recording import dataset_to_recording_arrays, write_recording
 from casmag.data.simulate import simulate_problem
 from casmag.problem.spec import load_problem
@@ -34,18 +39,36 @@ DEFAULT_FILE = Path(__file__).resolve().parents[2] / "problems" / "bench" / "pee
 HALF, WORSE = 0.5, 1.1
 
 
+#: The pose-odometry bench's displacement bias [m per step] on each body axis and its
+#: rotation noise [rad per step per axis] (the publications' setting).
+POSE_BIAS, POSE_ROTATION_NOISE = (3e-3, 3e-3, 3e-3), 3e-3
+
+
 def run_seed(
-    path: Path, seed: int, rate_hz: float = 2.0, overrides: tuple[str, ...] = ()
+    path: Path,
+    seed: int,
+    rate_hz: float = 2.0,
+    overrides: tuple[str, ...] = (),
+    motion: str = "translational",
 ) -> dict[str, Any]:
     """One seed: simulate, write the recording (``rate_hz`` samples per second), solve it
-    with both methods. ``overrides``: ``key=value`` settings of the problem file."""
+    with both methods. ``overrides``: ``key=value`` settings of the problem file;
+    ``motion``: ``translational`` or ``pose``."""
     prob = load_problem(path, [f"seed={seed}", *overrides])
-    data = simulate_problem(prob)
-    row: dict[str, Any] = {"seed": seed, "samples": data.n_samples}
     with tempfile.TemporaryDirectory(prefix="casmag-peers-") as tmp:
         rec = Path(tmp) / f"{prob.name}-{seed}.csv"
-        write_recording(rec, **dataset_to_recording_arrays(data, dt=1.0 / rate_hz))
-        duration = (data.n_samples - 1) / rate_hz
+        if motion == "pose":
+            sim = simulate_pose(
+                prob.spec.simulation, seed, rate_hz, POSE_ROTATION_NOISE, bias_p=POSE_BIAS
+            )
+            write_recording(rec, **sim.recording_arrays())
+            n = sim.t.shape[0]
+        else:
+            data = simulate_problem(prob)
+            write_recording(rec, **dataset_to_recording_arrays(data, dt=1.0 / rate_hz))
+            n = data.n_samples
+        row: dict[str, Any] = {"seed": seed, "samples": n, "motion": motion}
+        duration = (n - 1) / rate_hz
         for method in ("map", "ekf"):
             t0 = time.perf_counter()
             r = slam(rec, method=method)
@@ -61,6 +84,8 @@ def run_seed(
             }
             if method == "ekf":
                 row[method]["mean_nis"] = r.info.get("filter", {}).get("mean_nis")
+            if motion == "pose":
+                row[method]["attitude_rms_deg"] = r.details.get("attitude_rms_deg_after")
     return row
 
 
@@ -125,10 +150,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("file", nargs="?", type=Path, default=DEFAULT_FILE)
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--out", type=Path, default=Path("results/bench/peers"))
+    ap.add_argument("--motion", choices=("translational", "pose"), default="translational")
     args = ap.parse_args(argv)
     rows = []
     for seed in range(1, args.seeds + 1):
-        rows.append(run_seed(args.file, seed))
+        rows.append(run_seed(args.file, seed, motion=args.motion))
         r = rows[-1]
         print(
             f"seed {seed}: before {r['before']:.3f} m, MAP {r['map']['rmse']}, "
@@ -136,8 +162,11 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
     s = summary(rows)
-    source = str(args.file)
-    record = {"file": source, "rows": rows, "summary": s, "versions": versions()}
+    source = f"{args.file} ({args.motion} odometry)"
+    record = {
+        "file": str(args.file), "motion": args.motion, "rows": rows, "summary": s,
+        "versions": versions(),
+    }  # fmt: skip
     write_text_atomic(args.out / "peers.json", json.dumps(record, indent=2) + "\n")
     write_text_atomic(args.out / "peers.md", markdown(rows, s, source))
     print(markdown(rows, s, source))

@@ -27,7 +27,7 @@ from casmag.result.outdir import save_atomic
 from casmag.result.verdict import verdict
 
 #: The motion models a result can come from (``Result.motion``).
-MOTIONS = ("translational", "planar", "imu")
+MOTIONS = ("translational", "planar", "imu", "pose")
 
 
 @dataclass
@@ -78,6 +78,8 @@ class Result:
     when not computed): ``t`` (N,) [s]; ``P_odometry`` (the dead reckoning),
     ``P_strapdown`` and ``P_imu_only`` (IMU), ``P_estimate``, ``P_true`` (N, d) [m];
     ``psi_odometry``, ``psi_estimate``, ``psi_true`` (N,) [rad] (planar headings);
+    ``Q_odometry``, ``Q_estimate``, ``Q_true`` (N, 4) (pose and IMU: unit quaternions, w
+    first, sensor to map);
     ``att_err_imu_only_deg``, ``att_err_est_deg`` (N,) [deg] (IMU orientation errors);
     ``P_gp_slam_map`` (IMU: the map pass not used when the field was found homogeneous);
     ``P_cov``, ``P_cov_uninflated`` (N, d, d) [m^2], the position covariance drawn and
@@ -257,7 +259,9 @@ class Result:
 #: ``failed_stage`` (None, ``imu_only`` or ``gp_slam``); ``map_decision`` (``map``,
 #: ``homogeneous: IMU only`` or ``none``); ``field_evidence`` (casmag.gp.hyper.FieldEvidence);
 #: ``hyperparameters_source``; ``schedules`` (each GP-SLAM schedule tried, its cost and
-#: whether it was kept).
+#: whether it was kept). Pose: ``attitude_rms_deg_before``, ``attitude_rms_deg_after``
+#: [deg], ``bias_p`` (displacement bias, m per step, body frame), ``bias_w`` (rotation-rate
+#: bias, rad/s).
 DETAILS = {
     "translational": (),
     "planar": ("heading_rms_deg_before", "heading_rms_deg_after"),
@@ -270,6 +274,7 @@ DETAILS = {
         "hyperparameters_source",
         "schedules",
     ),
+    "pose": ("attitude_rms_deg_before", "attitude_rms_deg_after", "bias_p", "bias_w"),
 }
 
 #: The units written into result.json, per motion model.
@@ -284,6 +289,12 @@ UNITS = {
         "errors": "position m, orientation deg, at keyframes, no alignment",
         "gyro_bias": "deg/s",
         "acc_bias": "m/s^2",
+        "seconds": "wall-clock s",
+    },
+    "pose": {
+        "errors": "position m, attitude deg, no alignment",
+        "odometry_bias": "displacement bias m per step, body frame",
+        "bias_w": "rotation-rate bias rad/s (rad per step without times)",
         "seconds": "wall-clock s",
     },
 }
@@ -500,7 +511,8 @@ def write_tum_files(result: Result, folder: Path) -> None:
 def write_trajectory_csv(result: Result, path: Path) -> None:
     """One row per sample (keyframe, for IMU results): index, time when known, then each
     trajectory the result holds (strapdown, dead reckoning, IMU-only adjustment, estimate,
-    the unused map pass, truth) as x, y[, z] and, for planar results, the heading psi [rad];
+    the unused map pass, truth) as x, y[, z] and, for planar results, the heading psi [rad],
+    for pose results the orientation qw, qx, qy, qz (sensor to map);
     the IMU orientation errors [deg]; and (when computed) the Laplace 1-sigma of the
     estimate per axis [m] and, in the plane, the x-y covariance [m^2]."""
     a = result.arrays
@@ -518,6 +530,10 @@ def write_trajectory_csv(result: Result, path: Path) -> None:
         if psi is not None:
             cols.append(np.asarray(psi, dtype=float))
             names.append(f"psi_{tag}")
+        Q = a.get(key.replace("P_", "Q_", 1)) if result.motion == "pose" else None
+        if Q is not None:
+            cols.extend(np.asarray(Q, dtype=float).T)
+            names.extend(f"{c}_{tag}" for c in ("qw", "qx", "qy", "qz"))
     for key in ("att_err_imu_only_deg", "att_err_est_deg"):
         if a.get(key) is not None:
             cols.append(a[key])

@@ -58,12 +58,16 @@ class NavModel(Protocol):
         ...
 
     def position(self, x: np.ndarray) -> np.ndarray:
-        """(dim,) position; its Jacobian in x is [I_dim, 0]."""
+        """The position the map is read at (its first ``dim`` or fewer states); its Jacobian
+        in x is [I, 0]."""
         ...
 
     def rotation(self, x: np.ndarray) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
         """R^T (3, 3), world to sensor frame, and [(state index, d R^T / d x_i)]."""
         ...
+
+    # Optional: ``pseudo_measurement(x) -> (r, H_nav, var) | None``, a linear measurement of
+    # the nav states applied after each magnetometer update (PoseNav's height prior).
 
 
 @dataclass
@@ -166,6 +170,120 @@ class PlanarNav:
         return Rt, [(2, dRt)]
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+@dataclass
+class PoseNav:
+    """States (p (3), theta (3), b_w (3)[, b_p (3)]) of the pose-odometry model
+    (casmag.model.pose): the orientation is a nominal quaternion kept by this object, one
+    per sample (``nominal``), times the error state theta (a body-frame rotation vector),
+    folded into the nominal at each prediction (an error-state, or multiplicative, EKF):
+    q_{k+1} = q_k exp(theta) dq_k exp(-b_w dt_k), p_{k+1} = p_k + R(q_k exp(theta))
+    (dp_k - b_p); the field is read in the body frame, y = R^T (m(p) + c). b_p is a state
+    when ``bias_p_sigma`` is given, else held at zero. ``height_sigma``: every sample's
+    height measured as the first's with that standard deviation (the MAP's ``height``
+    block)."""
+
+    U: np.ndarray  # (N - 1, 7): dp, dq
+    dt: np.ndarray  # (N - 1,)
+    p0: np.ndarray
+    q0: np.ndarray
+    sigma_p: float
+    sigma_r: float
+    sigma_anchor: float
+    sigma_att0: float
+    bias_w_sigma: float
+    bias_p_sigma: float | None = None
+    position_dim: int = 3  # the map's: 2 reads the field at (x, y)
+    height_sigma: float | None = None  # the pose model's ``height`` block, as a measurement
+
+    def __post_init__(self) -> None:
+        from casmag import strapdown as sd
+
+        self._sd = sd
+        self.dim = 3
+        self.n_nav = 9 if self.bias_p_sigma is None else 12
+        self.bias_states = slice(6, self.n_nav)
+        n = self.U.shape[0] + 1
+        self.nominal = np.empty((n, 4))
+        self._current = 0
+
+    def initial(self) -> tuple[np.ndarray, np.ndarray]:
+        self.nominal[0] = self._sd.quat_normalize(np.asarray(self.q0, dtype=float))
+        self._current = 0
+        x = np.zeros(self.n_nav)
+        x[:3] = self.p0
+        var = [self.sigma_anchor**2] * 3 + [self.sigma_att0**2] * 3 + [self.bias_w_sigma**2] * 3
+        if self.bias_p_sigma is not None:
+            var += [self.bias_p_sigma**2] * 3
+        return x, np.diag(var)
+
+    def predict(self, x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        sd = self._sd
+        h = float(self.dt[k])
+        q = sd.quat_mul(self.nominal[k], sd.quat_exp(x[3:6]))  # the update folded in
+        R = sd.quat_to_rotmat(q)
+        b_p = x[9:12] if self.bias_p_sigma is not None else np.zeros(3)
+        u = self.U[k, :3] - b_p
+        dq = sd.quat_mul(sd.quat_normalize(self.U[k, 3:7]), sd.quat_exp(-h * x[6:9]))
+        self.nominal[k + 1] = sd.quat_normalize(sd.quat_mul(q, dq))
+        self._current = k + 1
+        out = x.copy()
+        out[:3] = x[:3] + R @ u
+        out[3:6] = 0.0
+        F = np.eye(self.n_nav)
+        F[:3, 3:6] = -R @ _skew(u)
+        F[3:6, 3:6] = sd.quat_to_rotmat(dq).T
+        F[3:6, 6:9] = -h * np.eye(3)
+        if self.bias_p_sigma is not None:
+            F[:3, 9:12] = -R
+        Q = np.zeros((self.n_nav, self.n_nav))
+        Q[:3, :3] = self.sigma_p**2 * np.eye(3)
+        Q[3:6, 3:6] = self.sigma_r**2 * np.eye(3)
+        return out, F, Q
+
+    def position(self, x: np.ndarray) -> np.ndarray:
+        return x[: self.position_dim]
+
+    def _rt(self, x: np.ndarray, k: int) -> np.ndarray:
+        sd = self._sd
+        return sd.quat_to_rotmat(sd.quat_mul(self.nominal[k], sd.quat_exp(x[3:6]))).T
+
+    def rotation(self, x: np.ndarray) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
+        Rt = self._rt(x, self._current)
+        # R = Rnom exp(theta): d(R^T) / d theta_i = -[e_i]x R^T to first order in theta.
+        return Rt, [(3 + i, -_skew(np.eye(3)[i]) @ Rt) for i in range(3)]
+
+    def pseudo_measurement(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The height prior of the MAP's ``height`` block as a measurement z = z_0 at every
+        sample (None without it)."""
+        if self.height_sigma is None:
+            return None
+        H = np.zeros((1, self.n_nav))
+        H[0, 2] = 1.0
+        return np.array([self.p0[2] - x[2]]), H, np.array([self.height_sigma**2])
+
+    def orientations(self, states: np.ndarray) -> np.ndarray:
+        """(N, 4) filtered orientations of the states of a run."""
+        sd = self._sd
+        return sd.quat_normalize(sd.quat_mul(self.nominal, sd.quat_exp(states[:, 3:6])))
+
+    def sensor_rotations(self, states: np.ndarray) -> np.ndarray:
+        """(N, 3, 3) R^T of each filtered state."""
+        return self._sd.quat_to_rotmat(self.orientations(states)).transpose(0, 2, 1)
+
+
+def sensor_rotations(nav: NavModel, states: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) R^T of a run's filtered states: the nav model's own when it keeps its
+    orientation outside the state (:class:`PoseNav`), else from :meth:`NavModel.rotation`."""
+    own = getattr(nav, "sensor_rotations", None)
+    if own is not None:
+        return own(states)
+    return np.stack([nav.rotation(x)[0] for x in states])
+
+
 @dataclass
 class FilterMap:
     """The map in the state: basis, kernel, hyperparameters, the constant field's prior."""
@@ -229,7 +347,7 @@ def _measurement(
     world = f[0] + c
     Rt, dRt = nav.rotation(x[:n_nav])
     H = np.zeros((FIELD_DIM, x.shape[0]))
-    H[:, : nav.dim] = Rt @ D[0]
+    H[:, : p.shape[0]] = Rt @ D[0]  # the map's coordinates (the first ones of the position)
     for i, dR in dRt:
         H[:, i] += dR @ world
     if fmap.kernel == "se":
@@ -242,6 +360,23 @@ def _measurement(
         H[:, n_nav : n_nav + n_w] = Rt @ G
     H[:, n_nav + n_w :] = Rt
     return Rt @ world, H
+
+
+def _pseudo_update(
+    x: np.ndarray, P: np.ndarray, r: np.ndarray, H_nav: np.ndarray, var: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A linear update of the state by a motion model's pseudo-measurement (residual r (m,),
+    its Jacobian in the nav states H_nav (m, n_nav), variances var (m,)), on the upper
+    triangle of P as the magnetometer's update."""
+    H = np.zeros((r.shape[0], x.shape[0]))
+    H[:, : H_nav.shape[1]] = H_nav
+    PHt = blas.dsymm(1.0, P, np.asfortranarray(H.T), side=0, lower=0)
+    S = H @ PHt + np.diag(var)
+    L = np.linalg.cholesky(0.5 * (S + S.T))
+    B = np.linalg.solve(L, PHt.T).T
+    x = x + B @ np.linalg.solve(L, r)
+    P = blas.dsyrk(-1.0, np.asfortranarray(B), beta=1.0, c=P, trans=0, lower=0, overwrite_c=1)
+    return x, P
 
 
 def run_filter(
@@ -271,6 +406,7 @@ def run_filter(
         diag = np.concatenate([fmap.prior_variances(), np.full(FIELD_DIM, fmap.sigma_lin**2)])
         P[np.arange(n_nav, n), np.arange(n_nav, n)] = diag
     R = fmap.sigma_m**2 * np.eye(FIELD_DIM)
+    pseudo = getattr(nav, "pseudo_measurement", None)
     states = np.empty((N, n_nav))
     cov = np.empty((N, nav.dim, nav.dim))
     nis = np.empty(N)
@@ -297,6 +433,9 @@ def run_filter(
             B = np.linalg.solve(L, PHt.T).T  # (n, 3) = PHt L^-T
             x = x_pred + B @ z
         P = blas.dsyrk(-1.0, np.asfortranarray(B), beta=1.0, c=P, trans=0, lower=0, overwrite_c=1)
+        measured = None if pseudo is None else pseudo(x[:n_nav])
+        if measured is not None:
+            x, P = _pseudo_update(x, P, *measured)
         states[k] = x[:n_nav]
         pc = np.triu(P[: nav.dim, : nav.dim])
         cov[k] = pc + np.triu(pc, 1).T
@@ -469,9 +608,7 @@ def filter_result(
         after = rmse_and_max(P_est, P_true)
     # The final map at the filtered path, read in the sensor frame.
     f, _, _ = field_and_jacobians(fmap.basis, fmap.kernel, P_est, run.weights)
-    M_est = np.stack(
-        [nav.rotation(x)[0] @ (fk + run.constant) for x, fk in zip(run.states, f, strict=True)]
-    )
+    M_est = np.einsum("nij,nj->ni", sensor_rotations(nav, run.states), f + run.constant)
     misfit = 0.5 * float(np.sum(((Y - M_est) / fmap.sigma_m) ** 2))
     # Correlated magnetometer residuals carry less information than white ones: the
     # position covariance is scaled by the largest long-run inflation factor of the

@@ -283,7 +283,7 @@ def solve_planar(
                 n, np.asarray(truth["P"], float), np.asarray(truth["psi"], float),
                 sol.x["bias"], options.solver,
             )[0]  # fmt: skip
-            flag = _wrong_basin(sol, true_start, truth["P"], ratio)
+            flag = wrong_basin_flag(sol, true_start, truth["P"], ratio)
             if flag is not None:
                 flags.append(flag)
     if sol.success:
@@ -363,7 +363,7 @@ def solve_planar(
     )
 
 
-def _wrong_basin(
+def wrong_basin_flag(
     sol: Any, true_start: Any, P_true: np.ndarray, ratio: float
 ) -> dict[str, Any] | None:
     """The ``wrong_basin`` flag (as the IMU model's) when the solve from the truth reaches a

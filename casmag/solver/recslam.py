@@ -28,6 +28,7 @@ from casmag.problem.imu import (
     load_planar_options,
     refuse_unused_solver_keys,
 )
+from casmag.problem.pose import load_pose_options
 from casmag.problem.spec import (
     Problem,
     as_overrides,
@@ -51,7 +52,9 @@ from casmag.solver.multisession import (
     stack,
 )
 from casmag.solver.planar import solve_planar_recording
+from casmag.solver.pose import solve_pose_recording
 from casmag.solver.uncertainty import PositionUncertainty
+from casmag.strapdown import dead_reckon_pose, rotate
 from casmag.versions import __version__, versions
 
 KNOT_SECONDS = 1.0
@@ -404,11 +407,12 @@ def slam(
     rec = with_lag_removed(raw, None if auto else mag_lag)
     saved = None if map_file is None else load_map(map_file)
     given = None if saved is None else {"model": _map_model(saved)}
-    if rec.motion == "planar":
+    if rec.motion in ("planar", "pose"):
         if saved is not None:
             raise DataError(f"{map_file}: a saved map locates translational recordings only")
-        refuse_translational_options(recording, mag_lag, refit_noise)
-        return slam_planar(
+        refuse_translational_options(recording, mag_lag, refit_noise, rec.motion)
+        solve_kind = slam_planar if rec.motion == "planar" else slam_pose
+        return solve_kind(
             rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag, method
         )
     data = rec.to_dataset(anchor)
@@ -459,14 +463,14 @@ def _map_model(saved: SavedMap) -> dict[str, Any]:
 
 
 def refuse_translational_options(
-    recording: str | Path, mag_lag: float | str | None, refit_noise: bool
+    recording: str | Path, mag_lag: float | str | None, refit_noise: bool, motion: str = "planar"
 ) -> None:
-    """DataError for ``mag_lag="auto"`` or ``refit_noise`` on a planar recording (they are
-    made for translational ones)."""
+    """DataError for ``mag_lag="auto"`` or ``refit_noise`` on a planar or pose recording
+    (they are made for translational ones)."""
     if mag_lag == "auto" or refit_noise:
         raise DataError(
             f"{recording}: --mag-lag auto and --refit-noise are for translational "
-            "recordings; this one is planar"
+            f"recordings; this one is {motion}"
         )
 
 
@@ -705,6 +709,81 @@ def slam_planar(
         # (NaN), as trajectory.csv has a heading beside every position.
         a["psi_true"] = np.full(a["P_true"].shape[0], np.nan)
     return result
+
+
+def slam_pose(
+    rec: Recording,
+    problem: str | Path | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+    field_check: bool = True,
+    on_warning: Callable[[str], None] | None = None,
+    anchor: str = "truth",
+    mag_lag: float | None = None,
+    method: str = "map",
+) -> Result:
+    """A pose-odometry recording (``dpx,dpy,dpz,dqw,dqx,dqy,dqz``) with the pose model
+    (:func:`casmag.solver.pose.solve_pose_recording`). Settings from the problem file's
+    ``model``/``solver`` sections and ``model.KEY=...`` overrides
+    (:class:`casmag.problem.pose.PoseModelSpec`). A constant magnetometer carries no position
+    information: the result is the dead reckoning (status ``Odometry_Only``; with
+    ``field_check`` off, DataError). The magnetometer's lag is estimated as for planar
+    recordings (the field turned into the map frame along the dead reckoning) and reported,
+    not removed. ``method``: as for :func:`slam`."""
+    overrides = as_overrides(overrides)
+    refuse_unused_solver_keys(overrides, "casmag slam on a pose recording", PLANAR_WARM_START_KEYS)
+    options = load_pose_options(problem, overrides)
+    P, Q = dead_reckon_pose(rec.increments, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+    lag = estimate_lag(rec.t, P, rotate(Q, rec.Y))  # the field in the dead-reckoned frame
+    found = [
+        *rec.notes,
+        *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
+        *lag_warning(lag),
+    ]
+    for line in warning_lines(rec.path, found):
+        if on_warning is not None:
+            on_warning(line)
+    if constant_magnetometer(rec.Y):
+        if not field_check:
+            refuse_constant_field(rec.path)
+        result = pose_odometry_only(rec, anchor)
+    else:
+        result = solve_pose_recording(rec, options, progress=progress, anchor=anchor, method=method)
+    result.warnings = found
+    result.info["magnetometer_lag"] = _lag_record(lag, mag_lag)
+    return result
+
+
+def pose_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
+    """The pose dead reckoning as the result of a recording whose magnetometer is constant
+    (status ``Odometry_Only``), started where :func:`casmag.solver.pose.solve_pose` starts."""
+    P_true = rec.P_true
+    if P_true is not None and P_true.shape[1] == 2:
+        P_true = np.column_stack([P_true, np.zeros(P_true.shape[0])])
+    known = P_true is not None and anchor == "truth"
+    p0 = P_true[0] if known else np.zeros(3)
+    q0 = rec.q_true[0] if known and rec.q_true is not None else np.array([1.0, 0, 0, 0])
+    P, Q = dead_reckon_pose(rec.increments, p0, q0)
+    return Result.odometry_only(
+        "pose",
+        {
+            "name": Path(rec.path).stem,
+            "samples": int(rec.n_samples),
+            "num_basis": 0,
+            "anchor": {
+                "kind": "first true position" if known else "origin",
+                "position": [float(v) for v in p0],
+                "quaternion": [float(v) for v in q0],
+            },
+            "fallback": "homogeneous field: " + CONSTANT_FIELD,
+            "recording": str(rec.path),
+            "casmag": __version__,
+            "versions": versions(),
+        },
+        P,
+        P_true,
+        arrays={"t": rec.t, "Q_odometry": Q, "Q_estimate": Q, "Q_true": rec.q_true},
+    )
 
 
 def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:

@@ -22,6 +22,7 @@ from casmag.data.realdata import (
 )
 from casmag.data.recording import read_recording
 from casmag.errors import DataError
+from casmag.strapdown import dead_reckon_pose, pose_increments, quat_conj, rotate
 
 ROOT = Path(__file__).resolve().parents[2]
 ARKIT = ROOT.parent / "shared" / "data" / "arkit"
@@ -145,3 +146,49 @@ def test_shared_handheld_recordings_agree_with_themselves_where_the_path_crosses
             M = np.einsum("kij,jl,kl->ki", Rm, A, d["m"])
             other, _ = crossing_disagreement(P, M)
             assert chosen < 0.75 * other, (deg, inverse, chosen, other)
+
+
+def test_load_arkit_gives_the_3d_pose_and_the_body_frame_magnetometer(tmp_path):
+    """Heights from the cumulative increments, the recorded orientation, and R(q)^T times
+    the world field is the magnetometer turned from the sensor's into the pose's axes."""
+    P, _, _ = _synthetic_mat(tmp_path / "walk.mat")
+    d = scipy.io.loadmat(tmp_path / "walk.mat", squeeze_me=True)
+    seq = load_arkit(tmp_path / "walk.mat")
+    np.testing.assert_allclose(seq.z, P[:, 2] - P[0, 2], atol=1e-12)
+    np.testing.assert_allclose(seq.quat, d["quat"], atol=1e-12)
+    turn = np.radians(ARKIT_SENSOR_TO_BODY_DEG)
+    c, s = np.cos(turn), np.sin(turn)
+    body = d["m"] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+    np.testing.assert_allclose(rotate(quat_conj(seq.quat), seq.mag), body, atol=1e-12)
+    conv = convert(seq, arkit_protocol(motion="pose", step_noise=0.0, heading_noise=0.0))
+    np.testing.assert_allclose(conv.arrays["Y"], body, atol=1e-12)
+    od = conv.record["odometry"]
+    assert abs(od["rotation_rate_bias_per_step"]) * conv.record["rate"] == pytest.approx(0.005)
+
+
+@needs_arkit
+def test_convert_cli_pose_on_the_shared_square(tmp_path):
+    """``--motion pose`` on a handheld recording: a pose recording whose true increments
+    dead-reckon to the truth and whose body-frame magnetometer, turned back by the true
+    orientation, agrees with itself where the path crosses (better than without the
+    rotation or with its transpose): the frame convention of the pose input."""
+    out = tmp_path / "square.csv"
+    res = CliRunner().invoke(
+        main, ["convert", str(ARKIT / "square.mat"), "--motion", "pose", "--out", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    rec = read_recording(out)
+    record = json.loads(out.with_suffix(".json").read_text())
+    n = rec.n_samples
+    assert rec.motion == "pose" and rec.increments.shape == (n - 1, 7)
+    assert rec.P_true.shape == (n, 3) and rec.q_true.shape == (n, 4)
+    assert np.ptp(rec.P_true[:, 2]) > 0.05  # the recorded heights, not a plane
+    od = record["odometry"]
+    assert abs(od["rotation_rate_bias_per_step"]) * record["rate"] == pytest.approx(0.005)
+    assert od["noise_per_step"] == 0.01 and od["rotation_noise_per_step"] == 0.01
+    P, _ = dead_reckon_pose(pose_increments(rec.P_true, rec.q_true), rec.P_true[0], rec.q_true[0])
+    np.testing.assert_allclose(P, rec.P_true, atol=1e-9)
+    world, pairs = crossing_disagreement(rec.P_true[:, :2], rotate(rec.q_true, rec.Y))
+    assert pairs > 1000 and world < 2.5  # measured 1.83 uT
+    for other in (rec.Y, rotate(quat_conj(rec.q_true), rec.Y)):
+        assert world < 0.75 * crossing_disagreement(rec.P_true[:, :2], other)[0]

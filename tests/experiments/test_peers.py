@@ -17,3 +17,18 @@ def test_one_seed_of_the_peers_setting_runs_both_methods():
     ratio = row["map"]["rmse"] / row["ekf"]["rmse"]
     assert s["map_at_most_half_of_ekf"] == int(ratio <= 0.5)
     assert "| 3 |" in markdown([row], s, "peers")
+
+
+def test_one_seed_as_pose_odometry_runs_both_methods():
+    """The same setting as pose odometry (6-DoF increments, a rotation noise, a body-frame
+    displacement bias): both methods locate below the dead reckoning and report the
+    attitude error."""
+    row = run_seed(
+        DEFAULT_FILE, 3, overrides=("simulation.trajectory.samples=120",), motion="pose"
+    )
+    assert row["motion"] == "pose" and row["samples"] == 120 and row["before"] > 0.05
+    for method in ("map", "ekf"):
+        assert row[method]["rmse"] < row["before"], (method, row)
+        assert row[method]["attitude_rms_deg"] is not None
+    assert row["map"]["status"] == "Solve_Succeeded"
+    assert row["ekf"]["status"] == "Filter_Completed"

@@ -1,0 +1,371 @@
+"""The solve of the pose-odometry model (casmag.model.pose) from arrays (:func:`solve_pose`)
+and from a recording (:func:`solve_pose_recording`): hyperparameters from the data, growing
+prefixes (casmag.solver.windowing.grow, as the planar model's), the truth-free and
+with-truth checks, the result."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from casmag import strapdown as sd
+from casmag.data.recording import Recording, read_recording
+from casmag.errors import DataError
+from casmag.gp.fieldmap import map_arrays, unwhitened
+from casmag.gp.hyper import estimate_hyperparameters
+from casmag.model.field import left_map_box
+from casmag.model.pose import (
+    PoseStructure,
+    cached_pose_nlp,
+    nominal_parameters,
+    orientations,
+)
+from casmag.model.rotated import ridge_weights, whiten
+from casmag.model.rrmap import make_basis
+from casmag.nlp import NLP, Progress, Solution
+from casmag.problem.pose import PoseOptions
+from casmag.result import Result
+from casmag.result.metrics import rmse_and_max
+from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
+from casmag.solver.planar import PLANAR_HYPER_WINDOW, TRUTH_START_RATIO, wrong_basin_flag
+from casmag.solver.windowing import grow, stage_lengths
+from casmag.versions import versions
+
+#: Fixed biases are held at zero with IPOPT's fixed variables.
+_BIASES = ("bias_p", "bias_w")
+
+
+def attitude_rms_deg(Q: np.ndarray, Q_true: np.ndarray) -> float:
+    """RMS angle [deg] between two sequences of unit quaternions (N, 4)."""
+    return float(np.degrees(np.sqrt(np.mean(sd.quat_angle(Q, Q_true) ** 2))))
+
+
+#: ``map_dim: auto``: stretches of this many lengthscales of travel whose height range is
+#: compared with the lengthscale (the dead reckoning's height drifts with the odometry
+#: and the pitch over a whole recording; over a few lengthscales the drift is small).
+HEIGHT_STRETCH_LENGTHSCALES = 5.0
+
+
+def choose_map_dim(options: PoseOptions, P: np.ndarray, lengthscale: float) -> int:
+    """The map's dimension: the option's, or (``auto``) 2 when, over stretches of
+    :data:`HEIGHT_STRETCH_LENGTHSCALES` lengthscales of travel, the path's height varies by
+    less than one lengthscale (the median stretch), across which the GP's own prior says the
+    field changes little; else 3."""
+    if options.map_dim != "auto":
+        return int(options.map_dim)
+    travel = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    reach = HEIGHT_STRETCH_LENGTHSCALES * lengthscale
+    ranges = []
+    for i in range(0, P.shape[0], max(1, P.shape[0] // 200)):
+        j = int(np.searchsorted(travel, travel[i] + reach))
+        ranges.append(float(np.ptp(P[i : max(j, i + 2), 2])))
+    return 2 if float(np.median(ranges)) < lengthscale else 3
+
+
+def solve_pose(
+    U: np.ndarray,
+    mag: np.ndarray,
+    options: PoseOptions | None = None,
+    truth: dict[str, np.ndarray] | None = None,
+    t: np.ndarray | None = None,
+    p0: np.ndarray | None = None,
+    q0: np.ndarray | None = None,
+    progress: Progress | None = None,
+    name: str = "pose",
+    method: str = "map",
+) -> Result:
+    """Pose odometry plus magnetometer GP-SLAM from arrays.
+
+    U (N-1, 7): increments dpx, dpy, dpz [m] (body frame of the earlier sample) and dqw,
+    dqx, dqy, dqz (rotation increment) between samples; mag (N, 3): magnetometer in the
+    body frame; t (N,) [s] (default one second per sample: the rate bias is then per step);
+    p0 (3,), q0 (4,): the known first pose (default the truth's when given, else the origin
+    and identity). truth: optional ``P`` (N, 3) and ``q`` (N, 4), for evaluation only.
+
+    Growing prefixes (``solver.warm_start``, the planar model's defaults) from the dead
+    reckoning: each prefix starts from the previous one's estimate, continued by the
+    odometry with the estimated biases removed.
+
+    method: ``map`` (default) the MAP estimate; ``ekf`` the filter baseline
+    (casmag.solver.ekf.PoseNav) with the batch's map box, hyperparameters and noise."""
+    options = options or PoseOptions()
+    U = np.asarray(U, dtype=float)
+    Y = np.asarray(mag, dtype=float)
+    n = Y.shape[0]
+    if U.shape != (n - 1, 7):
+        raise ValueError(f"increments must be (N-1, 7) = ({n - 1}, 7), got {U.shape}")
+    dt = np.ones(n - 1) if t is None else np.diff(np.asarray(t, dtype=float))
+    anchor_kind = "given"
+    if p0 is None:
+        p0 = truth["P"][0] if truth is not None else np.zeros(3)
+        anchor_kind = "first true position" if truth is not None else "origin (no truth)"
+    if q0 is None:
+        q0 = truth["q"][0] if truth is not None and "q" in truth else np.array([1.0, 0, 0, 0])
+    p0, q0 = np.asarray(p0, dtype=float), sd.quat_normalize(np.asarray(q0, dtype=float))
+    P_dr, Q_dr = sd.dead_reckon_pose(U, p0, q0)
+    Y_map = sd.rotate(Q_dr, Y)
+    sigma_f, ell, sigma_m = options.sigma_f, options.lengthscale, options.sigma_m
+    estimated = [
+        h for h in ("sigma_f", "lengthscale", "sigma_m") if getattr(options, h) == "estimate"
+    ]
+    if estimated:
+        est = estimate_hyperparameters(
+            P_dr, Y_map, kernel=options.kernel,
+            window=PLANAR_HYPER_WINDOW[0], max_windows=PLANAR_HYPER_WINDOW[1],
+        )  # fmt: skip
+        sigma_f = est.sigma_f if sigma_f == "estimate" else sigma_f
+        ell = est.lengthscale if ell == "estimate" else ell
+        sigma_m = est.sigma_m if sigma_m == "estimate" else sigma_m
+    sigma_f, ell, sigma_m = float(sigma_f), float(ell), float(sigma_m)
+    sigma_lin = options.sigma_lin
+    if sigma_lin is None:
+        sigma_lin = float(np.abs(Y_map.mean(axis=0)).max() + Y_map.std()) or 1.0
+    dim = choose_map_dim(options, P_dr, ell)
+    height = dim == 2 and options.height_sigma is not None
+    c0 = Y_map.mean(axis=0)
+    params: dict[str, Any] = {
+        "U": U, "dt": dt.reshape(-1, 1), "Y": Y,
+        "sigma_p": options.sigma_p, "sigma_r": options.sigma_r,
+        "sigma_bp": options.bias_p_prior, "sigma_bw": options.bias_w_prior,
+        "sigma_anchor": options.sigma_anchor, "sigma_att0": options.sigma_att0,
+        "anchor_p": p0.reshape(1, 3), "anchor_q": q0.reshape(1, 4),
+        "sigma_m": sigma_m, "sigma_f": sigma_f, "lengthscale": ell, "sigma_lin": sigma_lin,
+        **({"sigma_height": options.height_sigma} if height else {}),
+    }  # fmt: skip
+    estimate = {"bias_p": options.estimate_bias_p, "bias_w": options.estimate_bias_w}
+    fixed = [b for b in _BIASES if not estimate[b]]
+
+    def structure(k: int, around: np.ndarray, solver: Any) -> PoseStructure:
+        hb = make_basis(options.kernel, around[:, :dim], ell, options.num_basis, options.margin)
+        return PoseStructure(
+            n=k, map_dim=dim, kernel=options.kernel,
+            basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
+            solver=solver.model_dump_json(), curvature=options.curvature, height=height,
+        )  # fmt: skip
+
+    def solve_prefix(
+        k: int, P0: np.ndarray, Q0: np.ndarray, biases: tuple, solver: Any, around: np.ndarray
+    ) -> tuple[Solution, NLP, PoseStructure, np.ndarray]:
+        """The first k samples from positions P0 and orientations Q0 (the nominal), the
+        map's box around ``around``."""
+        s_k = structure(k, around, solver)
+        nlp_k = cached_pose_nlp(s_k)
+        params_k = {
+            **params, "U": U[: k - 1], "dt": dt[: k - 1].reshape(-1, 1), "Y": Y[:k],
+            **nominal_parameters(Q0),
+        }  # fmt: skip
+        basis = s_k.hilbert_basis()
+        Yk = sd.rotate(Q0, Y[:k])
+        w = ridge_weights(basis, options.kernel, P0[:, :dim], Yk, c0, sigma_m, sigma_f, ell)
+        x0 = {
+            "P": P0, "D": np.zeros((k, 3)),
+            "bias_p": biases[0].reshape(1, 3), "bias_w": biases[1].reshape(1, 3),
+            "W": whiten(basis, options.kernel, sigma_f, ell, w), "c": c0.reshape(3, 1),
+        }  # fmt: skip
+        sol = nlp_k.solve(params_k, x0, progress=progress, fixed=fixed)
+        return sol, nlp_k, s_k, Q0
+
+    def estimate_q(sol: Solution, Q_nominal: np.ndarray) -> np.ndarray:
+        return orientations(Q_nominal, sol.x["D"])
+
+    anchor_info = {
+        "kind": anchor_kind,
+        "position": [float(v) for v in p0],
+        "quaternion": [float(v) for v in q0],
+        "sigma": options.sigma_anchor,
+    }
+    if method == "ekf":
+        s_n = structure(n, P_dr, options.solver)
+        nav = PoseNav(
+            U, dt, p0, q0, options.sigma_p, options.sigma_r, options.sigma_anchor,
+            options.sigma_att0, options.bias_w_prior if options.estimate_bias_w else 1e-12,
+            options.bias_p_prior if options.estimate_bias_p else None, position_dim=dim,
+            height_sigma=options.height_sigma if height else None,
+        )  # fmt: skip
+        fmap = FilterMap(s_n.hilbert_basis(), options.kernel, sigma_f, ell, sigma_m, sigma_lin)
+        run = run_safely(nav, fmap, Y)
+        result = filter_result(
+            nav, fmap, Y, P_dr, None if truth is None else np.asarray(truth["P"], float),
+            {"name": name, "samples": int(n), "anchor": anchor_info}, motion="pose", run=run,
+            duration=None if t is None else float(np.ptp(t)),
+        )  # fmt: skip
+        Q_f = None if run is None else nav.orientations(run.states)
+        result.arrays.update(
+            t=np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
+            Q_odometry=Q_dr, Q_estimate=Q_f,
+        )  # fmt: skip
+        if truth is not None and "q" in truth:
+            result.details["attitude_rms_deg_before"] = attitude_rms_deg(Q_dr, truth["q"])
+            if Q_f is not None:
+                result.details["attitude_rms_deg_after"] = attitude_rms_deg(Q_f, truth["q"])
+        if run is not None:
+            result.details["bias_w"] = [float(v) for v in run.states[-1, 6:9]]
+        return result
+    ws = options.solver.warm_start
+    sizes = stage_lengths(n, ws.first_samples, ws.growth) if ws.strategy == "growing" else [n]
+    stage_solver = options.solver.model_copy(update={"max_iter": ws.stage_max_iter})
+    zero = (np.zeros(3), np.zeros(3))
+
+    def stage(k: int, prev: tuple | None, last: bool) -> tuple[Solution, tuple]:
+        if prev is None:
+            P0, Q0, biases = P_dr[:k], Q_dr[:k], zero
+        else:  # the previous stage, continued by the odometry with its biases removed
+            sol_prev, Q_prev = prev[0], estimate_q(prev[0], prev[3])
+            m = sol_prev.x["P"].shape[0]
+            biases = (sol_prev.x["bias_p"].ravel(), sol_prev.x["bias_w"].ravel())
+            Pr, Qr = sd.dead_reckon_pose(
+                U[m - 1 : k - 1], sol_prev.x["P"][-1], Q_prev[-1], *biases, dt[m - 1 : k - 1]
+            )
+            P0, Q0 = np.vstack([sol_prev.x["P"], Pr[1:]]), np.vstack([Q_prev, Qr[1:]])
+        # The batch's box is the dead reckoning's (as the planar model's); a prefix's its start.
+        around = P_dr if last else P0
+        solved = solve_prefix(k, P0, Q0, biases, options.solver if last else stage_solver, around)
+        return solved[0], solved
+
+    grown = grow(sizes, stage)
+    sol, nlp, s, Q_nom = grown[-1][2]
+    Q_est = estimate_q(sol, Q_nom)
+    hyper = {"sigma_f": sigma_f, "lengthscale": ell, "sigma_m": sigma_m}
+    flags: list[dict[str, Any]] = []
+    if truth is not None and "q" in truth and sol.success:
+        ratio = rmse_and_max(sol.x["P"], truth["P"])[0] / max(
+            rmse_and_max(P_dr, truth["P"])[0], 1e-12
+        )
+        if ratio > TRUTH_START_RATIO:  # the same problem (its map box) from the truth
+            Qt = sd.quat_normalize(np.asarray(truth["q"], dtype=float))
+            biases = (sol.x["bias_p"].ravel(), sol.x["bias_w"].ravel())
+            true_start = solve_prefix(n, np.asarray(truth["P"], float), Qt, biases,
+                                      options.solver, P_dr)[0]  # fmt: skip
+            flag = wrong_basin_flag(sol, true_start, truth["P"], ratio)
+            if flag is not None:
+                flags.append(flag)
+    if sol.success:
+        basis = s.hilbert_basis()
+        box = left_map_box(basis.domain.center, basis.domain.half_width, sol.x["P"][:, :dim])
+        if box is not None:
+            flags.append(box)
+    before = after = (None, None)
+    att_before = att_after = None
+    if truth is not None:
+        before = rmse_and_max(P_dr, truth["P"])
+        if sol.success:
+            after = rmse_and_max(sol.x["P"], truth["P"])
+        if "q" in truth:
+            att_before = attitude_rms_deg(Q_dr, truth["q"])
+            att_after = attitude_rms_deg(Q_est, truth["q"]) if sol.success else None
+    basis = s.hilbert_basis()
+    arrays: dict[str, Any] = {}
+    if sol.success:
+        W = unwhitened(basis, options.kernel, hyper, sol.x["W"])
+        if dim == 2:
+            arrays.update(
+                map_arrays(basis, options.kernel, W, sol.x["c"], hyper, sol.x["P"][:, :2])
+            )
+    arrays.update(
+        t=np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
+        P_odometry=P_dr, Q_odometry=Q_dr, P_estimate=sol.x["P"], Q_estimate=Q_est,
+        P_true=None if truth is None else np.asarray(truth["P"], dtype=float),
+        Q_true=None if truth is None or "q" not in truth else np.asarray(truth["q"], float),
+    )  # fmt: skip
+    return Result(
+        motion="pose",
+        flags=flags,
+        status=sol.status,
+        success=sol.success,
+        iterations=sol.iterations,
+        build_seconds=nlp.build_seconds,
+        solve_seconds=sum(so.solve_seconds for _, so, _ in grown),
+        rmse_before=before[0],
+        max_before=before[1],
+        rmse_after=after[0],
+        max_after=after[1],
+        details={
+            "attitude_rms_deg_before": att_before,
+            "attitude_rms_deg_after": att_after,
+            "bias_p": [float(v) for v in sol.x["bias_p"].ravel()] if sol.success else None,
+            "bias_w": [float(v) for v in sol.x["bias_w"].ravel()] if sol.success else None,
+        },
+        odometry_bias=[float(v) for v in sol.x["bias_p"].ravel()] if sol.success else None,
+        hyperparameters=hyper,
+        cost_blocks=sol.cost_blocks(),
+        stages=[
+            {
+                "name": "prefix",
+                "samples": k,
+                "cost": so.objective,
+                "status": so.status,
+                "iterations": so.iterations,
+                "kept": i == len(grown) - 1,
+            }
+            for i, (k, so, _) in enumerate(grown)
+        ],
+        cost_per_iteration=sol.cost_per_iteration,
+        info={
+            "name": name,
+            "samples": int(n),
+            "num_basis": basis.num_basis,
+            "map": {
+                "form": "reduced_rank",
+                "dim": dim,
+                "height_prior_m": options.height_sigma if height else None,
+                "num_basis": basis.num_basis,
+                "box_center": [float(v) for v in basis.domain.center],
+                "box_half_width": [float(v) for v in basis.domain.half_width],
+            },
+            "anchor": anchor_info,
+            "kernel": options.kernel,
+            "biases_estimated": [b for b in _BIASES if b not in fixed],
+            "hyperparameters": "given"
+            if not estimated
+            else f"{', '.join(estimated)}: marginal likelihood on the dead-reckoned path",
+            "sigma_lin": {
+                "value": sigma_lin,
+                "source": "given" if options.sigma_lin is not None else "data",
+            },
+            "casadi": ca.__version__,
+            "versions": versions(),
+            "warm_start": "growing" if len(sizes) > 1 else "none",
+        },
+        convergence=[sol.trace("GP-SLAM")],
+        arrays=arrays,
+    )
+
+
+def solve_pose_recording(
+    path: Any,
+    options: PoseOptions | None = None,
+    progress: Progress | None = None,
+    anchor: str = "truth",
+    method: str = "map",
+) -> Result:
+    """Solve a pose recording (``dpx,dpy,dpz,dqw,dqx,dqy,dqz`` columns: a path, or a
+    Recording already read); truth columns (``x_true,y_true,z_true``,
+    ``qw_true,...``), when present, are used for evaluation only and (``anchor`` ``truth``,
+    the default) for the first pose; ``origin``: the origin and the identity. ``method``: as
+    for :func:`solve_pose`."""
+    rec = path if isinstance(path, Recording) else read_recording(path)
+    if rec.motion != "pose":
+        raise DataError(
+            f"{rec.path}: motion input is {rec.motion!r}, the pose model needs "
+            "dpx,dpy,dpz,dqw,dqx,dqy,dqz"
+        )
+    truth = None
+    if rec.P_true is not None:
+        P = rec.P_true
+        if P.shape[1] == 2:
+            P = np.column_stack([P, np.zeros(P.shape[0])])
+        truth = {"P": P}
+        if rec.q_true is not None:
+            truth["q"] = rec.q_true
+    start = {"p0": np.zeros(3), "q0": np.array([1.0, 0, 0, 0])} if anchor == "origin" else {}
+    result = solve_pose(
+        rec.increments, rec.Y, options, truth=truth, t=rec.t, progress=progress,
+        name=Path(rec.path).stem, method=method, **start,
+    )  # fmt: skip
+    if anchor == "origin":
+        result.info["anchor"]["kind"] = "origin"
+    result.info["recording"] = str(rec.path)
+    return result
