@@ -376,6 +376,21 @@ class Converted:
     record: dict[str, Any]
 
 
+def rate_bias_per_step(final_error: Any, protocol: Protocol, rate: float) -> float:
+    """The size of the heading-rate bias per step: the protocol's (rad/s) at ``rate`` Hz, or
+    the one (bisection) at which ``final_error(bias)``, the dead reckoning's final error
+    with that bias applied (of the seed's sign), reaches ``protocol.drift``."""
+    if protocol.heading_rate_bias is not None:
+        return protocol.heading_rate_bias / rate
+    lo, hi = 0.0, 1e-4
+    while final_error(hi) < protocol.drift and hi < 0.1:
+        hi *= 2.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if final_error(mid) < protocol.drift else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
 def convert(seq: Sequence, protocol: Protocol = Protocol()) -> Converted:
     """Apply the protocol to a sequence; deterministic for a given seed."""
     rng = np.random.default_rng(protocol.seed)
@@ -422,16 +437,7 @@ def convert(seq: Sequence, protocol: Protocol = Protocol()) -> Converted:
             U = U0 + white + np.array([0.0, 0.0, sign * rate_bias])
             return float(np.linalg.norm(planar_dead_reckoning(U, P[0], psi[0])[-1] - P[-1]))
 
-        if protocol.heading_rate_bias is not None:
-            rate_bias = sign * protocol.heading_rate_bias / record["rate"]
-        else:
-            lo, hi = 0.0, 1e-4
-            while final_error(hi) < protocol.drift and hi < 0.1:
-                hi *= 2.0
-            for _ in range(60):
-                mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if final_error(mid) < protocol.drift else (lo, mid)
-            rate_bias = sign * 0.5 * (lo + hi)
+        rate_bias = sign * rate_bias_per_step(final_error, protocol, record["rate"])
         U = U0 + white + np.array([0.0, 0.0, rate_bias])
         R = _rot(psi)
         Yb = Y.copy()
@@ -489,16 +495,7 @@ def _pose_odometry(
         P_dr, _ = sd.dead_reckon_pose(increments(sign * rate_bias), P3[0], Q[0])
         return float(np.linalg.norm(P_dr[-1] - P3[-1]))
 
-    if protocol.heading_rate_bias is not None:
-        bias = sign * protocol.heading_rate_bias / record["rate"]
-    else:
-        lo, hi = 0.0, 1e-4
-        while final_error(hi) < protocol.drift and hi < 0.1:
-            hi *= 2.0
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if final_error(mid) < protocol.drift else (lo, mid)
-        bias = sign * 0.5 * (lo + hi)
+    bias = sign * rate_bias_per_step(final_error, protocol, record["rate"])
     U = increments(bias)
     P_dr, _ = sd.dead_reckon_pose(U, P3[0], Q[0])
     record["odometry"] = {

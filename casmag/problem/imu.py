@@ -610,6 +610,21 @@ def load_planar_options(
     ``model`` and ``solver`` sections are read; other sections are ignored) and
     ``key.path=value`` overrides such as ``model.sigma_disp=0.002``. Raises ProblemError
     naming the file (or ``--set``), the key and the reason."""
+    spec = load_recording_spec(PlanarSpec, "planar", problem, overrides, source)
+    return PlanarOptions(**spec.model.model_dump(), solver=spec.solver)
+
+
+def load_recording_spec(
+    spec_class: type[Strict],
+    model_name: str,
+    problem: str | Path | Mapping[str, Any] | None = None,
+    overrides: Iterable[str] = (),
+    source: str | None = None,
+) -> Any:
+    """A recording model's problem file (planar, pose: only its ``model`` and ``solver``
+    sections are read; the solver's defaults are the class's own) with ``key.path=value``
+    overrides, validated; warm starts ``none`` or ``growing``. Raises ProblemError naming
+    the file (or ``--set``), the key and the reason."""
     if problem is None:
         data: dict[str, Any] = {}
         source = source or "--set"
@@ -619,17 +634,18 @@ def load_planar_options(
         data, source = read_yaml(Path(problem)), source or str(problem)
     data = {k: v for k, v in data.items() if k in ("model", "solver")}
     solver = data.get("solver")
-    data["solver"] = {**PLANAR_SOLVER_DEFAULTS, **(solver if isinstance(solver, dict) else {})}
+    defaults = spec_class.model_fields["solver"].default.model_dump(exclude_unset=True)
+    data["solver"] = {**defaults, **(solver if isinstance(solver, dict) else {})}
     if solver is not None and not isinstance(solver, dict):
         data["solver"] = solver  # let validation name the bad value
-    spec, _ = validate_spec(PlanarSpec, data, overrides, source)
+    spec, _ = validate_spec(spec_class, data, overrides, source)
     if spec.solver.warm_start.strategy not in ("none", "growing"):
         raise ProblemError(
             source,
             "solver.warm_start.strategy",
-            f"{spec.solver.warm_start.strategy!r}: the planar model takes none or growing",
+            f"{spec.solver.warm_start.strategy!r}: the {model_name} model takes none or growing",
         )
-    return PlanarOptions(**spec.model.model_dump(), solver=spec.solver)
+    return spec
 
 
 #: Solver settings only the translational solver uses (warm starts, the Laplace

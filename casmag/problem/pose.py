@@ -12,9 +12,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
-from casmag.errors import ProblemError
-from casmag.problem.imu import PLANAR_SOLVER_DEFAULTS
-from casmag.problem.spec import PositiveFloat, SolverSpec, Strict, read_yaml, validate_spec
+from casmag.problem.imu import PLANAR_SOLVER_DEFAULTS, load_recording_spec
+from casmag.problem.spec import PositiveFloat, SolverSpec, Strict
 
 #: Solver settings of pose recordings that differ from SolverSpec's defaults: those of the
 #: planar recordings (growing prefixes of 150, 300, ... samples on long recordings).
@@ -114,23 +113,5 @@ def load_pose_options(
     """:class:`PoseOptions` from an optional problem file (its ``model`` and ``solver``
     sections) and ``key.path=value`` overrides. Raises ProblemError naming the file (or
     ``--set``), the key and the reason."""
-    if problem is None:
-        data: dict[str, Any] = {}
-        source = source or "--set"
-    elif isinstance(problem, Mapping):
-        data = dict(problem)
-    else:
-        data, source = read_yaml(Path(problem)), source or str(problem)
-    data = {k: v for k, v in data.items() if k in ("model", "solver")}
-    solver = data.get("solver")
-    data["solver"] = {**POSE_SOLVER_DEFAULTS, **(solver if isinstance(solver, dict) else {})}
-    if solver is not None and not isinstance(solver, dict):
-        data["solver"] = solver  # let validation name the bad value
-    spec, _ = validate_spec(PoseSpec, data, overrides, source)
-    if spec.solver.warm_start.strategy not in ("none", "growing"):
-        raise ProblemError(
-            source,
-            "solver.warm_start.strategy",
-            f"{spec.solver.warm_start.strategy!r}: the pose model takes none or growing",
-        )
+    spec = load_recording_spec(PoseSpec, "pose", problem, overrides, source)
     return PoseOptions(**spec.model.model_dump(), solver=spec.solver)

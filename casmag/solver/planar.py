@@ -90,25 +90,7 @@ def solve_planar(
         anchor_kind = "first true position" if truth is not None else "origin (no truth)"
     P_dr, psi_dr = dead_reckon_planar(U, np.asarray(p0, float), psi0)
     Y_local = sd.rotate(sd.quat_from_euler(0.0 * psi_dr, 0.0 * psi_dr, psi_dr), Y)
-    sigma_f, ell, sigma_m = options.sigma_f, options.lengthscale, options.sigma_m
-    estimated = [
-        h for h in ("sigma_f", "lengthscale", "sigma_m") if getattr(options, h) == "estimate"
-    ]
-    if estimated:
-        est = estimate_hyperparameters(
-            P_dr,
-            Y_local,
-            kernel=options.kernel,
-            window=PLANAR_HYPER_WINDOW[0],
-            max_windows=PLANAR_HYPER_WINDOW[1],
-        )
-        sigma_f = est.sigma_f if sigma_f == "estimate" else sigma_f
-        ell = est.lengthscale if ell == "estimate" else ell
-        sigma_m = est.sigma_m if sigma_m == "estimate" else sigma_m
-    sigma_m = float(sigma_m)
-    sigma_lin = options.sigma_lin
-    if sigma_lin is None:
-        sigma_lin = float(np.abs(Y_local.mean(axis=0)).max() + Y_local.std()) or 1.0
+    sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_local)
 
     def structure(k: int, around: np.ndarray, solver: Any) -> PlanarStructure:
         """The first k samples' problem, its map (box or tiles) around the positions
@@ -336,15 +318,7 @@ def solve_planar(
             },
             "bias_model": options.bias,
             "kernel": options.kernel,
-            "hyperparameters": "given"
-            if not estimated
-            else f"{', '.join(estimated)}: marginal likelihood on the dead-reckoned path",
-            "sigma_lin": {
-                "value": sigma_lin,
-                "source": "given" if options.sigma_lin is not None else "data",
-            },
-            "casadi": ca.__version__,
-            "versions": versions(),
+            **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
             "warm_start": "growing" if stages_grown else "none",
         },
         convergence=[sol.trace("GP-SLAM")],
@@ -361,6 +335,43 @@ def solve_planar(
             else np.asarray(truth["psi"], dtype=float),
         },
     )
+
+
+def hyperparameters_from_data(
+    options: Any, P: np.ndarray, Y_map: np.ndarray
+) -> tuple[float, float, float, float, list[str]]:
+    """(sigma_f, lengthscale, sigma_m, sigma_lin, names estimated) of a recording model
+    whose magnetometer turns with the body (planar, pose): the options' values, those set
+    to ``estimate`` by the windowed marginal likelihood of the field Y_map (turned into the
+    map frame along the dead reckoning) on the dead-reckoned path P; sigma_lin from the
+    data unless given (the largest |mean| of a component plus the field's spread)."""
+    values = {h: getattr(options, h) for h in ("sigma_f", "lengthscale", "sigma_m")}
+    estimated = [h for h, v in values.items() if v == "estimate"]
+    if estimated:
+        est = estimate_hyperparameters(
+            P, Y_map, kernel=options.kernel,
+            window=PLANAR_HYPER_WINDOW[0], max_windows=PLANAR_HYPER_WINDOW[1],
+        )  # fmt: skip
+        values.update({h: getattr(est, h) for h in estimated})
+    sigma_lin = options.sigma_lin
+    if sigma_lin is None:
+        sigma_lin = float(np.abs(Y_map.mean(axis=0)).max() + Y_map.std()) or 1.0
+    return (
+        float(values["sigma_f"]), float(values["lengthscale"]), float(values["sigma_m"]),
+        float(sigma_lin), estimated,
+    )  # fmt: skip
+
+
+def hyperparameter_info(estimated: list[str], sigma_lin: float, given: bool) -> dict[str, Any]:
+    """``info`` entries of a recording model's result: where the hyperparameters and
+    sigma_lin came from, and the versions."""
+    how = "marginal likelihood on the dead-reckoned path"
+    return {
+        "hyperparameters": "given" if not estimated else f"{', '.join(estimated)}: {how}",
+        "sigma_lin": {"value": sigma_lin, "source": "given" if given else "data"},
+        "casadi": ca.__version__,
+        "versions": versions(),
+    }
 
 
 def wrong_basin_flag(

@@ -8,14 +8,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import casadi as ca
 import numpy as np
 
 from casmag import strapdown as sd
 from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
 from casmag.gp.fieldmap import map_arrays, unwhitened
-from casmag.gp.hyper import estimate_hyperparameters
 from casmag.model.field import left_map_box
 from casmag.model.pose import (
     PoseStructure,
@@ -30,9 +28,13 @@ from casmag.problem.pose import PoseOptions
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
-from casmag.solver.planar import PLANAR_HYPER_WINDOW, TRUTH_START_RATIO, wrong_basin_flag
+from casmag.solver.planar import (
+    TRUTH_START_RATIO,
+    hyperparameter_info,
+    hyperparameters_from_data,
+    wrong_basin_flag,
+)
 from casmag.solver.windowing import grow, stage_lengths
-from casmag.versions import versions
 
 #: Fixed biases are held at zero with IPOPT's fixed variables.
 _BIASES = ("bias_p", "bias_w")
@@ -107,22 +109,7 @@ def solve_pose(
     p0, q0 = np.asarray(p0, dtype=float), sd.quat_normalize(np.asarray(q0, dtype=float))
     P_dr, Q_dr = sd.dead_reckon_pose(U, p0, q0)
     Y_map = sd.rotate(Q_dr, Y)
-    sigma_f, ell, sigma_m = options.sigma_f, options.lengthscale, options.sigma_m
-    estimated = [
-        h for h in ("sigma_f", "lengthscale", "sigma_m") if getattr(options, h) == "estimate"
-    ]
-    if estimated:
-        est = estimate_hyperparameters(
-            P_dr, Y_map, kernel=options.kernel,
-            window=PLANAR_HYPER_WINDOW[0], max_windows=PLANAR_HYPER_WINDOW[1],
-        )  # fmt: skip
-        sigma_f = est.sigma_f if sigma_f == "estimate" else sigma_f
-        ell = est.lengthscale if ell == "estimate" else ell
-        sigma_m = est.sigma_m if sigma_m == "estimate" else sigma_m
-    sigma_f, ell, sigma_m = float(sigma_f), float(ell), float(sigma_m)
-    sigma_lin = options.sigma_lin
-    if sigma_lin is None:
-        sigma_lin = float(np.abs(Y_map.mean(axis=0)).max() + Y_map.std()) or 1.0
+    sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_map)
     dim = choose_map_dim(options, P_dr, ell)
     height = dim == 2 and options.height_sigma is not None
     c0 = Y_map.mean(axis=0)
@@ -318,15 +305,7 @@ def solve_pose(
             "anchor": anchor_info,
             "kernel": options.kernel,
             "biases_estimated": [b for b in _BIASES if b not in fixed],
-            "hyperparameters": "given"
-            if not estimated
-            else f"{', '.join(estimated)}: marginal likelihood on the dead-reckoned path",
-            "sigma_lin": {
-                "value": sigma_lin,
-                "source": "given" if options.sigma_lin is not None else "data",
-            },
-            "casadi": ca.__version__,
-            "versions": versions(),
+            **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
             "warm_start": "growing" if len(sizes) > 1 else "none",
         },
         convergence=[sol.trace("GP-SLAM")],

@@ -362,10 +362,10 @@ def slam(
     field's variation, lengthscale against the path) go to ``result.warnings``, and each
     line to ``on_warning`` before the solve.
 
-    A planar recording (``dfwd,dleft,dyaw``) is solved with the planar heading model
-    (:func:`slam_planar`, a planar :class:`casmag.result.Result`). ``sections``: settings as
-    keyword arguments, e.g. ``model={"gp": {"lengthscale": 0.3}}``, applied after
-    ``overrides`` (:func:`casmag.problem.spec.section_overrides`).
+    A planar recording (``dfwd,dleft,dyaw``) is solved with the planar heading model, a
+    pose recording (``dpx,...,dqz``) with the pose model (:func:`slam_oriented`).
+    ``sections``: settings as keyword arguments, e.g. ``model={"gp": {"lengthscale":
+    0.3}}``, applied after ``overrides`` (:func:`casmag.problem.spec.section_overrides`).
 
     anchor: where the estimate starts: ``truth`` (default) the first true pose when the
     recording has truth, else the origin; ``origin`` the origin (heading 0) always, the
@@ -411,8 +411,7 @@ def slam(
         if saved is not None:
             raise DataError(f"{map_file}: a saved map locates translational recordings only")
         refuse_translational_options(recording, mag_lag, refit_noise, rec.motion)
-        solve_kind = slam_planar if rec.motion == "planar" else slam_pose
-        return solve_kind(
+        return slam_oriented(
             rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag, method
         )
     data = rec.to_dataset(anchor)
@@ -591,6 +590,13 @@ def _planar_lag(rec: Recording) -> LagEstimate | None:
     return estimate_lag(rec.t, P, world)
 
 
+def _pose_lag(rec: Recording) -> LagEstimate | None:
+    """The magnetometer lag of a pose recording: its field turned into the map frame along
+    the dead-reckoned orientation, against the dead-reckoned path (from the origin)."""
+    P, Q = dead_reckon_pose(rec.increments, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+    return estimate_lag(rec.t, P, rotate(Q, rec.Y))
+
+
 def _plausibility(rec: Recording, data: Dataset, prob: Problem) -> list[dict[str, str]]:
     """What reading the recording changed (rows merged or resampled), then casmag.data.checks on
     it and on the lengthscale its problem uses."""
@@ -661,7 +667,7 @@ def slam_sessions(
     return result
 
 
-def slam_planar(
+def slam_oriented(
     rec: Recording,
     problem: str | Path | None = None,
     overrides: str | Sequence[str] | Mapping[str, Any] = (),
@@ -672,19 +678,23 @@ def slam_planar(
     mag_lag: float | None = None,
     method: str = "map",
 ) -> Result:
-    """A planar recording (``dfwd,dleft,dyaw``) with the planar model and a heading-rate
-    bias (:func:`casmag.solver.planar.solve_planar_recording`). Settings from the problem file's
-    ``model``/``solver`` sections and ``model.KEY=...`` overrides
-    (:class:`casmag.problem.imu.PlanarModelSpec`). A constant magnetometer carries no
-    position information: the result is the dead reckoning, status ``Odometry_Only``
-    (:func:`planar_odometry_only`; with ``field_check`` off, DataError). ``method``: as
-    for :func:`slam`."""
+    """A recording whose magnetometer turns with the body: planar (``dfwd,dleft,dyaw``,
+    the planar model with a heading-rate bias, casmag.solver.planar) or pose odometry
+    (``dpx,dpy,dpz,dqw,dqx,dqy,dqz``, the pose model, casmag.solver.pose). Settings from the
+    problem file's ``model``/``solver`` sections and ``model.KEY=...`` overrides
+    (:class:`casmag.problem.imu.PlanarModelSpec`, :class:`casmag.problem.pose.PoseModelSpec`).
+    A constant magnetometer carries no position information: the result is the dead
+    reckoning, status ``Odometry_Only`` (with ``field_check`` off, DataError). The
+    magnetometer's lag is estimated with the field turned into the map frame along the dead
+    reckoning, and reported (``mag_lag``: what was removed before). ``method``: as for
+    :func:`slam`."""
+    load, lag_of, odometry_only, solve_recording = _ORIENTED[rec.motion]
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(
-        overrides, "casmag slam on a planar recording", PLANAR_WARM_START_KEYS
+        overrides, f"casmag slam on a {rec.motion} recording", PLANAR_WARM_START_KEYS
     )
-    options = load_planar_options(problem, overrides)
-    lag = _planar_lag(rec)
+    options = load(problem, overrides)
+    lag = lag_of(rec)
     found = [
         *rec.notes,
         *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
@@ -696,61 +706,16 @@ def slam_planar(
     if constant_magnetometer(rec.Y):
         if not field_check:
             refuse_constant_field(rec.path)
-        result = planar_odometry_only(rec, anchor)
+        result = odometry_only(rec, anchor)
     else:
-        result = solve_planar_recording(
-            rec, options, progress=progress, anchor=anchor, method=method
-        )
+        result = solve_recording(rec, options, progress=progress, anchor=anchor, method=method)
     result.warnings = found
     result.info["magnetometer_lag"] = _lag_record(lag, mag_lag)
     a = result.arrays
-    if a.get("P_true") is not None and a.get("psi_true") is None:
+    if rec.motion == "planar" and a.get("P_true") is not None and a.get("psi_true") is None:
         # True positions without a true heading: the heading column is written empty
         # (NaN), as trajectory.csv has a heading beside every position.
         a["psi_true"] = np.full(a["P_true"].shape[0], np.nan)
-    return result
-
-
-def slam_pose(
-    rec: Recording,
-    problem: str | Path | None = None,
-    overrides: str | Sequence[str] | Mapping[str, Any] = (),
-    progress: Callable[[int, float, float, float], None] | None = None,
-    field_check: bool = True,
-    on_warning: Callable[[str], None] | None = None,
-    anchor: str = "truth",
-    mag_lag: float | None = None,
-    method: str = "map",
-) -> Result:
-    """A pose-odometry recording (``dpx,dpy,dpz,dqw,dqx,dqy,dqz``) with the pose model
-    (:func:`casmag.solver.pose.solve_pose_recording`). Settings from the problem file's
-    ``model``/``solver`` sections and ``model.KEY=...`` overrides
-    (:class:`casmag.problem.pose.PoseModelSpec`). A constant magnetometer carries no position
-    information: the result is the dead reckoning (status ``Odometry_Only``; with
-    ``field_check`` off, DataError). The magnetometer's lag is estimated as for planar
-    recordings (the field turned into the map frame along the dead reckoning) and reported,
-    not removed. ``method``: as for :func:`slam`."""
-    overrides = as_overrides(overrides)
-    refuse_unused_solver_keys(overrides, "casmag slam on a pose recording", PLANAR_WARM_START_KEYS)
-    options = load_pose_options(problem, overrides)
-    P, Q = dead_reckon_pose(rec.increments, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
-    lag = estimate_lag(rec.t, P, rotate(Q, rec.Y))  # the field in the dead-reckoned frame
-    found = [
-        *rec.notes,
-        *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
-        *lag_warning(lag),
-    ]
-    for line in warning_lines(rec.path, found):
-        if on_warning is not None:
-            on_warning(line)
-    if constant_magnetometer(rec.Y):
-        if not field_check:
-            refuse_constant_field(rec.path)
-        result = pose_odometry_only(rec, anchor)
-    else:
-        result = solve_pose_recording(rec, options, progress=progress, anchor=anchor, method=method)
-    result.warnings = found
-    result.info["magnetometer_lag"] = _lag_record(lag, mag_lag)
     return result
 
 
@@ -827,3 +792,11 @@ def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
         },
         details={"heading_rms_deg_before": heading, "heading_rms_deg_after": heading},
     )
+
+
+#: The recordings whose magnetometer turns with the body, per motion input: (options
+#: loader, lag estimate, dead-reckoning result, solve) for :func:`slam_oriented`.
+_ORIENTED: dict[str, tuple[Callable[..., Any], ...]] = {
+    "planar": (load_planar_options, _planar_lag, planar_odometry_only, solve_planar_recording),
+    "pose": (load_pose_options, _pose_lag, pose_odometry_only, solve_pose_recording),
+}
