@@ -23,9 +23,7 @@ def test_one_seed_as_pose_odometry_runs_both_methods():
     """The same setting as pose odometry (6-DoF increments, a rotation noise, a body-frame
     displacement bias): both methods locate below the dead reckoning and report the
     attitude error."""
-    row = run_seed(
-        DEFAULT_FILE, 3, overrides=("simulation.trajectory.samples=120",), motion="pose"
-    )
+    row = run_seed(DEFAULT_FILE, 3, overrides=("simulation.trajectory.samples=120",), motion="pose")
     assert row["motion"] == "pose" and row["samples"] == 120 and row["before"] > 0.05
     for method in ("map", "ekf"):
         assert row[method]["rmse"] < row["before"], (method, row)
