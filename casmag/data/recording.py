@@ -515,17 +515,8 @@ def read_recording(path: str | Path) -> Recording:
 
     q_true = columns(QUATERNION_TRUTH_COLUMNS)
     if q_true is not None:
-        off = np.abs(np.linalg.norm(q_true, axis=1) - 1.0)
-        bad = np.flatnonzero(~(off <= QUATERNION_TOLERANCE))
-        if bad.size:
-            i = int(bad[0])
-            raise _error(
-                path,
-                f"row {i + 2}",
-                f"truth quaternion ({_names(QUATERNION_TRUTH_COLUMNS)}) has norm "
-                f"{float(np.linalg.norm(q_true[i])):.6g}, expected 1 within "
-                f"{QUATERNION_TOLERANCE:g}",
-            )
+        rows = np.arange(q_true.shape[0])
+        _refuse_non_unit(path, q_true, rows, "", "truth quaternion", QUATERNION_TRUTH_COLUMNS)
 
     position_cols = [c for c in POSITION_TRUTH_COLUMNS if c in col]
     increments = columns(motion_cols)
@@ -556,17 +547,28 @@ def _normalise_rotation_increments(
     part are left to :func:`_regularise`, which names the empty value."""
     rows = np.flatnonzero(~absent[:, qi].any(axis=1))
     rows = rows[rows > 0]  # the first row's increments are ignored
-    norm = np.linalg.norm(A[np.ix_(rows, qi)], axis=1)
+    Q = A[np.ix_(rows, qi)]
+    names = MOTION_COLUMNS["pose"][3:]
+    _refuse_non_unit(path, Q, rows, f", column '{names[0]}'", "pose rotation increment", names)
+    A[np.ix_(rows, qi)] = Q / np.linalg.norm(Q, axis=1, keepdims=True)
+
+
+def _refuse_non_unit(
+    path: str, Q: np.ndarray, rows: np.ndarray, where: str, what: str, names: Sequence[str]
+) -> None:
+    """DataError for the first quaternion of Q (n, 4) (columns ``names``, read from data rows
+    ``rows``) whose norm is not 1 within QUATERNION_TOLERANCE (``where``: after the row in
+    the message)."""
+    norm = np.linalg.norm(Q, axis=1)
     bad = np.flatnonzero(~(np.abs(norm - 1.0) <= QUATERNION_TOLERANCE))
     if bad.size:
         i = int(bad[0])
         raise _error(
             path,
-            f"row {int(rows[i]) + 2}, column '{MOTION_COLUMNS['pose'][3]}'",
-            f"pose rotation increment ({_names(MOTION_COLUMNS['pose'][3:])}) has norm "
-            f"{float(norm[i]):.6g}, expected 1 within {QUATERNION_TOLERANCE:g}",
+            f"row {int(rows[i]) + 2}{where}",
+            f"{what} ({_names(names)}) has norm {float(norm[i]):.6g}, expected 1 within "
+            f"{QUATERNION_TOLERANCE:g}",
         )
-    A[np.ix_(rows, qi)] /= norm[:, None]
 
 
 def _regularise(

@@ -37,6 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.linalg import blas
 
+from casmag import strapdown as sd
 from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.reduced_rank import HilbertBasis
 from casmag.model.rrmap import field_and_jacobians
@@ -200,9 +201,6 @@ class PoseNav:
     height_sigma: float | None = None  # the pose model's ``height`` block, as a measurement
 
     def __post_init__(self) -> None:
-        from casmag import strapdown as sd
-
-        self._sd = sd
         self.dim = 3
         self.n_nav = 9 if self.bias_p_sigma is None else 12
         self.bias_states = slice(6, self.n_nav)
@@ -211,7 +209,7 @@ class PoseNav:
         self._current = 0
 
     def initial(self) -> tuple[np.ndarray, np.ndarray]:
-        self.nominal[0] = self._sd.quat_normalize(np.asarray(self.q0, dtype=float))
+        self.nominal[0] = sd.quat_normalize(np.asarray(self.q0, dtype=float))
         self._current = 0
         x = np.zeros(self.n_nav)
         x[:3] = self.p0
@@ -221,7 +219,6 @@ class PoseNav:
         return x, np.diag(var)
 
     def predict(self, x: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        sd = self._sd
         h = float(self.dt[k])
         q = sd.quat_mul(self.nominal[k], sd.quat_exp(x[3:6]))  # the update folded in
         R = sd.quat_to_rotmat(q)
@@ -248,7 +245,6 @@ class PoseNav:
         return x[: self.position_dim]
 
     def _rt(self, x: np.ndarray, k: int) -> np.ndarray:
-        sd = self._sd
         return sd.quat_to_rotmat(sd.quat_mul(self.nominal[k], sd.quat_exp(x[3:6]))).T
 
     def rotation(self, x: np.ndarray) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
@@ -267,12 +263,11 @@ class PoseNav:
 
     def orientations(self, states: np.ndarray) -> np.ndarray:
         """(N, 4) filtered orientations of the states of a run."""
-        sd = self._sd
         return sd.quat_normalize(sd.quat_mul(self.nominal, sd.quat_exp(states[:, 3:6])))
 
     def sensor_rotations(self, states: np.ndarray) -> np.ndarray:
         """(N, 3, 3) R^T of each filtered state."""
-        return self._sd.quat_to_rotmat(self.orientations(states)).transpose(0, 2, 1)
+        return sd.quat_to_rotmat(self.orientations(states)).transpose(0, 2, 1)
 
 
 def sensor_rotations(nav: NavModel, states: np.ndarray) -> np.ndarray:

@@ -719,6 +719,20 @@ def slam_oriented(
     return result
 
 
+def _constant_field_info(rec: Recording, anchor: dict[str, Any]) -> dict[str, Any]:
+    """``info`` of the dead-reckoning result of a recording whose magnetometer is constant."""
+    return {
+        "name": Path(rec.path).stem,
+        "samples": int(rec.n_samples),
+        "num_basis": 0,
+        "anchor": anchor,
+        "fallback": "homogeneous field: " + CONSTANT_FIELD,
+        "recording": str(rec.path),
+        "casmag": __version__,
+        "versions": versions(),
+    }
+
+
 def pose_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
     """The pose dead reckoning as the result of a recording whose magnetometer is constant
     (status ``Odometry_Only``), started where :func:`casmag.solver.pose.solve_pose` starts."""
@@ -729,22 +743,14 @@ def pose_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
     p0 = P_true[0] if known else np.zeros(3)
     q0 = rec.q_true[0] if known and rec.q_true is not None else np.array([1.0, 0, 0, 0])
     P, Q = dead_reckon_pose(rec.increments, p0, q0)
+    anchor_entry = {
+        "kind": "first true position" if known else "origin",
+        "position": [float(v) for v in p0],
+        "quaternion": [float(v) for v in q0],
+    }
     return Result.odometry_only(
         "pose",
-        {
-            "name": Path(rec.path).stem,
-            "samples": int(rec.n_samples),
-            "num_basis": 0,
-            "anchor": {
-                "kind": "first true position" if known else "origin",
-                "position": [float(v) for v in p0],
-                "quaternion": [float(v) for v in q0],
-            },
-            "fallback": "homogeneous field: " + CONSTANT_FIELD,
-            "recording": str(rec.path),
-            "casmag": __version__,
-            "versions": versions(),
-        },
+        _constant_field_info(rec, anchor_entry),
         P,
         P_true,
         arrays={"t": rec.t, "Q_odometry": Q, "Q_estimate": Q, "Q_true": rec.q_true},
@@ -764,24 +770,16 @@ def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
     heading = None
     if P_true is not None and rec.yaw_true is not None:
         heading = heading_rms_deg(psi, rec.yaw_true)
+    anchor_entry = {
+        "kind": "first true position"
+        if known
+        else ("origin (no truth)" if P_true is None else "origin"),
+        "position": [float(v) for v in p0],
+        "heading_rad": psi0,
+    }
     return Result.odometry_only(
         "planar",
-        {
-            "name": Path(rec.path).stem,
-            "samples": int(rec.n_samples),
-            "num_basis": 0,
-            "anchor": {
-                "kind": "first true position"
-                if known
-                else ("origin (no truth)" if P_true is None else "origin"),
-                "position": [float(v) for v in p0],
-                "heading_rad": psi0,
-            },
-            "fallback": "homogeneous field: " + CONSTANT_FIELD,
-            "recording": str(rec.path),
-            "casmag": __version__,
-            "versions": versions(),
-        },
+        _constant_field_info(rec, anchor_entry),
         P,
         P_true,
         arrays={
