@@ -694,7 +694,8 @@ def slam_oriented(
         overrides, f"casmag slam on a {rec.motion} recording", PLANAR_WARM_START_KEYS
     )
     options = load(problem, overrides)
-    lag = lag_of(rec)
+    constant = constant_magnetometer(rec.Y)
+    lag = None if constant else lag_of(rec)  # a constant field has no lag to find
     found = [
         *rec.notes,
         *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
@@ -703,7 +704,7 @@ def slam_oriented(
     for line in warning_lines(rec.path, found):
         if on_warning is not None:
             on_warning(line)
-    if constant_magnetometer(rec.Y):
+    if constant:
         if not field_check:
             refuse_constant_field(rec.path)
         result = odometry_only(rec, anchor)

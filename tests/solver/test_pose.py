@@ -183,3 +183,30 @@ def test_slam_on_a_pose_recording_bad_settings_exit_2(
     assert r.exit_code == 2, r.output
     assert needle in r.output
     assert not out.exists()
+
+
+@pytest.mark.parametrize("motion", ["pose", "planar"])
+def test_a_constant_magnetometer_gives_the_dead_reckoning(tmp_path: Path, motion: str) -> None:
+    """A magnetometer that never changes (a straight walk, the sensor's axes fixed)
+    carries no position information: the result is the dead reckoning (status
+    Odometry_Only, the reason given), not a search that fails on the field's spread."""
+    n = 50
+    t = 0.5 * np.arange(n)
+    P = np.column_stack([np.linspace(0.0, 5.0, n), np.zeros(n), np.zeros(n)])
+    yaw = np.zeros(n)
+    Q = sd.quat_from_euler(yaw, yaw, yaw)
+    Y = np.tile([20.0, 0.0, -40.0], (n, 1))
+    path = tmp_path / "constant.csv"
+    if motion == "pose":
+        write_recording(path, t, Y, pose=sd.pose_increments(P, Q), P_true=P, q_true=Q)
+    else:
+        U = sd.pose_increments(P, Q)
+        planar = np.column_stack([U[:, 0], U[:, 1], np.diff(yaw)])
+        write_recording(path, t, Y, planar=planar, P_true=P[:, :2], yaw_true=yaw)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["slam", str(path), "--out", str(out), "--quiet"])
+    assert r.exit_code == 0, r.output
+    res = json.loads((out / "result.json").read_text())
+    assert res["motion"] == motion and res["status"] == "Odometry_Only"
+    assert res["info"]["fallback"].startswith("homogeneous field")
+    assert res["rmse_after"] == res["rmse_before"] < 1e-9
