@@ -116,6 +116,27 @@ class NoField(FieldModel):
         return None
 
 
+@dataclass(frozen=True)
+class LoopClosures(FieldModel):
+    """No map, but pairs of samples known to be at the same place (loop closures, e.g.
+    casmag.solver.closures): the block ``closure``, 0.5 sum |(p_j - p_i) / sigma_closure|^2
+    over the pairs (i, j), a residual (linear, so its Gauss-Newton Hessian is exact), with
+    ``sigma_closure`` a parameter. The motion model's adjustment with the loops closed: the
+    start of GP-SLAM where the dead reckoning has drifted by more than a lengthscale
+    between visits. Serves every motion model (it reads only the pose's positions)."""
+
+    pairs: tuple[tuple[int, int], ...]
+    name = "closures"
+
+    def declare(self, b: NLPBuilder, pose: Pose, solver: SolverSpec) -> HessianPart | None:
+        sigma = b.parameter("sigma_closure", (1, 1))
+        first = [i for i, _ in self.pairs]
+        second = [j for _, j in self.pairs]
+        P = pose.positions
+        b.residual("closure", (P[second, :] - P[first, :]) / sigma)
+        return None
+
+
 #: NLPs built by this process, per ``<motion>_<field>`` name (tests count them).
 BUILDS: Counter[str] = Counter()
 

@@ -46,7 +46,15 @@ import scipy.sparse
 from casmag import strapdown as sd
 from casmag.data.imusim import ImuData
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
-from casmag.model.builder import FieldModel, MotionModel, NoField, Pose, Rotation, cached_slam
+from casmag.model.builder import (
+    FieldModel,
+    LoopClosures,
+    MotionModel,
+    NoField,
+    Pose,
+    Rotation,
+    cached_slam,
+)
 from casmag.model.field import ExactField, ReducedRankField
 from casmag.model.knots import Knots
 from casmag.model.rotated import (
@@ -72,6 +80,7 @@ class ImuStructure:
     solver: str  # SolverSpec as JSON
     imu_hessian: str = "gauss-newton"  # or "exact": CasADi's Hessian of the imu block
     zero_centre: str = "start"  # or "free": the zero-position sphere's centre is estimated
+    closures: tuple[tuple[int, int], ...] = ()  # form none: loop-closure pairs (LoopClosures)
 
     def hilbert_basis(self) -> HilbertBasis:
         return cached_basis(self.basis)
@@ -277,7 +286,7 @@ def imu_field(s: ImuStructure) -> FieldModel:
     the keyframes or the reduced-rank map, each with Earth's field as a constant (without
     it the GP prior would reward spreading the positions to decorrelate Earth's field)."""
     if s.form == "none":
-        return NoField()
+        return LoopClosures(s.closures) if s.closures else NoField()
     if s.form == "exact":
         return ExactField(s.kernel, s.jitter, constant_field=True)
     # MUMPS's own ordering: the IMU solves were measured with it (METIS not measured here).

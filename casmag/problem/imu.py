@@ -263,6 +263,12 @@ class ImuGPSpec(Strict):
     ``casmag.solver.imu.GROW_MISFIT``): the anneal factors on each growing prefix (as ``grow``
     with ``grow_anneal``), from the IMU-only adjustment, kept by the same rule.
 
+    closures: true (default) or false: before GP-SLAM, find the places the path returns
+    to by the field's signature along it (``casmag.solver.closures``) and, when there are
+    any, start every schedule from the IMU-only adjustment with those pairs pulled together
+    (``closure`` block); GP-SLAM itself does not carry them. Recorded under
+    ``details.closures``.
+
     hyper_window, hyper_windows: keyframes per window of the windowed marginal likelihood
     (``estimate``, and the field check) and the most windows, evenly spread (``all``: every
     whole window, K // hyper_window). drift_ratio: null (default) or a ratio: when the
@@ -297,6 +303,7 @@ class ImuGPSpec(Strict):
         1.0,
     ]
     refit_misfit: Annotated[float, Field(ge=0.0, le=1.0e6)] = 0.55
+    closures: bool = True
     hyper_window: Annotated[int, Field(ge=3, le=10000)] = HYPER_WINDOW
     hyper_windows: Annotated[int, Field(ge=1, le=10000)] | Literal["all"] = HYPER_WINDOWS
     drift_ratio: Annotated[float, Field(gt=1.0, le=1.0e6)] | None = None

@@ -49,6 +49,7 @@ from casmag.nlp import NLP, STALLED, Progress, Solution
 from casmag.problem.imu import HYPER_SECONDS, ImuProblem, load_imu_problem
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
+from casmag.solver.closures import magnetic_closures
 from casmag.solver.windowing import continues, grow
 from casmag.versions import __version__, versions
 
@@ -97,6 +98,16 @@ GROW_MISFIT = 2.0
 #: the truth against the IMU-only 0.029 m. Other handwriting seeds are not measured, hence
 #: a limit well above 1.61.
 SPREAD_LIMIT = 3.0
+
+#: Standard deviation of a loop closure (the two positions' difference), in lengthscales:
+#: the accepted pairs were at most 13 mm apart in truth, against lengthscales of 0.1 m
+#: (casmag.solver.closures).
+CLOSURE_SIGMA = 0.25
+#: A closure the IMU cannot bring within this many sigma is dropped (the accepted pairs
+#: of the scenarios end 3-5 mm apart against sigma = 25 mm).
+CLOSURE_OUTLIER = 3.0
+#: Most closure-adjusted solves (each after dropping the pairs still apart).
+CLOSURE_ROUNDS = 3
 
 #: ``curvature: auto`` adds the magnetometer's second-order terms when the field's standard
 #: deviation per component is below this many sigma_m (``casmag.problem.imu.ImuGPSpec``).
@@ -292,6 +303,25 @@ class ImuSolution:
     evidence: FieldEvidence | None = None
     fallback: bool = False
     schedules: list[dict[str, Any]] = field(default_factory=list)
+    closures: dict[str, Any] | None = None  # the loop closures' record (closure_start)
+    closure_stage: ImuSolveStage | None = None  # GP-SLAM's start when closures were used
+
+
+def structure_base(problem: ImuProblem, data: ImuData, K: int) -> dict[str, Any]:
+    """The fields of an ImuStructure every stage of a problem shares (all but the map's
+    form and basis, the IMU block's Hessian and the closures)."""
+    m = problem.spec.model
+    return dict(
+        K=K,
+        n=problem.substeps,
+        T=float(data.T),
+        bias=m.imu.bias,
+        zero_position=m.zero_position.sigma is not None,
+        zero_centre=m.zero_position.centre,
+        kernel=m.gp.kernel,
+        jitter=m.gp.jitter,
+        solver=problem.spec.solver.model_dump_json(),
+    )
 
 
 def solve_imu_stages(
@@ -315,17 +345,7 @@ def solve_imu_stages(
     )
     strap = {"P": Ps[kf.idx], "V": Vs[kf.idx], "Q": Qs[kf.idx]}
     Kb = K if m.imu.bias == "random_walk" else 1
-    base = dict(
-        K=K,
-        n=n,
-        T=float(data.T),
-        bias=m.imu.bias,
-        zero_position=m.zero_position.sigma is not None,
-        zero_centre=m.zero_position.centre,
-        kernel=m.gp.kernel,
-        jitter=m.gp.jitter,
-        solver=spec.solver.model_dump_json(),
-    )
+    base = structure_base(problem, data, K)
     s1 = ImuStructure(form="none", basis=None, **base)
     nlp1 = cached_imu_nlp(s1)
     start = {
@@ -366,6 +386,18 @@ def solve_imu_stages(
     schedules: list[dict[str, Any]] = []
     passes: list[ImuSolveStage] = []
     s2, size = s1, None
+    first = st1
+    closure_record, closed = None, None
+    if m.gp.closures:
+        closed, closure_record = closure_start(problem, data, kf, base, st1, hyper, progress)
+        if closed is not None:
+            first = closed
+            # Again on the path with its loops closed: the IMU-only path's drift between
+            # and within windows makes the field vary faster than it does (measured:
+            # handwriting seed 9, l = 0.013 m on the IMU-only path).
+            hyper, source, est, windows = _hyperparameters(
+                problem, kf, closed, "closure-adjusted IMU-only"
+            )
     for name, steps in ladder:
         if (
             passes
@@ -375,7 +407,7 @@ def solve_imu_stages(
         ):
             break
         run, s2_run, size_run = _run_schedule(
-            problem, data, kf, base, st1, hyper, steps,
+            problem, data, kf, base, first, hyper, steps,
             m.gp.grow if name == "anneal" else m.gp.fallback_grow, progress,
         )  # fmt: skip
         record = {**_schedule_record(name, run, K), "kept": False}
@@ -403,8 +435,69 @@ def solve_imu_stages(
         fallback = evidence.homogeneous
     return ImuSolution(
         s2, kf, strap, st1, passes[-1], hyper, source, size, passes, evidence, fallback,
-        schedules,
+        schedules, closure_record, closed,
     )  # fmt: skip
+
+
+def closure_start(
+    problem: ImuProblem,
+    data: ImuData,
+    kf: Keyframes,
+    base: dict[str, Any],
+    st1: ImuSolveStage,
+    hyper: dict[str, float],
+    progress: Progress | None,
+) -> tuple[ImuSolveStage | None, dict[str, Any]]:
+    """Loop closures on the IMU-only adjustment (casmag.solver.closures, at the map's
+    lengthscale) and, when any are found, the IMU-only adjustment again from it with the
+    pairs pulled together (sigma CLOSURE_SIGMA lengthscales): GP-SLAM's start. Pairs the IMU
+    cannot bring within CLOSURE_OUTLIER sigma of each other are dropped and the rest solved
+    again (at most CLOSURE_ROUNDS solves). None (and the record says why) when none were
+    found, all were dropped or a solve failed."""
+    ell = hyper["lengthscale"]
+    found = magnetic_closures(st1.P, sd.rotate(st1.Q, kf.Y), ell)
+    record: dict[str, Any] = {**found.info, "used": False}
+    if not len(found):
+        return None, record
+    sigma = CLOSURE_SIGMA * ell
+    pairs = found.pairs
+    gap = np.linalg.norm(st1.P[pairs[:, 1]] - st1.P[pairs[:, 0]], axis=1)
+    record.update(sigma=sigma, gap_before_median=float(np.median(gap)), solves=[])
+    K = kf.idx.size
+    stage = None
+    for _ in range(CLOSURE_ROUNDS):
+        s1c = ImuStructure(
+            form="none", basis=None, closures=tuple(map(tuple, pairs.tolist())), **base
+        )
+        nlp = cached_imu_nlp(s1c)
+        params = {**_imu_params(problem, data, kf, s1c), "sigma_closure": sigma}
+        sol, nominal = _solve_recentred(
+            nlp, params, _start_from(st1, data), (), _terms_of(kf, base["n"], base["T"]),
+            progress,
+        )  # fmt: skip
+        stage = ImuSolveStage(solution=sol, nlp=nlp, **_stage_estimates(sol, nominal, K))
+        closed = np.linalg.norm(stage.P[pairs[:, 1]] - stage.P[pairs[:, 0]], axis=1)
+        outliers = closed > CLOSURE_OUTLIER * sigma
+        record["solves"].append(
+            {
+                "pairs": int(pairs.shape[0]),
+                "status": sol.status,
+                "iterations": sol.iterations,
+                "solve_seconds": sol.solve_seconds,
+                "gap_after_median": float(np.median(closed)),
+                "outliers": int(outliers.sum()),
+            }
+        )
+        if not sol.success or not outliers.any():
+            break
+        pairs = pairs[~outliers]
+        if not pairs.shape[0]:
+            break
+    assert stage is not None
+    last = record["solves"][-1]
+    used = stage.solution.success and last["outliers"] == 0
+    record.update(used=used, pairs_used=last["pairs"] if used else 0)
+    return (stage if used else None), record
 
 
 def _anneal_schedule(gp: Any) -> list[tuple[str, list[float], float]]:
@@ -878,6 +971,8 @@ def solve_imu(
         ),
         "gp_slam": _errors(None if est is None else est.P, None if est is None else est.Q, Pt, Qt),
     }
+    if res.closure_stage is not None:
+        errors["closure_start"] = _errors(res.closure_stage.P, res.closure_stage.Q, Pt, Qt)
     if res.fallback:
         errors["gp_slam_map"] = _errors(
             None if slam_map is None else slam_map.P,
@@ -1037,6 +1132,7 @@ def solve_imu(
             "field_evidence": None if res.evidence is None else res.evidence.to_dict(),
             "hyperparameters_source": res.hyperparameters_source,
             "schedules": res.schedules,
+            "closures": res.closures,
         },
         flags=flags,
         warnings=_map_warnings(problem, res),

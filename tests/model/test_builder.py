@@ -7,12 +7,13 @@ import pytest
 from casmag.gp.fieldmap import field_at
 from casmag.gp.kernels import get_kernel
 from casmag.gp.reduced_rank import Domain, HilbertBasis
-from casmag.model.builder import MotionModel, NoField, Pose, build_slam
+from casmag.model.builder import LoopClosures, MotionModel, NoField, Pose, build_slam
 from casmag.model.field import ExactField, ReducedRankField
 from casmag.model.imu import ImuMotion
 from casmag.model.knots import Knots
 from casmag.model.planar import PlanarMotion
 from casmag.model.translational import TranslationalMotion
+from casmag.nlp import NLPBuilder
 from casmag.problem.spec import SolverSpec
 
 N = 7
@@ -38,6 +39,7 @@ MOTION_BLOCKS = {
 DIM = {"translational": 2, "translational-knots": 2, "planar": 2, "imu": 3}
 FIELDS = {
     "none": lambda dim: NoField(),
+    "closures": lambda dim: LoopClosures(((0, 3), (1, 5), (2, 6))),
     "exact": lambda dim: ExactField("curl_free", 0.05, constant_field=True),
     "exact-estimated": lambda dim: ExactField(
         "se", 0.05, estimate=("sigma_f", "lengthscale"), logdet=True
@@ -48,6 +50,7 @@ FIELDS = {
 }
 FIELD_BLOCKS = {
     "none": set(),
+    "closures": {"closure"},
     "exact": {"magnetometer", "gp_prior", "constant_field_prior"},
     "exact-estimated": {"magnetometer", "gp_prior", "gp_logdet"},
     "reduced-rank": {"magnetometer", "gp_prior", "constant_field_prior"},
@@ -112,6 +115,25 @@ def test_exact_prior_on_a_planar_pose_is_the_gp_density():
     K = kernel.matrix(P, P, sf, ell) + 1e-8 * kernel.variance(sf, ell) * np.eye(N)
     expected = 0.5 * np.sum(M * np.linalg.solve(K, M))
     assert nlp.evaluate_blocks(x, p)["gp_prior"] == pytest.approx(expected, rel=1e-8)
+
+
+@pytest.mark.parametrize("motion", sorted(MOTIONS))
+def test_loop_closures_pull_the_paired_positions_of_any_motion_model(motion):
+    """The ``closure`` block is 0.5 sum |(p_j - p_i) / sigma_closure|^2 over the pairs, on the
+    positions the motion model gives (dead reckoning plus corrections, or knots)."""
+    pairs = ((0, 3), (2, 6))
+    nlp = build_slam(MOTIONS[motion](), LoopClosures(pairs), SolverSpec())
+    rng = np.random.default_rng(6)
+    x, p = _point(nlp, rng)
+    pose = MOTIONS[motion]().declare(NLPBuilder())  # the names of its position symbols
+    xs, ps = nlp.x_layout.unpack(x), nlp.p_layout.unpack(p)
+    C = xs[pose.variable]
+    if pose.knots.every != 1:  # the closure reads the samples interpolated from the knots
+        C = pose.knots.matrix @ C
+    P = C + (0.0 if pose.nominal is None else ps[pose.nominal])
+    sigma = ps["sigma_closure"].item()
+    expected = 0.5 * sum(np.sum((P[j] - P[i]) ** 2) for i, j in pairs) / sigma**2
+    assert nlp.evaluate_blocks(x, p)["closure"] == pytest.approx(expected, rel=1e-10)
 
 
 def test_a_motion_model_is_one_class():
