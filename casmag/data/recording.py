@@ -24,7 +24,7 @@ optional truth, for evaluation only, in complete groups
 Rows as sensors write them. A field left empty means "not sampled at this row"; each group
 (the motion input, ``mx,my,mz``, each truth group) is given whole or not at all on a row.
 A row identical to the previous one (a logger writing twice) is dropped; other rows with
-the same time stamp are merged into one (motion increments summed, pose increments
+the same time stamp are merged into one (motion increments summed, pose and IMU increments
 composed in row order, the other values averaged). When the motion input and the
 magnetometer are on different rows (two rates in one file), the dead reckoning is
 integrated at the motion rows, interpolated linearly in time to the magnetometer rows and
@@ -633,7 +633,7 @@ def _regularise(
         )
     A, absent, has_motion, has_mag, merged = _merge_equal_times(A, absent, col, motion, mi, yi)
     if merged:
-        how = "composed" if motion == "pose" else "summed"
+        how = "composed" if motion in ("pose", "imu") else "summed"
         notes.append(
             {
                 "check": "duplicate_time",
@@ -656,7 +656,9 @@ def _merge_equal_times(
     yi: list[int],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Rows of one time stamp as one row: present motion increments summed (pose: composed
-    in row order, dp = dp1 + R(dq1) dp2, dq = dq1 dq2), every other present value averaged.
+    in row order, dp = dp1 + R(dq1) dp2, dq = dq1 dq2; IMU the same with dv for dp, as
+    strapdown integration over a zero interval composes them), every other present value
+    averaged.
     Returns the rows, their absent mask, which rows have motion and magnetometer, and how
     many rows were merged away."""
     t = A[:, col[TIME_COLUMN]]
@@ -671,6 +673,11 @@ def _merge_equal_times(
         out[:, mi] = np.where(counts[:, mi] > 0, sums[:, mi], np.nan)  # increments add up
         if motion == "pose":
             out[:, mi] = _compose_pose_rows(A[:, mi], present[:, mi[0]], starts, out[:, mi])
+        elif motion == "imu":  # dq then dv: dv = dv1 + R(dq1) dv2 and dq = dq1 dq2 (Eq. 1)
+            order = [*mi[4:], *mi[:4]]
+            out[:, order] = _compose_pose_rows(
+                A[:, order], present[:, mi[0]], starts, out[:, order]
+            )
         out[:, col[TIME_COLUMN]] = t[starts]
         A, absent = out, counts == 0
         absent[:, col[TIME_COLUMN]] = False

@@ -17,6 +17,7 @@ from casmag.data.recording import (
 )
 from casmag.data.simulate import Dataset
 from casmag.errors import DataError
+from casmag.strapdown import quat_mul, rotate
 
 GOOD_HEADER = "t,dx,dy,mx,my,mz"
 GOOD_ROWS = ["0,,,1,2,3", "1,0.1,0.2,1.1,2.1,3.1", "2,0.1,0.2,1.2,2.2,3.2"]
@@ -475,6 +476,27 @@ def test_rows_of_one_time_stamp_are_merged(tmp_path):
     np.testing.assert_allclose(rec.Y[1], [2, 3, 4])  # averaged
     assert [n["check"] for n in rec.notes] == ["duplicate_time"]
     assert "1 rows repeat the previous row's time stamp" in rec.notes[0]["reason"]
+
+
+def test_imu_increments_of_one_time_stamp_are_composed(tmp_path):
+    """Two IMU rows of one time stamp are one interval: dq = dq1 dq2 and dv = dv1 + R(dq1)
+    dv2 (what strapdown integration over a zero interval gives), not their sums."""
+    rng = np.random.default_rng(5)
+    dq = _unit_quaternions(rng, 3)
+    dv = rng.standard_normal((3, 3))
+    times = [0.01, 0.01, 0.02]
+    rows = ["0,,,,,,,,1,2,3"] + [
+        ",".join(repr(float(v)) for v in [times[k], *dq[k], *dv[k], 1.0, 2.0, 3.0 + k])
+        for k in range(3)
+    ]
+    header = "t," + ",".join(MOTION_COLUMNS["imu"]) + ",mx,my,mz"
+    rec = read_recording(_write(tmp_path, _csv(header, rows)))
+    np.testing.assert_array_equal(rec.t, [0.0, 0.01, 0.02])
+    q12 = quat_mul(dq[0], dq[1])
+    np.testing.assert_allclose(rec.increments[0, :4], q12 / np.linalg.norm(q12), atol=1e-12)
+    np.testing.assert_allclose(rec.increments[0, 4:], dv[0] + rotate(dq[0], dv[1]), atol=1e-12)
+    np.testing.assert_allclose(rec.increments[1], np.r_[dq[2], dv[2]], atol=1e-12)
+    assert "motion increments composed" in rec.notes[0]["reason"]
 
 
 def test_time_going_back_is_refused(tmp_path):
