@@ -250,7 +250,8 @@ class ImuGPSpec(Strict):
     every prefix before growing it (one GP-SLAM pass, whose ``grow`` lists every solve).
 
     coarse_to_fine: lengthscale factors of a second GP-SLAM schedule (null: none), each a
-    pass from the previous one (the first from the IMU-only adjustment) with the lengthscale
+    pass from the previous one (the first from the start: the IMU-only adjustment, with its
+    loops closed when there are closures) with the lengthscale
     and sigma_m both scaled by the factor (sigma_f so that the field's variance stays the
     estimated one); the last factor must be 1, so that both schedules end with the same
     hyperparameters and sigma_m. It runs when the anneal schedule's final solve failed or
@@ -261,7 +262,7 @@ class ImuGPSpec(Strict):
     fallback_grow: prefix fractions of a third schedule (null: none), run when the
     schedule kept so far failed or fits clearly badly (misfit above
     ``casmag.solver.imu.GROW_MISFIT``): the anneal factors on each growing prefix (as ``grow``
-    with ``grow_anneal``), from the IMU-only adjustment, kept by the same rule.
+    with ``grow_anneal``), from the same start, kept by the same rule.
 
     closures: true (default) or false: before GP-SLAM, find the places the path returns
     to by the field's signature along it (``casmag.solver.closures``) and, when there are

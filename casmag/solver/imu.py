@@ -2,14 +2,17 @@
 GP-SLAM schedules from it, the field check and the result (:func:`solve_imu`).
 
 The solve has stages: the IMU-only adjustment (no magnetometer) from plain strapdown
-integration, then GP-SLAM passes from its result (sigma_m annealed, ``model.gp.anneal``),
-each with the nominal orientations moved to the previous estimate. Hyperparameters marked
+integration; loop closures found by the field's signature (casmag.solver.closures) and the
+IMU-only adjustment with them pulled together (:func:`closure_start`); then GP-SLAM
+schedules from that start (sigma_m annealed, ``model.gp.anneal``, and the fallbacks), each
+pass with the nominal orientations moved to the previous estimate. Hyperparameters marked
 ``estimate`` come from the windowed GP marginal likelihood (Eq. 5, ``casmag.gp.hyper``) on the
-IMU-only trajectory; the joint MAP cannot estimate them with the reduced-rank map
-(unbounded, see ``casmag.problem.spec``). With estimated hyperparameters a field check
-(:func:`field_evidence`) on the IMU-only path and on the last pass's path decides whether the
-field carries position information at all; when it does not (a homogeneous field), the
-result is the IMU-only adjustment (``model.gp.homogeneous``).
+IMU-only trajectory, again on the closure-adjusted one; the joint MAP cannot estimate them
+with the reduced-rank map (unbounded, see ``casmag.problem.spec``). With estimated
+hyperparameters a field check (:func:`field_evidence`) on the IMU-only path and on the last
+pass's path decides whether the field carries position information at all; when it does
+not (a homogeneous field), the result is the IMU-only adjustment
+(``model.gp.homogeneous``).
 """
 
 from __future__ import annotations
@@ -328,8 +331,10 @@ def solve_imu_stages(
     problem: ImuProblem, data: ImuData, progress: Progress | None = None
 ) -> ImuSolution:
     """Strapdown, then the IMU-only adjustment from it, then (unless the map form is
-    ``none``) GP-SLAM passes from the IMU-only result with sigma_m scaled by
-    ``model.gp.anneal`` (hyperparameters estimated once, on the IMU-only trajectory), then,
+    ``none``) the loop closures' start (``model.gp.closures``) and GP-SLAM schedules from
+    it (or from the IMU-only result without closures) with sigma_m scaled by
+    ``model.gp.anneal`` (hyperparameters estimated on the IMU-only trajectory, again on the
+    closure-adjusted one), then,
     when hyperparameters are estimated, ``model.gp.refine`` more passes with them
     re-estimated on the previous pass's trajectory. ``slam`` is the last pass,
     ``slam_passes`` all of them. A failed solve stops the pipeline (``slam`` is None when
@@ -374,19 +379,16 @@ def solve_imu_stages(
     # The anneal schedule; then the coarse-to-fine one when it failed or fits badly (misfit
     # above model.gp.refit_misfit), then the grown one (the slowest: 16 solves) when the
     # kept one still failed or fits clearly badly (misfit above GROW_MISFIT), each from the
-    # IMU-only adjustment. A later
+    # start (the closure-adjusted IMU-only adjustment, or the IMU-only one). A later
     # schedule is kept when it succeeds and the kept one failed or its final MAP cost is
     # lower by more than SCHEDULE_MARGIN (all end with sigma_m and the lengthscale x1, on
-    # bases around their own previous passes).
-    ladder = [("anneal", _anneal_schedule(m.gp))]
-    if m.gp.coarse_to_fine is not None:
-        ladder.append(("coarse_to_fine", [("pass", [f], f) for f in m.gp.coarse_to_fine]))
-    if m.gp.fallback_grow is not None:
-        ladder.append(("grown", [("grow", list(m.gp.anneal), 1.0)]))
+    # bases around their own previous passes). With closures, a last schedule runs when
+    # the kept one still failed or fits clearly badly: the anneal schedule from the IMU-only
+    # adjustment itself, with its own hyperparameters (a wrong closure can only cost that).
     schedules: list[dict[str, Any]] = []
     passes: list[ImuSolveStage] = []
     s2, size = s1, None
-    first = st1
+    first, imu_only_hyper = st1, (hyper, source, windows)
     closure_record, closed = None, None
     if m.gp.closures:
         closed, closure_record = closure_start(problem, data, kf, base, st1, hyper, progress)
@@ -398,25 +400,34 @@ def solve_imu_stages(
             hyper, source, est, windows = _hyperparameters(
                 problem, kf, closed, "closure-adjusted IMU-only"
             )
-    for name, steps in ladder:
-        if (
-            passes
-            and passes[-1].solution.success
-            and schedules[_kept(schedules)]["misfit"]
-            <= (GROW_MISFIT if name == "grown" else m.gp.refit_misfit)
-        ):
+    kept_hyper = (hyper, source, windows)
+    ladder = [("anneal", _anneal_schedule(m.gp), first, kept_hyper)]
+    if m.gp.coarse_to_fine is not None:
+        steps = [("pass", [f], f) for f in m.gp.coarse_to_fine]
+        ladder.append(("coarse_to_fine", steps, first, kept_hyper))
+    if m.gp.fallback_grow is not None:
+        ladder.append(("grown", [("grow", list(m.gp.anneal), 1.0)], first, kept_hyper))
+    if closed is not None:
+        ladder.append(("without_closures", _anneal_schedule(m.gp), st1, imu_only_hyper))
+    for name, steps, start, h in ladder:
+        if passes and not schedule_needed(
+            name, passes[-1].solution.success, schedules[_kept(schedules)]["misfit"],
+            m.gp.refit_misfit,
+        ):  # fmt: skip
             break
         run, s2_run, size_run = _run_schedule(
-            problem, data, kf, base, first, hyper, steps,
-            m.gp.grow if name == "anneal" else m.gp.fallback_grow, progress,
+            problem, data, kf, base, start, h[0], steps,
+            m.gp.grow if name in ("anneal", "without_closures") else m.gp.fallback_grow,
+            progress,
         )  # fmt: skip
         record = {**_schedule_record(name, run, K), "kept": False}
         if not passes or _better(run[-1].solution, passes[-1].solution):
             for r in schedules:
                 r["kept"] = False
             record["kept"] = True
-            passes, s2, size = run, s2_run, size_run
+            passes, s2, size, kept_hyper = run, s2_run, size_run, h
         schedules.append(record)
+    hyper, source, windows = kept_hyper
     estimated = "estimate" in (m.gp.sigma_f, m.gp.lengthscale)
     for _ in range(m.gp.refine if estimated else 0):
         if not passes[-1].solution.success:
@@ -509,6 +520,16 @@ def _anneal_schedule(gp: Any) -> list[tuple[str, list[float], float]]:
     if gp.grow is not None:
         steps[0] = ("grow", [gp.anneal[0]], 1.0)
     return steps
+
+
+def schedule_needed(name: str, kept_success: bool, kept_misfit: float, refit: float) -> bool:
+    """Whether the ladder's next schedule ``name`` runs after the kept one: when that failed,
+    or fits badly (MAP cost per magnetometer component above ``refit``, i.e.
+    ``model.gp.refit_misfit``, before ``coarse_to_fine``) or clearly badly (above
+    GROW_MISFIT, before ``grown`` and ``without_closures``)."""
+    if not kept_success:
+        return True
+    return kept_misfit > (refit if name == "coarse_to_fine" else GROW_MISFIT)
 
 
 def _better(new: Solution, kept: Solution) -> bool:

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from casmag.solver.imu import SPREAD_LIMIT, path_spread
+from casmag.solver.imu import GROW_MISFIT, SPREAD_LIMIT, path_spread, schedule_needed
 
 
 def test_a_path_spread_beyond_the_limit_is_flagged_and_a_drift_correction_is_not():
@@ -22,3 +22,15 @@ def test_a_path_spread_beyond_the_limit_is_flagged_and_a_drift_correction_is_not
     assert flag["evidence"]["ratio"] == pytest.approx(4.0)
     assert flag["evidence"]["limit"] == SPREAD_LIMIT
     assert "\n" not in flag["reason"]
+
+
+def test_a_later_schedule_runs_only_after_a_failed_or_badly_fitting_one():
+    """The ladder's rule (casmag.solver.imu.schedule_needed): coarse-to-fine after a failure
+    or a misfit above refit_misfit; the grown schedule and the one from the IMU-only
+    adjustment without closures only after a failure or a misfit above GROW_MISFIT."""
+    assert schedule_needed("coarse_to_fine", True, 0.6, 0.55)
+    assert not schedule_needed("coarse_to_fine", True, 0.5, 0.55)
+    for name in ("grown", "without_closures"):
+        assert not schedule_needed(name, True, 0.9 * GROW_MISFIT, 0.55)
+        assert schedule_needed(name, True, 1.1 * GROW_MISFIT, 0.55)
+        assert schedule_needed(name, False, 0.1, 0.55)
