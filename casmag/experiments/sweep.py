@@ -561,16 +561,22 @@ def _call(fn: Callable[[Any], Any], item: Any) -> Any:
 
 @contextlib.contextmanager
 def _sigint_blocked() -> Iterator[None]:
-    """Hold back SIGINT in this thread while worker processes are started: a worker
-    inherits the blocked signal (so a Ctrl-C never interrupts its start-up), and a Ctrl-C
-    meanwhile reaches this process once it is unblocked."""
+    """Hold back SIGINT in this thread while worker processes are started, and ignore it
+    there: a spawned worker inherits the ignored disposition (and then the blocked mask), so
+    a Ctrl-C never interrupts its start-up with a traceback; blocked alone, a spawned
+    worker started with an empty mask and Python's KeyboardInterrupt handler (measured on
+    Python 3.11: a Ctrl-C while a worker unpickled its task printed a traceback). A Ctrl-C
+    meanwhile stays pending here (Linux keeps a blocked signal even while ignored) and
+    reaches this process's own handler, restored before the signal is unblocked."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
+        signal.signal(signal.SIGINT, previous)
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 

@@ -11,6 +11,7 @@ from casmag.cli.main import main
 from casmag.experiments.sweep import (
     THREAD_VARIABLES,
     SweepAborted,
+    _sigint_blocked,
     load_sweep,
     local_map,
     parse_grid,
@@ -356,3 +357,30 @@ def test_an_imu_problem_is_swept_and_reported_in_the_imu_table(tmp_path):
     assert res.exit_code == 0, res.output
     text = (tmp_path / "report.md").read_text()
     assert "IMU-only RMSE [m] mean" in text and "2/2 solved" in text
+
+
+def _sigint_disposition(queue):
+    """In a spawned process: how SIGINT is handled as it starts."""
+    import signal
+
+    queue.put(str(signal.getsignal(signal.SIGINT)))
+
+
+def test_workers_start_with_ctrl_c_ignored():
+    """A worker spawned while the pool starts ignores SIGINT from its first instruction, so
+    a Ctrl-C during its start-up cannot print a KeyboardInterrupt traceback; the parent's
+    own handler is back afterwards."""
+    import multiprocessing
+    import signal
+
+    ctx = multiprocessing.get_context("spawn")
+    before = signal.getsignal(signal.SIGINT)
+    queue = ctx.Queue()
+    with _sigint_blocked():
+        proc = ctx.Process(target=_sigint_disposition, args=(queue,))
+        proc.start()
+    try:
+        assert queue.get(timeout=60) == str(signal.SIG_IGN)
+    finally:
+        proc.join(60)
+    assert signal.getsignal(signal.SIGINT) is before
