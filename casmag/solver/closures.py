@@ -12,8 +12,10 @@ the rest (a distinctiveness test against the median and against the second-best 
 in runs along both visits (a returning path matches over a stretch, not at one sample).
 
 The pairs then pull the two visits together in the dead reckoning's adjustment
-(``closure`` block of casmag.model.imu), which makes GP-SLAM's start; GP-SLAM itself does
-not carry them, so a wrong pair can only cost a worse start, never bias the result.
+(``closure`` block, casmag.model.builder.LoopClosures), which makes GP-SLAM's start
+(casmag.solver.imu.closure_start); GP-SLAM itself does not carry them. A wrong pair still
+costs more than time: it gives a wrong start, from which GP-SLAM can settle in a wrong
+optimum (measured with forced wrong pairs, problems/imu/README.md, step 3).
 
 Measured (2026-11-26) on the IMU-only adjustments of the IMU scenarios (problems/imu), with
 the lengthscale set to the scenarios' (0.1 m for handwriting and rectangle, 0.12 m spiral,

@@ -384,7 +384,8 @@ def solve_imu_stages(
     # lower by more than SCHEDULE_MARGIN (all end with sigma_m and the lengthscale x1, on
     # bases around their own previous passes). With closures, a last schedule runs when
     # the kept one still failed or fits clearly badly: the anneal schedule from the IMU-only
-    # adjustment itself, with its own hyperparameters (a wrong closure can only cost that).
+    # adjustment itself, with its own hyperparameters (for a wrong closure that the fit
+    # shows; one that fits well is not caught, problems/imu/README.md step 3).
     schedules: list[dict[str, Any]] = []
     passes: list[ImuSolveStage] = []
     s2, size = s1, None
