@@ -579,7 +579,8 @@ class PlanarOptions:
     recordings); num_basis, margin: reduced-rank basis
     (None: defaults of ``casmag.model.rrmap``); sigma_anchor [m] (1e-3) and sigma_psi0 [rad] (1e-3):
     priors on the known first position and heading; starts: number of starts (odd: the dead
-    reckoning and pairs of +-heading-rate biases, the lowest MAP cost kept) [1];
+    reckoning and pairs of +-heading-rate biases, each running ``solver.warm_start``'s
+    strategy, the lowest MAP cost kept: casmag.solver.staged) [1];
     start_heading_deg: the heading the first pair's bias turns over the recording [10];
     form: the map, ``reduced_rank`` (one box around the dead reckoning) or ``tiled``
     (casmag.gp.tiles: tiles only where the path goes, each sample touching the four
@@ -609,6 +610,10 @@ class PlanarOptions:
     )
 
 
+#: The warm-start strategies the planar and pose models take (casmag.solver.staged).
+STAGED_STRATEGIES = ("none", "growing", "coarse-to-fine")
+
+
 def load_planar_options(
     problem: str | Path | Mapping[str, Any] | None = None,
     overrides: Iterable[str] = (),
@@ -631,7 +636,7 @@ def load_recording_spec(
 ) -> Any:
     """A recording model's problem file (planar, pose: only its ``model`` and ``solver``
     sections are read; the solver's defaults are the class's own) with ``key.path=value``
-    overrides, validated; warm starts ``none`` or ``growing``. Raises ProblemError naming
+    overrides, validated; warm starts :data:`STAGED_STRATEGIES`. Raises ProblemError naming
     the file (or ``--set``), the key and the reason."""
     if problem is None:
         data: dict[str, Any] = {}
@@ -647,11 +652,12 @@ def load_recording_spec(
     if solver is not None and not isinstance(solver, dict):
         data["solver"] = solver  # let validation name the bad value
     spec, _ = validate_spec(spec_class, data, overrides, source)
-    if spec.solver.warm_start.strategy not in ("none", "growing"):
+    if spec.solver.warm_start.strategy not in STAGED_STRATEGIES:
         raise ProblemError(
             source,
             "solver.warm_start.strategy",
-            f"{spec.solver.warm_start.strategy!r}: the {model_name} model takes none or growing",
+            f"{spec.solver.warm_start.strategy!r}: the {model_name} model takes "
+            + ", ".join(STAGED_STRATEGIES),
         )
     return spec
 
@@ -661,10 +667,14 @@ def load_recording_spec(
 UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncertainty_inflation")
 
 
-#: The warm-start keys the planar model reads (growing prefixes).
+#: The warm-start keys the planar and pose models read (growing prefixes, coarse-to-fine).
 PLANAR_WARM_START_KEYS = tuple(
-    f"solver.warm_start.{k}" for k in ("strategy", "first_samples", "growth", "stage_max_iter")
-)
+    f"solver.warm_start.{k}"
+    for k in (
+        "strategy", "first_samples", "growth", "stage_max_iter", "lengthscale_start",
+        "lengthscale_stages",
+    )
+)  # fmt: skip
 
 
 def refuse_unused_solver_keys(

@@ -1,6 +1,8 @@
 """The solve of the planar model (casmag.model.planar) from arrays (:func:`solve_planar`)
-and from a recording (:func:`solve_planar_recording`): heading-bias starts kept by MAP cost,
-growing prefixes, hyperparameters from the data, the wrong-basin check, the result."""
+and from a recording (:func:`solve_planar_recording`): the model as a
+:class:`casmag.solver.staged.StagedModel` (:class:`PlanarStaged`), whose warm starts and
+heading-bias starts casmag.solver.staged runs; hyperparameters from the data, the
+wrong-basin check, the result."""
 
 from __future__ import annotations
 
@@ -24,12 +26,13 @@ from casmag.model.planar import (
 from casmag.model.rotated import ridge_weights, whiten
 from casmag.model.rrmap import make_basis
 from casmag.model.tiledmap import home_points, left_map_tiles, ridge_tile_weights, tile_grid
-from casmag.nlp import NLP, Progress, lowest_cost
+from casmag.nlp import Progress
 from casmag.problem.imu import PlanarOptions
+from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import heading_rms_deg, rmse_and_max
 from casmag.solver.ekf import FilterMap, PlanarNav, filter_result, run_safely
-from casmag.solver.windowing import grow, stage_lengths
+from casmag.solver.staged import Solved, StagedModel, heading_bias_starts, solve_starts
 from casmag.versions import versions
 
 #: With truth (evaluation), an estimate whose position RMSE is above this fraction of the
@@ -72,7 +75,9 @@ def solve_planar(
     (the dead reckoning) is the default: on the 186-sample loop walk, seeds 1-5, three starts
     lowered the MAP cost on seeds 1, 2 and 4 but the RMSE ratio only on seed 1 (0.34 ->
     0.18; seed 2 0.17 -> 0.21, seed 4 0.09 -> 0.20; two loops, seed 1: 0.29 -> 0.42): the
-    lower-cost optimum of this model is not reliably nearer the truth.
+    lower-cost optimum of this model is not reliably nearer the truth. Each start runs the
+    strategy of ``options.solver.warm_start`` (casmag.solver.staged: one batch, growing
+    prefixes or coarse-to-fine).
 
     method: ``map`` (default) the MAP estimate; ``ekf`` the filter baseline with the same
     map box, hyperparameters and noise (casmag.solver.ekf; the box map only)."""
@@ -92,24 +97,7 @@ def solve_planar(
     Y_local = sd.rotate(sd.quat_from_euler(0.0 * psi_dr, 0.0 * psi_dr, psi_dr), Y)
     sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_local)
 
-    def structure(k: int, around: np.ndarray, solver: Any) -> PlanarStructure:
-        """The first k samples' problem, its map (box or tiles) around the positions
-        ``around``."""
-        common = {
-            "n": k, "bias": options.bias, "kernel": options.kernel,
-            "solver": solver.model_dump_json(),
-        }  # fmt: skip
-        if options.form == "tiled":
-            grid = tile_grid(around, float(ell), reach=options.margin)
-            return PlanarStructure(**common, basis=None, grid=grid, home=home_points(grid, around))
-        hb = make_basis(options.kernel, around, float(ell), options.num_basis, options.margin)
-        return PlanarStructure(
-            **common,
-            basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
-            curvature=options.curvature,
-        )
-
-    s = structure(n, P_dr, options.solver)
+    s = planar_structure(options, n, P_dr, float(ell), options.solver)
     if method == "ekf":
         if s.tiled:
             raise DataError("model.form: the filter baseline needs the box map (reduced_rank)")
@@ -142,118 +130,16 @@ def solve_planar(
             if psi is not None:
                 result.details["heading_rms_deg_after"] = heading_rms_deg(psi, heading)
         return result
-    nlp = cached_planar_nlp(s) if not s.tiled else None  # tiles: built around each start
-    params: dict[str, Any] = {
-        "U": U,
-        "dt": dt.reshape(-1, 1),
-        "sigma_disp": options.sigma_disp,
-        "sigma_dyaw": options.sigma_dyaw,
-        "sigma_bias0": options.bias_prior,
-        "sigma_anchor": options.sigma_anchor,
-        "sigma_psi0": options.sigma_psi0,
-        "anchor": np.array([[p0[0], p0[1], psi0]]),
-        "Y": Y,
-        "sigma_m": sigma_m,
-        "sigma_f": float(sigma_f),
-        "lengthscale": float(ell),
-        "sigma_lin": sigma_lin,
-    }
-    if options.bias == "random_walk":
-        params["bias_walk"] = options.bias_walk
-    c0 = Y_local.mean(axis=0)
-    n_bias = n - 1 if options.bias == "random_walk" else 1
-
-    def initial_map(s_k: PlanarStructure, P0: np.ndarray, Y0: np.ndarray) -> np.ndarray:
-        """The NLP's map unknowns fitted to the field Y0 (in the map frame) at P0: the
-        tiles' weights, or the box's whitened weights."""
-        if s_k.tiled:  # whitened (casmag.model.tiledmap.RotatedTiledModel)
-            tiles = s_k.tiles()
-            w = ridge_tile_weights(tiles, P0, Y0, c0, sigma_m, float(sigma_f), float(ell))
-            return w / np.sqrt(tiles.prior_variances(float(sigma_f), float(ell)))[:, None]
-        basis_k = s_k.hilbert_basis()
-        w = ridge_weights(basis_k, options.kernel, P0, Y0, c0, sigma_m, float(sigma_f), float(ell))
-        return whiten(basis_k, options.kernel, float(sigma_f), float(ell), w)
-
-    def solve_prefix(
-        k: int, P0: np.ndarray, psi_0: np.ndarray, bias0: np.ndarray, stage_solver: Any
-    ) -> tuple[Any, NLP, PlanarStructure]:
-        """The first k samples' problem from (P0, psi_0, bias0), its map around P0;
-        k = n with the full solver is the batch's problem, its box around the dead
-        reckoning (also the last growing stage's, and the solve from the truth's). Tiles
-        are always laid around P0: their Hessian pattern follows the start (so the solve
-        from the truth lays its own tiles, whose prior on the weights of unvisited tiles
-        adds nothing at the optimum)."""
-        if k == n and stage_solver is options.solver and not s.tiled:
-            nlp_k, s_k, params_k = nlp, s, params
-        else:
-            s_k = structure(k, P0, stage_solver)
-            nlp_k = cached_planar_nlp(s_k)
-            params_k = {**params, "U": U[: k - 1], "dt": dt[: k - 1].reshape(-1, 1), "Y": Y[:k]}
-        Y0 = sd.rotate(sd.quat_from_euler(0.0 * psi_0, 0.0 * psi_0, psi_0), Y[:k])
-        x0 = {
-            "P": P0,
-            "psi": psi_0.reshape(-1, 1),
-            "bias": bias0,
-            "W": initial_map(s_k, P0, Y0),
-            "c": c0.reshape(3, 1),
-        }
-        return nlp_k.solve(params_k, x0, progress=progress), nlp_k, s_k
-
-    def solve_from(bias0: float) -> tuple[Any, NLP, PlanarStructure]:
-        U0 = U.copy()
-        U0[:, 2] -= bias0 * dt
-        P0, psi_0 = dead_reckon_planar(U0, np.asarray(p0, float), psi0)
-        return solve_prefix(n, P0, psi_0, np.full((n_bias, 1), bias0), options.solver)
-
+    model = PlanarStaged(
+        options, U, dt, Y, np.asarray(p0, float), float(psi0), P_dr, Y_local.mean(axis=0),
+        sigma_m, float(sigma_f), float(ell), sigma_lin, progress,
+    )  # fmt: skip
     ws = options.solver.warm_start
-    sizes = stage_lengths(n, ws.first_samples, ws.growth) if ws.strategy == "growing" else [n]
-    stages_grown = len(sizes) > 1  # else one batch from the dead reckoning
-    if stages_grown:
-        stage_solver = options.solver.model_copy(update={"max_iter": ws.stage_max_iter})
-
-        def stage(k: int, prev: tuple | None, last: bool) -> tuple[Any, tuple]:
-            if prev is None:  # the dead reckoning
-                P0, psi_0 = dead_reckon_planar(U[: k - 1], np.asarray(p0, float), psi0)
-                bias0 = np.zeros((k - 1 if options.bias == "random_walk" else 1, 1))
-            else:  # the previous stage, continued by the odometry with its bias removed
-                x = prev[0].x
-                m = x["P"].shape[0]
-                rest = U[m - 1 : k - 1].copy()
-                rest[:, 2] -= float(x["bias"][-1, 0]) * dt[m - 1 : k - 1]
-                Pr, psr = dead_reckon_planar(rest, x["P"][-1], float(x["psi"][-1, 0]))
-                P0 = np.vstack([x["P"], Pr[1:]])
-                psi_0 = np.concatenate([x["psi"].ravel(), psr[1:]])
-                bias0 = x["bias"]
-                if options.bias == "random_walk":
-                    bias0 = np.vstack([bias0, np.repeat(bias0[-1:], k - m, axis=0)])
-            solved = solve_prefix(k, P0, psi_0, bias0, options.solver if last else stage_solver)
-            return solved[0], solved
-
-        grown = grow(sizes, stage)
-        sol, nlp, s = grown[-1][2]
-        solves = [(0.0, so) for _, so, _ in grown]
-        starts = [
-            {"bias": 0.0, "samples": k, "cost": so.objective, "status": so.status,
-             "iterations": so.iterations, "kept": i == len(grown) - 1}
-            for i, (k, so, _) in enumerate(grown)
-        ]  # fmt: skip
-    else:
-        delta = np.radians(options.start_heading_deg) / max(float(dt.sum()), 1e-12)
-        k = np.arange(1, (options.starts - 1) // 2 + 1)
-        biases = [0.0, *np.ravel(np.column_stack([k * delta, -k * delta]))]
-        runs = [(b0, solve_from(float(b0))) for b0 in biases]
-        solves = [(b0, run[0]) for b0, run in runs]
-        starts = [
-            {"bias": float(b0), "cost": so.objective, "status": so.status,
-             "iterations": so.iterations}
-            for b0, so in solves
-        ]  # fmt: skip
-        best = lowest_cost([so for _, so in solves])
-        best = 0 if best is None else best  # none succeeded: the dead reckoning's
-        sol, nlp, s = runs[best][1]
-        for i, st in enumerate(starts):
-            st["kept"] = i == best
-
+    biases = heading_bias_starts(options.starts, options.start_heading_deg, float(dt.sum()))
+    staged = solve_starts(model, ws, biases)
+    final = staged.final
+    sol, nlp, s = final.sol, final.nlp, final.structure
+    stages_grown = len(staged.runs[staged.kept]) > 1
     hyper = {"sigma_f": float(sigma_f), "lengthscale": float(ell), "sigma_m": sigma_m}
     flags: list[dict[str, Any]] = []
     if truth is not None and "psi" in truth and sol.success:
@@ -261,10 +147,12 @@ def solve_planar(
         ratio = rmse_and_max(sol.x["P"], truth["P"])[0] / max(rmse_dr, 1e-12)
         if ratio > TRUTH_START_RATIO:
             # The same problem (this NLP, its map box) from the true path and heading.
-            true_start = solve_prefix(
-                n, np.asarray(truth["P"], float), np.asarray(truth["psi"], float),
-                sol.x["bias"], options.solver,
-            )[0]  # fmt: skip
+            states = {
+                "P": np.asarray(truth["P"], float),
+                "psi": np.asarray(truth["psi"], float),
+                "bias": sol.x["bias"],
+            }
+            true_start = model.solve(n, states, options.solver, float(ell)).sol
             flag = wrong_basin_flag(sol, true_start, truth["P"], ratio)
             if flag is not None:
                 flags.append(flag)
@@ -293,7 +181,7 @@ def solve_planar(
         success=sol.success,
         iterations=sol.iterations,
         build_seconds=nlp.build_seconds,
-        solve_seconds=sum(so.solve_seconds for _, so in solves),
+        solve_seconds=sum(so.sol.solve_seconds for so in staged.solves),
         rmse_before=before[0],
         max_before=before[1],
         rmse_after=after[0],
@@ -302,8 +190,8 @@ def solve_planar(
         odometry_bias=[float(v) for v in sol.x["bias"].ravel()] if sol.success else None,
         hyperparameters=hyper,
         cost_blocks=sol.cost_blocks(),
-        # growing prefixes, or the heading-bias starts (one kept)
-        stages=[{"name": "prefix" if stages_grown else "start", **st} for st in starts],
+        # each start's strategy (growing prefixes, coarse-to-fine, one batch); one kept
+        stages=staged.records(),
         cost_per_iteration=sol.cost_per_iteration,
         info={
             "name": name,
@@ -319,7 +207,7 @@ def solve_planar(
             "bias_model": options.bias,
             "kernel": options.kernel,
             **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
-            "warm_start": "growing" if stages_grown else "none",
+            "warm_start": ws.strategy if stages_grown else "none",
         },
         convergence=[sol.trace("GP-SLAM")],
         arrays={
@@ -335,6 +223,118 @@ def solve_planar(
             else np.asarray(truth["psi"], dtype=float),
         },
     )
+
+
+def planar_structure(
+    options: PlanarOptions, k: int, around: np.ndarray, ell: float, solver: Any
+) -> PlanarStructure:
+    """The first k samples' problem with the IPOPT settings ``solver``, its map (box or
+    tiles, for the lengthscale ``ell``) around the positions ``around``."""
+    common = {
+        "n": k, "bias": options.bias, "kernel": options.kernel,
+        "solver": solver.model_dump_json(),
+    }  # fmt: skip
+    if options.form == "tiled":
+        grid = tile_grid(around, ell, reach=options.margin)
+        return PlanarStructure(**common, basis=None, grid=grid, home=home_points(grid, around))
+    hb = make_basis(options.kernel, around, ell, options.num_basis, options.margin)
+    return PlanarStructure(
+        **common,
+        basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
+        curvature=options.curvature,
+    )
+
+
+class PlanarStaged(StagedModel):
+    """The planar model on one recording as the warm-start strategies see it
+    (casmag.solver.staged): states P (k, 2), psi (k,), bias (one row, or k-1 for a random
+    walk). The full problem's box is laid around the dead reckoning ``P_dr``; tiles always
+    around the start (their Hessian pattern follows it, so a solve from the truth lays its
+    own tiles, whose prior on the weights of unvisited tiles adds nothing at the optimum)."""
+
+    def __init__(
+        self, options: PlanarOptions, U: np.ndarray, dt: np.ndarray, Y: np.ndarray,
+        p0: np.ndarray, psi0: float, P_dr: np.ndarray, c0: np.ndarray, sigma_m: float,
+        sigma_f: float, ell: float, sigma_lin: float, progress: Progress | None = None,
+    ) -> None:  # fmt: skip
+        self.progress = progress
+        self.options, self.U, self.dt, self.Y = options, U, dt, Y
+        self.p0, self.psi0, self.P_dr, self.c0 = p0, psi0, P_dr, c0
+        self.n, self.solver, self.lengthscale = Y.shape[0], options.solver, ell
+        self.sigma_m, self.sigma_f = sigma_m, sigma_f
+        self.params: dict[str, Any] = {
+            "sigma_disp": options.sigma_disp,
+            "sigma_dyaw": options.sigma_dyaw,
+            "sigma_bias0": options.bias_prior,
+            "sigma_anchor": options.sigma_anchor,
+            "sigma_psi0": options.sigma_psi0,
+            "anchor": np.array([[p0[0], p0[1], psi0]]),
+            "sigma_m": sigma_m,
+            "sigma_f": sigma_f,
+            "sigma_lin": sigma_lin,
+        }
+        if options.bias == "random_walk":
+            self.params["bias_walk"] = options.bias_walk
+
+    def _bias_rows(self, k: int) -> int:
+        return k - 1 if self.options.bias == "random_walk" else 1
+
+    def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
+        U0 = self.U[: k - 1].copy()
+        U0[:, 2] -= bias * self.dt[: k - 1]
+        P0, psi_0 = dead_reckon_planar(U0, self.p0, self.psi0)
+        return {"P": P0, "psi": psi_0, "bias": np.full((self._bias_rows(k), 1), bias)}
+
+    def states(self, solved: Solved) -> dict[str, np.ndarray]:
+        x = solved.sol.x
+        return {"P": x["P"], "psi": x["psi"].ravel(), "bias": x["bias"]}
+
+    def extend(self, states: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
+        P, psi, bias, dt = states["P"], states["psi"], states["bias"], self.dt
+        m = P.shape[0]
+        rest = self.U[m - 1 : k - 1].copy()
+        rest[:, 2] -= float(bias[-1, 0]) * dt[m - 1 : k - 1]
+        Pr, psr = dead_reckon_planar(rest, P[-1], float(psi[-1]))
+        if self.options.bias == "random_walk":
+            bias = np.vstack([bias, np.repeat(bias[-1:], k - m, axis=0)])
+        return {"P": np.vstack([P, Pr[1:]]), "psi": np.concatenate([psi, psr[1:]]), "bias": bias}
+
+    def _initial_map(self, s_k: PlanarStructure, P0: np.ndarray, Y0: np.ndarray, ell: float):
+        """The NLP's map unknowns fitted to the field Y0 (in the map frame) at P0: the
+        tiles' weights, or the box's whitened weights."""
+        kernel, sigma_m, sigma_f = self.options.kernel, self.sigma_m, self.sigma_f
+        if s_k.tiled:  # whitened (casmag.model.tiledmap.RotatedTiledModel)
+            tiles = s_k.tiles()
+            w = ridge_tile_weights(tiles, P0, Y0, self.c0, sigma_m, sigma_f, ell)
+            return w / np.sqrt(tiles.prior_variances(sigma_f, ell))[:, None]
+        basis_k = s_k.hilbert_basis()
+        w = ridge_weights(basis_k, kernel, P0, Y0, self.c0, sigma_m, sigma_f, ell)
+        return whiten(basis_k, kernel, sigma_f, ell, w)
+
+    def solve(
+        self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float
+    ) -> Solved:
+        params_k = {
+            **self.params,
+            "U": self.U[: k - 1],
+            "dt": self.dt[: k - 1].reshape(-1, 1),
+            "Y": self.Y[:k],
+            "lengthscale": lengthscale,
+        }
+        tiled = self.options.form == "tiled"
+        around = self.P_dr if k == self.n and not tiled else start["P"]
+        s_k = planar_structure(self.options, k, around, self.lengthscale, solver)
+        nlp_k = cached_planar_nlp(s_k)
+        psi_0 = np.asarray(start["psi"], float).ravel()
+        Y0 = sd.rotate(sd.quat_from_euler(0.0 * psi_0, 0.0 * psi_0, psi_0), self.Y[:k])
+        x0 = {
+            "P": start["P"],
+            "psi": psi_0.reshape(-1, 1),
+            "bias": start["bias"],
+            "W": self._initial_map(s_k, start["P"], Y0, lengthscale),
+            "c": self.c0.reshape(3, 1),
+        }
+        return Solved(nlp_k.solve(params_k, x0, progress=self.progress), nlp_k, s_k, lengthscale)
 
 
 def hyperparameters_from_data(

@@ -1,7 +1,7 @@
 """The solve of the pose-odometry model (casmag.model.pose) from arrays (:func:`solve_pose`)
-and from a recording (:func:`solve_pose_recording`): hyperparameters from the data, growing
-prefixes (casmag.solver.windowing.grow, as the planar model's), the truth-free and
-with-truth checks, the result."""
+and from a recording (:func:`solve_pose_recording`): hyperparameters from the data, the
+model as a :class:`casmag.solver.staged.StagedModel` (:class:`PoseStaged`) whose warm
+starts casmag.solver.staged runs, the truth-free and with-truth checks, the result."""
 
 from __future__ import annotations
 
@@ -23,8 +23,9 @@ from casmag.model.pose import (
 )
 from casmag.model.rotated import ridge_weights, whiten
 from casmag.model.rrmap import make_basis
-from casmag.nlp import NLP, Progress, Solution
+from casmag.nlp import Progress
 from casmag.problem.pose import PoseOptions
+from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
@@ -34,7 +35,7 @@ from casmag.solver.planar import (
     hyperparameters_from_data,
     wrong_basin_flag,
 )
-from casmag.solver.windowing import grow, stage_lengths
+from casmag.solver.staged import Solved, StagedModel, solve_starts
 
 #: Fixed biases are held at zero with IPOPT's fixed variables.
 _BIASES = ("bias_p", "bias_w")
@@ -87,9 +88,10 @@ def solve_pose(
     p0 (3,), q0 (4,): the known first pose (default the truth's when given, else the origin
     and identity). truth: optional ``P`` (N, 3) and ``q`` (N, 4), for evaluation only.
 
-    Growing prefixes (``solver.warm_start``, the planar model's defaults) from the dead
-    reckoning: each prefix starts from the previous one's estimate, continued by the
-    odometry with the estimated biases removed.
+    The warm start of ``solver.warm_start`` (the planar model's defaults: growing prefixes)
+    from the dead reckoning, run by casmag.solver.staged on :class:`PoseStaged`: each stage
+    starts from the previous one's estimate, continued by the odometry with the estimated
+    biases removed.
 
     method: ``map`` (default) the MAP estimate; ``ekf`` the filter baseline
     (casmag.solver.ekf.PoseNav) with the batch's map box, hyperparameters and noise."""
@@ -125,39 +127,6 @@ def solve_pose(
     estimate = {"bias_p": options.estimate_bias_p, "bias_w": options.estimate_bias_w}
     fixed = [b for b in _BIASES if not estimate[b]]
 
-    def structure(k: int, around: np.ndarray, solver: Any) -> PoseStructure:
-        hb = make_basis(options.kernel, around[:, :dim], ell, options.num_basis, options.margin)
-        return PoseStructure(
-            n=k, map_dim=dim, kernel=options.kernel,
-            basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
-            solver=solver.model_dump_json(), curvature=options.curvature, height=height,
-        )  # fmt: skip
-
-    def solve_prefix(
-        k: int, P0: np.ndarray, Q0: np.ndarray, biases: tuple, solver: Any, around: np.ndarray
-    ) -> tuple[Solution, NLP, PoseStructure, np.ndarray]:
-        """The first k samples from positions P0 and orientations Q0 (the nominal), the
-        map's box around ``around``."""
-        s_k = structure(k, around, solver)
-        nlp_k = cached_pose_nlp(s_k)
-        params_k = {
-            **params, "U": U[: k - 1], "dt": dt[: k - 1].reshape(-1, 1), "Y": Y[:k],
-            **nominal_parameters(Q0),
-        }  # fmt: skip
-        basis = s_k.hilbert_basis()
-        Yk = sd.rotate(Q0, Y[:k])
-        w = ridge_weights(basis, options.kernel, P0[:, :dim], Yk, c0, sigma_m, sigma_f, ell)
-        x0 = {
-            "P": P0, "D": np.zeros((k, 3)),
-            "bias_p": biases[0].reshape(1, 3), "bias_w": biases[1].reshape(1, 3),
-            "W": whiten(basis, options.kernel, sigma_f, ell, w), "c": c0.reshape(3, 1),
-        }  # fmt: skip
-        sol = nlp_k.solve(params_k, x0, progress=progress, fixed=fixed)
-        return sol, nlp_k, s_k, Q0
-
-    def estimate_q(sol: Solution, Q_nominal: np.ndarray) -> np.ndarray:
-        return orientations(Q_nominal, sol.x["D"])
-
     anchor_info = {
         "kind": anchor_kind,
         "position": [float(v) for v in p0],
@@ -165,7 +134,7 @@ def solve_pose(
         "sigma": options.sigma_anchor,
     }
     if method == "ekf":
-        s_n = structure(n, P_dr, options.solver)
+        s_n = pose_structure(options, n, P_dr, ell, dim, height, options.solver)
         nav = PoseNav(
             U, dt, p0, q0, options.sigma_p, options.sigma_r, options.sigma_anchor,
             options.sigma_att0, options.bias_w_prior if options.estimate_bias_w else 1e-12,
@@ -191,30 +160,12 @@ def solve_pose(
         if run is not None:
             result.details["bias_w"] = [float(v) for v in run.states[-1, 6:9]]
         return result
-    ws = options.solver.warm_start
-    sizes = stage_lengths(n, ws.first_samples, ws.growth) if ws.strategy == "growing" else [n]
-    stage_solver = options.solver.model_copy(update={"max_iter": ws.stage_max_iter})
-    zero = (np.zeros(3), np.zeros(3))
-
-    def stage(k: int, prev: tuple | None, last: bool) -> tuple[Solution, tuple]:
-        if prev is None:
-            P0, Q0, biases = P_dr[:k], Q_dr[:k], zero
-        else:  # the previous stage, continued by the odometry with its biases removed
-            sol_prev, Q_prev = prev[0], estimate_q(prev[0], prev[3])
-            m = sol_prev.x["P"].shape[0]
-            biases = (sol_prev.x["bias_p"].ravel(), sol_prev.x["bias_w"].ravel())
-            Pr, Qr = sd.dead_reckon_pose(
-                U[m - 1 : k - 1], sol_prev.x["P"][-1], Q_prev[-1], *biases, dt[m - 1 : k - 1]
-            )
-            P0, Q0 = np.vstack([sol_prev.x["P"], Pr[1:]]), np.vstack([Q_prev, Qr[1:]])
-        # The batch's box is the dead reckoning's (as the planar model's); a prefix's its start.
-        around = P_dr if last else P0
-        solved = solve_prefix(k, P0, Q0, biases, options.solver if last else stage_solver, around)
-        return solved[0], solved
-
-    grown = grow(sizes, stage)
-    sol, nlp, s, Q_nom = grown[-1][2]
-    Q_est = estimate_q(sol, Q_nom)
+    model = PoseStaged(options, U, dt, Y, p0, q0, P_dr, Q_dr, c0, params, dim, height, progress)
+    staged = solve_starts(model, options.solver.warm_start, [0.0])
+    grown = staged.runs[0]
+    final = staged.final
+    sol, nlp, s, Q_nom = final.sol, final.nlp, final.structure, final.nominal
+    Q_est = orientations(Q_nom, sol.x["D"])
     hyper = {"sigma_f": sigma_f, "lengthscale": ell, "sigma_m": sigma_m}
     flags: list[dict[str, Any]] = []
     if truth is not None and "q" in truth and sol.success:
@@ -223,9 +174,11 @@ def solve_pose(
         )
         if ratio > TRUTH_START_RATIO:  # the same problem (its map box) from the truth
             Qt = sd.quat_normalize(np.asarray(truth["q"], dtype=float))
-            biases = (sol.x["bias_p"].ravel(), sol.x["bias_w"].ravel())
-            true_start = solve_prefix(n, np.asarray(truth["P"], float), Qt, biases,
-                                      options.solver, P_dr)[0]  # fmt: skip
+            states = {
+                "P": np.asarray(truth["P"], float), "Q": Qt,
+                "bias_p": sol.x["bias_p"].ravel(), "bias_w": sol.x["bias_w"].ravel(),
+            }  # fmt: skip
+            true_start = model.solve(n, states, options.solver, ell).sol
             flag = wrong_basin_flag(sol, true_start, truth["P"], ratio)
             if flag is not None:
                 flags.append(flag)
@@ -264,7 +217,7 @@ def solve_pose(
         success=sol.success,
         iterations=sol.iterations,
         build_seconds=nlp.build_seconds,
-        solve_seconds=sum(so.solve_seconds for _, so, _ in grown),
+        solve_seconds=sum(so.sol.solve_seconds for so in staged.solves),
         rmse_before=before[0],
         max_before=before[1],
         rmse_after=after[0],
@@ -278,17 +231,7 @@ def solve_pose(
         odometry_bias=[float(v) for v in sol.x["bias_p"].ravel()] if sol.success else None,
         hyperparameters=hyper,
         cost_blocks=sol.cost_blocks(),
-        stages=[
-            {
-                "name": "prefix",
-                "samples": k,
-                "cost": so.objective,
-                "status": so.status,
-                "iterations": so.iterations,
-                "kept": i == len(grown) - 1,
-            }
-            for i, (k, so, _) in enumerate(grown)
-        ],
+        stages=staged.records(),
         cost_per_iteration=sol.cost_per_iteration,
         info={
             "name": name,
@@ -306,11 +249,96 @@ def solve_pose(
             "kernel": options.kernel,
             "biases_estimated": [b for b in _BIASES if b not in fixed],
             **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
-            "warm_start": "growing" if len(sizes) > 1 else "none",
+            "warm_start": options.solver.warm_start.strategy if len(grown) > 1 else "none",
         },
         convergence=[sol.trace("GP-SLAM")],
         arrays=arrays,
     )
+
+
+def pose_structure(
+    options: PoseOptions, k: int, around: np.ndarray, ell: float, dim: int, height: bool,
+    solver: Any,
+) -> PoseStructure:  # fmt: skip
+    """The first k samples' problem with the IPOPT settings ``solver``, its map box (for the
+    lengthscale ``ell``, in ``dim`` dimensions) around the positions ``around``."""
+    hb = make_basis(options.kernel, around[:, :dim], ell, options.num_basis, options.margin)
+    return PoseStructure(
+        n=k, map_dim=dim, kernel=options.kernel,
+        basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
+        solver=solver.model_dump_json(), curvature=options.curvature, height=height,
+    )  # fmt: skip
+
+
+class PoseStaged(StagedModel):
+    """The pose model on one recording as the warm-start strategies see it
+    (casmag.solver.staged): states P (k, 3), the nominal orientations Q (k, 4) the solve is
+    linearised about (its unknowns D are the rotation errors, zero at the start) and the
+    biases. The full problem's box is laid around the dead reckoning ``P_dr``, a prefix's
+    around its start. It has no heading-bias starts (:meth:`start` takes bias 0 only)."""
+
+    def __init__(
+        self, options: PoseOptions, U: np.ndarray, dt: np.ndarray, Y: np.ndarray,
+        p0: np.ndarray, q0: np.ndarray, P_dr: np.ndarray, Q_dr: np.ndarray, c0: np.ndarray,
+        params: dict[str, Any], dim: int, height: bool, progress: Progress | None = None,
+    ) -> None:  # fmt: skip
+        self.options, self.U, self.dt, self.Y = options, U, dt, Y
+        self.p0, self.q0, self.P_dr, self.Q_dr, self.c0 = p0, q0, P_dr, Q_dr, c0
+        self.params, self.dim, self.height, self.progress = params, dim, height, progress
+        self.n, self.solver = Y.shape[0], options.solver
+        self.lengthscale = float(params["lengthscale"])
+        self.fixed = [b for b in _BIASES if not getattr(options, f"estimate_{b}")]
+
+    def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
+        if bias != 0.0:  # a body-frame rate bias is a heading rate only for a level body
+            raise ValueError("the pose model has no heading-bias starts")
+        return {
+            "P": self.P_dr[:k],
+            "Q": self.Q_dr[:k],
+            "bias_p": np.zeros(3),
+            "bias_w": np.zeros(3),
+        }
+
+    def states(self, solved: Solved) -> dict[str, np.ndarray]:
+        x = solved.sol.x
+        return {
+            "P": x["P"], "Q": orientations(solved.nominal, x["D"]),
+            "bias_p": x["bias_p"].ravel(), "bias_w": x["bias_w"].ravel(),
+        }  # fmt: skip
+
+    def extend(self, states: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
+        P, Q, b_p, b_w = states["P"], states["Q"], states["bias_p"], states["bias_w"]
+        m = P.shape[0]
+        if k == m:
+            return dict(states)
+        Pr, Qr = sd.dead_reckon_pose(
+            self.U[m - 1 : k - 1], P[-1], Q[-1], b_p, b_w, self.dt[m - 1 : k - 1]
+        )
+        return {"P": np.vstack([P, Pr[1:]]), "Q": np.vstack([Q, Qr[1:]]), "bias_p": b_p,
+                "bias_w": b_w}  # fmt: skip
+
+    def solve(
+        self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float
+    ) -> Solved:
+        P0, Q0, dim, kernel = start["P"], start["Q"], self.dim, self.options.kernel
+        around = self.P_dr if k == self.n else P0
+        s_k = pose_structure(self.options, k, around, self.lengthscale, dim, self.height, solver)
+        nlp_k = cached_pose_nlp(s_k)
+        params_k = {
+            **self.params, "U": self.U[: k - 1], "dt": self.dt[: k - 1].reshape(-1, 1),
+            "Y": self.Y[:k], "lengthscale": lengthscale, **nominal_parameters(Q0),
+        }  # fmt: skip
+        basis = s_k.hilbert_basis()
+        sigma_m, sigma_f = self.params["sigma_m"], self.params["sigma_f"]
+        Yk = sd.rotate(Q0, self.Y[:k])
+        w = ridge_weights(basis, kernel, P0[:, :dim], Yk, self.c0, sigma_m, sigma_f, lengthscale)
+        x0 = {
+            "P": P0, "D": np.zeros((k, 3)),
+            "bias_p": start["bias_p"].reshape(1, 3), "bias_w": start["bias_w"].reshape(1, 3),
+            "W": whiten(basis, kernel, sigma_f, lengthscale, w), "c": self.c0.reshape(3, 1),
+        }  # fmt: skip
+        sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=self.fixed)
+        return Solved(sol, nlp_k, s_k, lengthscale, nominal=Q0)
 
 
 def solve_pose_recording(

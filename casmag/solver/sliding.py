@@ -86,7 +86,7 @@ from casmag.model.translational import (
 from casmag.nlp import NLP, Solution
 from casmag.problem.spec import Problem
 from casmag.solver.translational import solve_translational
-from casmag.solver.windowing import continued
+from casmag.solver.windowing import continued, lengthscale_schedule
 
 ACCEPTED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded")
 """IPOPT outcomes after which a window or stage hands its point on (an early stage need not
@@ -556,11 +556,6 @@ def solve_sliding(
         sol.x["bias"] = sol.x["bias"] + sm.bias.reshape(1, -1)
     stage = batch_stage(sol, nlp, data.n_samples, hyper["lengthscale"], sol.x.get("bias"))
     return sol, nlp, hyper, field, structure, solved, [*sm.windows, stage]
-
-
-def lengthscale_schedule(lengthscale: float, start: float, stages: int) -> list[float]:
-    """Geometric schedule from ``start`` times ``lengthscale`` down to ``lengthscale``."""
-    return [float(v) for v in lengthscale * start ** np.linspace(1.0, 0.0, stages)]
 
 
 def solve_coarse_to_fine(

@@ -63,6 +63,12 @@ def stage_lengths(n: int, first: int, growth: float) -> list[int]:
     return [*sizes, n]
 
 
+def lengthscale_schedule(lengthscale: float, start: float, stages: int) -> list[float]:
+    """Geometric schedule from ``start`` times ``lengthscale`` down to ``lengthscale`` (the
+    coarse-to-fine strategy's, casmag.solver.sliding and casmag.solver.staged)."""
+    return [float(v) for v in lengthscale * start ** np.linspace(1.0, 0.0, stages)]
+
+
 State = TypeVar("State")
 
 

@@ -81,7 +81,8 @@ def test_slam_solves_a_planar_recording(tmp_path, planar_recording):
         (["--set", "solver.max_iter=0"], "solver.max_iter"),
         (
             ["--set", "solver.warm_start.strategy=sliding"],
-            "solver.warm_start.strategy: 'sliding': the planar model takes none or growing",
+            "solver.warm_start.strategy: 'sliding': the planar model takes none, growing, "
+            "coarse-to-fine",
         ),
         (["--set", "solver.warm_start.window=50"], "does not use solver.warm_start"),
     ],

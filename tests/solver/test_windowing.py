@@ -12,7 +12,7 @@ from casmag.data.simulate import simulate_problem
 from casmag.errors import ProblemError
 from casmag.model.builder import BUILDS, cached_slam
 from casmag.result.metrics import rmse_and_max
-from casmag.solver import sliding
+from casmag.solver import sliding, windowing
 
 ROOT = Path(__file__).resolve().parents[2]
 BASE = ROOT / "problems/paper/base.yaml"
@@ -126,7 +126,9 @@ def test_a_window_that_leaves_the_map_box_hands_the_batch_the_dead_reckoning(dri
 
 
 def test_coarse_to_fine_schedule_and_solve():
-    np.testing.assert_allclose(sliding.lengthscale_schedule(0.4, 3.0, 3), [1.2, 0.4 * 3**0.5, 0.4])
+    np.testing.assert_allclose(
+        windowing.lengthscale_schedule(0.4, 3.0, 3), [1.2, 0.4 * 3**0.5, 0.4]
+    )
     problem = _spiral(0.012, 1.0e-4, 1, "solver.warm_start.strategy=coarse-to-fine")
     data = simulate_problem(problem)
     res = casmag.solve(problem, data)

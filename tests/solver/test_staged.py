@@ -1,0 +1,196 @@
+"""casmag.solver.staged: the warm-start strategies written once over the staged motion
+models (planar, pose): their bookkeeping on a stand-in model, and each strategy with each
+model at tiny size."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+from small_problems import planar_room_field
+
+from casmag.data.imusim import simulate_planar
+from casmag.data.posesim import simulate_pose
+from casmag.problem.imu import STAGED_STRATEGIES, load_planar_options
+from casmag.problem.pose import load_pose_options
+from casmag.problem.spec import SolverSpec, WarmStartSpec, load_problem
+from casmag.solver.planar import solve_planar
+from casmag.solver.pose import solve_pose
+from casmag.solver.staged import (
+    Solved,
+    StagedModel,
+    heading_bias_starts,
+    solve_starts,
+    solve_strategy,
+)
+from casmag.solver.windowing import lengthscale_schedule, stage_lengths
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+class StandIn(StagedModel):
+    """A model whose 'solve' records its call and returns a cost from ``cost(k, bias,
+    lengthscale)``; ``fail`` lists (k, lengthscale) solves that end with an IPOPT error."""
+
+    def __init__(self, n: int, cost: Any, fail: tuple = ()) -> None:
+        self.n, self.lengthscale, self.solver = n, 0.5, SolverSpec(max_iter=80)
+        self.cost, self.fail, self.calls = cost, fail, []
+
+    def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
+        return {"k": np.array(k), "bias": np.array(bias), "from": np.array(-1)}
+
+    def states(self, solved: Solved) -> dict[str, np.ndarray]:
+        return dict(solved.sol.x)
+
+    def extend(self, states: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
+        return {"k": np.array(k), "bias": states["bias"], "from": states["k"]}
+
+    def solve(self, k: int, start: dict, solver: SolverSpec, lengthscale: float) -> Solved:
+        self.calls.append((k, int(start["from"]), solver.max_iter, lengthscale))
+        failed = (k, lengthscale) in self.fail
+        sol = SimpleNamespace(
+            x={"k": np.array(k), "bias": start["bias"]},
+            objective=self.cost(k, float(start["bias"]), lengthscale),
+            success=not failed,
+            status="Restoration_Failed" if failed else "Solve_Succeeded",
+            iterations=3,
+            solve_seconds=0.01,
+        )
+        return Solved(sol, None, None, lengthscale)  # type: ignore[arg-type]
+
+
+def _ws(strategy: str, **kw: Any) -> WarmStartSpec:
+    return WarmStartSpec(strategy=strategy, stage_max_iter=7, **kw)
+
+
+def test_each_strategy_chains_its_stages_and_ends_with_the_full_problem() -> None:
+    """growing: prefixes of stage_lengths, each from the previous one, the last with the
+    full settings; coarse-to-fine: the full problem over the lengthscale schedule, each
+    stage from the previous; none: one batch from the dead reckoning."""
+    m = StandIn(1000, lambda k, b, ell: 1.0)
+    stages = solve_strategy(m, _ws("growing", first_samples=100, growth=3.0))
+    sizes = stage_lengths(1000, 100, 3.0)
+    assert [s.samples for s in stages] == sizes == [100, 300, 1000]
+    assert m.calls == [(100, -1, 7, 0.5), (300, 100, 7, 0.5), (1000, 300, 80, 0.5)]
+    m.calls.clear()
+    stages = solve_strategy(m, _ws("coarse-to-fine", lengthscale_start=4.0, lengthscale_stages=3))
+    assert [s.kind for s in stages] == ["lengthscale", "lengthscale", "batch"]
+    np.testing.assert_allclose([s.lengthscale for s in stages], [2.0, 1.0, 0.5])
+    assert [c[:3] for c in m.calls] == [(1000, -1, 7), (1000, 1000, 7), (1000, 1000, 80)]
+    assert lengthscale_schedule(0.5, 4.0, 3) == [s.lengthscale for s in stages]
+    m.calls.clear()
+    assert [s.kind for s in solve_strategy(m, _ws("none"))] == ["batch"]
+    assert m.calls == [(1000, -1, 80, 0.5)]
+    with pytest.raises(ValueError, match="sliding"):
+        solve_strategy(m, _ws("sliding"))
+
+
+def test_a_failed_stage_ends_the_strategy_and_its_start_is_not_kept() -> None:
+    """Starts: every start runs the strategy; the lowest cost among those whose last stage
+    is the full problem and succeeded is kept, and the records mark it. A start whose
+    coarse stage fails stops there (no later stage is solved) and is not kept, though its
+    cost is the lowest."""
+    ws = _ws("coarse-to-fine", lengthscale_start=2.0, lengthscale_stages=2)
+    biases = heading_bias_starts(3, 10.0, 100.0)
+    d = np.radians(10.0) / 100.0
+    np.testing.assert_allclose(biases, [0.0, d, -d])
+    cost = {0.0: 5.0, d: 3.0, -d: 1.0}
+    m = StandIn(50, lambda k, b, ell: cost[b])
+    run = solve_starts(m, ws, biases)
+    assert run.kept == 2 and run.final.sol.objective == 1.0
+    records = run.records()
+    assert [r["name"] for r in records] == ["lengthscale", "batch"] * 3
+    assert [r["kept"] for r in records] == [False] * 5 + [True]
+    assert [r["bias"] for r in records][::2] == biases
+
+    class FailsOne(StandIn):
+        def solve(self, k: int, start: dict, solver: SolverSpec, lengthscale: float) -> Solved:
+            out = super().solve(k, start, solver, lengthscale)
+            if float(start["bias"]) == -d and lengthscale == 1.0:
+                out.sol.success, out.sol.status = False, "Restoration_Failed"
+            return out
+
+    # -d's coarse stage fails: its run stops there, and the next lowest cost is kept
+    m = FailsOne(50, lambda k, b, ell: cost[b])
+    run = solve_starts(m, ws, biases)
+    assert [len(r) for r in run.runs] == [2, 2, 1]
+    assert run.kept == 1 and run.final.sol.objective == 3.0
+    assert [r["name"] for r in run.records()][-1] == "start"  # one solve: named as a start
+    # none succeeded: the first start is kept (the dead reckoning's), and says so
+    m = StandIn(50, lambda k, b, ell: 1.0, fail=((50, 0.5),))
+    run = solve_starts(m, _ws("none"), [0.0, 0.1])
+    assert run.kept == 0 and not run.final.sol.success
+
+
+def _planar(strategy: str):
+    d = simulate_planar(
+        1, planar_room_field(), size=(2.0, 1.5), loops=2, heading_bias_deg=0.5, disp_noise=0.002
+    )
+    sets = [
+        "model.sigma_disp=0.002",
+        f"model.sigma_dyaw={np.radians(0.05)}",
+        "model.num_basis=120",
+        f"solver.warm_start.strategy={strategy}",
+        "solver.warm_start.first_samples=40",
+        "solver.warm_start.stage_max_iter=10",
+    ]
+    r = solve_planar(
+        *d.U.T, d.Y, load_planar_options(None, sets), truth={"P": d.P, "psi": d.psi}, t=d.t
+    )
+    return r, d.P.shape[0]
+
+
+def _pose(strategy: str):
+    sets = ["simulation.trajectory.samples=100", "simulation.trajectory.area=[4.0, 2.0]"]
+    prob = load_problem(ROOT / "problems" / "bench" / "peers.yaml", ["seed=2", *sets])
+    rec = simulate_pose(prob.spec.simulation, 2, bias_w=(0.0, 0.0, 0.002))
+    opts = load_pose_options(
+        None,
+        [
+            f"solver.warm_start.strategy={strategy}",
+            "solver.warm_start.first_samples=40",
+            "solver.warm_start.stage_max_iter=10",
+        ],
+    )
+    r = solve_pose(rec.U, rec.Y, opts, truth={"P": rec.P_true, "q": rec.q_true}, t=rec.t)
+    return r, rec.P_true.shape[0]
+
+
+#: The (model, strategy) pairs solved here; the others are solved elsewhere: planar none
+#: (tests/cli/test_planar_cli.py::test_planar_starts_keep_the_lowest_cost), planar growing
+#: (tests/cli/test_planar_cli.py, first_samples 50), pose none
+#: (tests/solver/test_pose.py::test_slam_on_a_pose_recording_map_ekf_and_both).
+PAIRS = [("planar", "coarse-to-fine"), ("pose", "growing"), ("pose", "coarse-to-fine")]
+
+
+def test_every_pair_is_solved_somewhere() -> None:
+    solved_elsewhere = {("planar", "none"), ("planar", "growing"), ("pose", "none")}
+    every = {(m, s) for m in ("planar", "pose") for s in STAGED_STRATEGIES}
+    assert every == solved_elsewhere | set(PAIRS)
+
+
+@pytest.mark.parametrize(("model", "strategy"), PAIRS)
+def test_every_strategy_solves_every_staged_model(model: str, strategy: str) -> None:
+    """A strategy of solver.warm_start with a staged model at tiny size: the stages the
+    strategy prescribes, the last the full problem at the assumed lengthscale, kept, and the
+    position error at most half the dead reckoning's."""
+    r, n = (_planar if model == "planar" else _pose)(strategy)
+    assert r.success, r.status
+    stages = r.stages
+    ell = r.hyperparameters["lengthscale"]
+    if strategy == "growing":
+        assert [s["samples"] for s in stages] == stage_lengths(n, 40, 2.0)
+        assert {s["name"] for s in stages} == {"prefix"}
+    elif strategy == "coarse-to-fine":
+        assert [s["name"] for s in stages] == ["lengthscale", "lengthscale", "batch"]
+        np.testing.assert_allclose([s["lengthscale"] for s in stages], [3 * ell, 3**0.5 * ell, ell])
+        assert all(s["iterations"] <= 10 for s in stages[:-1])  # stage_max_iter
+    else:
+        assert [s["name"] for s in stages] == ["start"]
+    assert stages[-1]["samples"] == n and stages[-1]["lengthscale"] == ell
+    assert [s["kept"] for s in stages] == [False] * (len(stages) - 1) + [True]
+    assert r.info["warm_start"] == (strategy if len(stages) > 1 else "none")
+    assert r.rmse_after < 0.5 * r.rmse_before, (r.rmse_after, r.rmse_before)
