@@ -499,6 +499,16 @@ def load_imu_problem(
 
 
 # --------------------------------------------------------------------------- planar recordings
+def no_truth_on_a_recording(value: Any) -> Any:
+    """Refuse null for a recording model's hyperparameter: null is a simulation's truth."""
+    if value is None:
+        raise ValueError(
+            "null means a simulation's true value, and a recording has none: give a number "
+            "or estimate"
+        )
+    return value
+
+
 class PlanarModelSpec(Strict):
     """The planar odometry-with-heading model for ``casmag slam`` on a recording with
     ``dfwd,dleft,dyaw`` columns: the fields of :class:`PlanarOptions` (units
@@ -522,6 +532,10 @@ class PlanarModelSpec(Strict):
     starts: Annotated[int, Field(ge=1, le=21)] = 1
     start_heading_deg: PositiveFloat = 10.0
     form: Literal["reduced_rank", "tiled"] = "reduced_rank"
+
+    _no_truth = field_validator("sigma_m", "sigma_f", "lengthscale", mode="before")(
+        no_truth_on_a_recording
+    )
 
     @field_validator("starts")
     @classmethod

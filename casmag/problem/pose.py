@@ -10,9 +10,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
-from casmag.problem.imu import PLANAR_SOLVER_DEFAULTS, load_recording_spec
+from casmag.problem.imu import PLANAR_SOLVER_DEFAULTS, load_recording_spec, no_truth_on_a_recording
 from casmag.problem.spec import PositiveFloat, SolverSpec, Strict
 
 #: Solver settings of pose recordings that differ from SolverSpec's defaults: those of the
@@ -42,6 +42,10 @@ class PoseModelSpec(Strict):
     sigma_anchor: PositiveFloat = 1.0e-3
     sigma_att0: PositiveFloat = 1.0e-3
     curvature: Literal["hybrid", "exact", "gauss-newton"] = "hybrid"
+
+    _no_truth = field_validator("sigma_m", "sigma_f", "lengthscale", mode="before")(
+        no_truth_on_a_recording
+    )
 
 
 class PoseSpec(Strict):

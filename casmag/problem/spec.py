@@ -184,10 +184,21 @@ class TrajectoryModelSpec(Strict):
     knot_every: Annotated[int, Field(ge=1, le=100_000)] = 1
 
 
+#: Where a hyperparameter's value sits in a translational ``model`` section (``estimate``
+#: there lists it under ``model.estimate``).
+ESTIMATE_AS_VALUE = {
+    "sigma_f": ("gp", "sigma_f"),
+    "lengthscale": ("gp", "lengthscale"),
+    "sigma_m": ("magnetometer", "sigma_m"),
+}
+
+
 class ModelSpec(Strict):
     """What the MAP problem assumes. ``estimate`` lists hyperparameters to estimate
     (log-parameterised, started from the values given or defaulted above, or from the
-    marginal likelihood, as ``estimate_start`` says).
+    marginal likelihood, as ``estimate_start`` says); writing ``estimate`` as the value of
+    ``gp.sigma_f``, ``gp.lengthscale`` or ``magnetometer.sigma_m`` lists it too, with the
+    start a null value has (the simulation's truth).
 
     estimate_start: where the joint MAP starts the estimated sigma_f and lengthscale.
     ``assumed``: at the assumed values. ``marginal_likelihood``: at the windowed GP marginal
@@ -213,6 +224,23 @@ class ModelSpec(Strict):
     anchor: AnchorSpec = AnchorSpec()
     estimate: list[HyperName] = []
     estimate_start: Literal["both", "marginal_likelihood", "assumed"] = "both"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _estimate_as_a_value(cls, data: Any) -> Any:
+        """``gp.sigma_f: estimate``, ``gp.lengthscale: estimate`` and
+        ``magnetometer.sigma_m: estimate`` (the IMU and recording models' spelling) list the
+        hyperparameter under ``estimate``, started as for a null value."""
+        if not isinstance(data, dict):
+            return data
+        for name, (section, key) in ESTIMATE_AS_VALUE.items():
+            part = data.get(section)
+            if isinstance(part, dict) and part.get(key) == "estimate":
+                data = {**data, section: {**part, key: None}}
+                listed = data.get("estimate", [])
+                if isinstance(listed, list) and name not in listed:
+                    data["estimate"] = [*listed, name]
+        return data
 
     @field_validator("estimate")
     @classmethod

@@ -101,7 +101,8 @@ def recording_problem(
     small); odometry noise ODOMETRY_NOISE_FRACTION of the median step; one knot per
     KNOT_SECONDS (LONG_KNOT_SECONDS above LONG_RECORDING samples); growing warm starts. A
     problem file (its ``model`` and ``solver`` sections) overrides any of these;
-    hyperparameters it leaves null are still estimated. ``given``: settings that override
+    hyperparameters it leaves null (or sets to ``estimate``, as for the planar and pose
+    models) are still estimated. ``given``: settings that override
     the problem file's too (a saved map's kernel and hyperparameters).
     """
     overrides = as_overrides(overrides)
@@ -130,6 +131,19 @@ def recording_problem(
         "solver": {"warm_start": {"strategy": "growing"}},
     }
     merged = _merge(_merge(base, user), dict(given or {}))
+    # ``estimate`` (in the file or as --set) means what null means here: from the data.
+    from_data = {".".join(path) for path in HYPER_PATHS.values()}
+    kept = []
+    for text in overrides:
+        key, value = parse_override(text)
+        if ".".join(key) in from_data and value == "estimate":
+            _set(merged, tuple(key), None)
+        else:
+            kept.append(text)
+    overrides = kept
+    for path in HYPER_PATHS.values():
+        if _get(merged, path) == "estimate":
+            _set(merged, path, None)
     kernel = merged["model"]["gp"].get("kernel") or "se"
     merged["model"]["gp"]["kernel"] = kernel
     how: dict[str, Any] = {

@@ -464,3 +464,45 @@ def test_a_problem_built_from_typed_specs():
     problem = load_problem(spec, seed=5)
     assert problem.spec.seed == 5 and problem.spec.model.gp.form == "reduced_rank"
     assert problem.source == "<spec>" and load_problem(spec).spec == spec
+
+
+@pytest.mark.parametrize(
+    ("key", "name"), [("model.gp.sigma_f", "sigma_f"), ("model.gp.lengthscale", "lengthscale")]
+)
+def test_estimate_as_a_value_lists_the_hyperparameter(key, name):
+    """``model.gp.lengthscale: estimate`` (the IMU and recording models' spelling) is the
+    same problem as ``model.estimate: [lengthscale]`` with a null value; a start value given
+    in the list form stays the start."""
+    as_value = load_problem("problems/paper/base.yaml", [f"{key}=estimate"])
+    as_list = load_problem("problems/paper/base.yaml", [f"model.estimate=[{name}]"])
+    assert as_value.spec == as_list.spec
+    assert as_value.spec.model.estimate == [name]
+    both = load_problem(
+        "problems/paper/base.yaml", [f"{key}=estimate", "model.estimate=[sigma_f, lengthscale]"]
+    )
+    assert sorted(both.spec.model.estimate) == ["lengthscale", "sigma_f"]
+
+
+def test_estimate_as_a_value_keeps_the_refusals():
+    with pytest.raises(ProblemError, match=r"model\.estimate: sigma_m cannot be estimated"):
+        load_problem("problems/paper/base.yaml", ["model.magnetometer.sigma_m=estimate"])
+    with pytest.raises(ProblemError, match="cannot be estimated with the reduced-rank"):
+        load_problem(
+            "problems/paper/base.yaml",
+            ["model.gp.form=reduced_rank", "model.gp.lengthscale=estimate"],
+        )
+    with pytest.raises(ProblemError, match=r"model\.gp\.sigma_f"):
+        load_problem("problems/paper/base.yaml", ["model.gp.sigma_f=guess"])
+
+
+@pytest.mark.parametrize("model", ["planar", "pose"])
+def test_null_hyperparameters_of_a_recording_model_say_why(model):
+    """A recording has no truth: null (a simulation's true value) is refused naming the key
+    and what to give instead."""
+    from casmag.problem.imu import load_planar_options
+    from casmag.problem.pose import load_pose_options
+
+    load = load_planar_options if model == "planar" else load_pose_options
+    with pytest.raises(ProblemError, match=r"model\.sigma_f: null means a simulation's true"):
+        load(None, ["model.sigma_f=null"])
+    assert load(None, ["model.sigma_f=estimate"]).sigma_f == "estimate"

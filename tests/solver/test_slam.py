@@ -132,3 +132,25 @@ def test_knots_interpolate_and_collapse_the_odometry():
     C = rng.standard_normal((4, 2))
     Q = rng.standard_normal((11, 2))
     np.testing.assert_allclose(k.fit(Q, k.positions(Q, C)), C, atol=1e-9)
+
+
+def test_estimate_in_a_recordings_problem_means_from_the_data(tmp_path):
+    """``estimate`` as a hyperparameter's value (the planar and pose models' spelling), in
+    the problem file or as --set, is what null means for a recording: estimated from the
+    data by the marginal likelihood, not listed for the joint MAP (which the reduced-rank
+    map refuses)."""
+    from casmag.solver.recslam import recording_problem
+
+    data = simulate_problem(_walk(samples=200))
+    times = np.arange(data.n_samples) * 0.1
+    problem = tmp_path / "p.yaml"
+    problem.write_text("model:\n  gp:\n    sigma_f: estimate\n    lengthscale: 0.4\n")
+    prob, how = recording_problem(
+        data, times, "walk", problem, ["model.magnetometer.sigma_m=estimate"]
+    )
+    assert sorted(how["estimated"]) == ["sigma_f", "sigma_m"]
+    assert prob.spec.model.estimate == []
+    est = how["marginal_likelihood"]
+    assert prob.spec.model.gp.sigma_f == est["sigma_f"]
+    assert prob.spec.model.magnetometer.sigma_m == est["sigma_m"]
+    assert prob.spec.model.gp.lengthscale == 0.4
