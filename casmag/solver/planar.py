@@ -32,15 +32,14 @@ from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import heading_rms_deg, rmse_and_max
 from casmag.solver.ekf import FilterMap, PlanarNav, filter_result, run_safely
-from casmag.solver.staged import Solved, StagedModel, heading_bias_starts, solve_starts
+from casmag.solver.staged import (
+    Solved,
+    StagedModel,
+    heading_bias_starts,
+    solve_starts,
+    truth_check,
+)
 from casmag.versions import versions
-
-#: With truth (evaluation), an estimate whose position RMSE is above this fraction of the
-#: dead reckoning's (the real-data criterion of 1/4) is solved again from the truth; a
-#: lower MAP cost there flags it ``wrong_basin``. Measured on the handheld ``square``
-#: recording: estimate 1.15 m from 2.33 m at cost 1,379.4; from the truth 0.22 m at cost
-#: 1,349.2 in 37 iterations (about 45 s beside the 4.1 min solve).
-TRUTH_START_RATIO = 0.25
 
 #: Keyframes per marginal-likelihood window and the most windows of the planar
 #: recordings' hyperparameters (the values their figures were measured with).
@@ -142,20 +141,11 @@ def solve_planar(
     stages_grown = len(staged.runs[staged.kept]) > 1
     hyper = {"sigma_f": float(sigma_f), "lengthscale": float(ell), "sigma_m": sigma_m}
     flags: list[dict[str, Any]] = []
-    if truth is not None and "psi" in truth and sol.success:
-        rmse_dr = rmse_and_max(P_dr, truth["P"])[0]
-        ratio = rmse_and_max(sol.x["P"], truth["P"])[0] / max(rmse_dr, 1e-12)
-        if ratio > TRUTH_START_RATIO:
-            # The same problem (this NLP, its map box) from the true path and heading.
-            states = {
-                "P": np.asarray(truth["P"], float),
-                "psi": np.asarray(truth["psi"], float),
-                "bias": sol.x["bias"],
-            }
-            true_start = model.solve(n, states, options.solver, float(ell)).sol
-            flag = wrong_basin_flag(sol, true_start, truth["P"], ratio)
-            if flag is not None:
-                flags.append(flag)
+    if truth is not None and "psi" in truth:
+        true_states = {"P": np.asarray(truth["P"], float), "psi": np.asarray(truth["psi"], float)}
+        flag = truth_check(model, final, true_states, truth["P"], P_dr)
+        if flag is not None:
+            flags.append(flag)
     if sol.success:
         if s.tiled:
             box = left_map_tiles(s.tiles(), sol.x["P"])
@@ -371,36 +361,6 @@ def hyperparameter_info(estimated: list[str], sigma_lin: float, given: bool) -> 
         "sigma_lin": {"value": sigma_lin, "source": "given" if given else "data"},
         "casadi": ca.__version__,
         "versions": versions(),
-    }
-
-
-def wrong_basin_flag(
-    sol: Any, true_start: Any, P_true: np.ndarray, ratio: float
-) -> dict[str, Any] | None:
-    """The ``wrong_basin`` flag (as the IMU model's) when the solve from the truth reaches a
-    MAP cost lower by more than one (a likelihood ratio of e) than the estimate's."""
-    if true_start is None or not true_start.success:
-        return None
-    cost, truth_cost = float(sol.objective), float(true_start.objective)
-    if not truth_cost < cost - 1.0:
-        return None
-    rmse_truth = rmse_and_max(true_start.x["P"], P_true)[0]
-    return {
-        "name": "wrong_basin",
-        "reason": (
-            f"RMSE {ratio:.2f} of the dead reckoning's, and the same problem started from the "
-            f"truth reaches a lower MAP cost ({truth_cost:.6g} < {cost:.6g}) at RMSE "
-            f"{rmse_truth:.4g} m: the search ended in a worse local optimum"
-        ),
-        "evidence": {
-            "ratio": ratio,
-            "threshold": TRUTH_START_RATIO,
-            "map_cost": cost,
-            "map_cost_from_truth": truth_cost,
-            "rmse_from_truth": rmse_truth,
-            "iterations_from_truth": int(true_start.iterations),
-            "status_from_truth": true_start.status,
-        },
     }
 
 

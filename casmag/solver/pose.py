@@ -29,13 +29,8 @@ from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
-from casmag.solver.planar import (
-    TRUTH_START_RATIO,
-    hyperparameter_info,
-    hyperparameters_from_data,
-    wrong_basin_flag,
-)
-from casmag.solver.staged import Solved, StagedModel, solve_starts
+from casmag.solver.planar import hyperparameter_info, hyperparameters_from_data
+from casmag.solver.staged import Solved, StagedModel, solve_starts, truth_check
 
 #: Fixed biases are held at zero with IPOPT's fixed variables.
 _BIASES = ("bias_p", "bias_w")
@@ -168,20 +163,12 @@ def solve_pose(
     Q_est = orientations(Q_nom, sol.x["D"])
     hyper = {"sigma_f": sigma_f, "lengthscale": ell, "sigma_m": sigma_m}
     flags: list[dict[str, Any]] = []
-    if truth is not None and "q" in truth and sol.success:
-        ratio = rmse_and_max(sol.x["P"], truth["P"])[0] / max(
-            rmse_and_max(P_dr, truth["P"])[0], 1e-12
-        )
-        if ratio > TRUTH_START_RATIO:  # the same problem (its map box) from the truth
-            Qt = sd.quat_normalize(np.asarray(truth["q"], dtype=float))
-            states = {
-                "P": np.asarray(truth["P"], float), "Q": Qt,
-                "bias_p": sol.x["bias_p"].ravel(), "bias_w": sol.x["bias_w"].ravel(),
-            }  # fmt: skip
-            true_start = model.solve(n, states, options.solver, ell).sol
-            flag = wrong_basin_flag(sol, true_start, truth["P"], ratio)
-            if flag is not None:
-                flags.append(flag)
+    if truth is not None and "q" in truth:
+        Qt = sd.quat_normalize(np.asarray(truth["q"], dtype=float))
+        true_states = {"P": np.asarray(truth["P"], float), "Q": Qt}
+        flag = truth_check(model, final, true_states, truth["P"], P_dr)
+        if flag is not None:
+            flags.append(flag)
     if sol.success:
         basis = s.hilbert_basis()
         box = left_map_box(basis.domain.center, basis.domain.half_width, sol.x["P"][:, :dim])

@@ -175,7 +175,8 @@ def test_a_worse_local_optimum_is_flagged_by_the_solve_from_the_truth(loops, see
     seed 2 (ratio 0.54): the truth start finds no lower cost, so the model's optimum itself
     is that far (one revisit is a weak loop closure) and no flag is raised."""
     from casmag.problem.imu import load_planar_options
-    from casmag.solver.planar import TRUTH_START_RATIO, solve_planar
+    from casmag.solver.planar import solve_planar
+    from casmag.solver.staged import TRUTH_START_RATIO
 
     d = simulate_planar(
         seed, planar_room_field(), size=(2.0, 1.5), loops=loops, heading_bias_deg=BIAS_DEG,
