@@ -96,8 +96,8 @@ def solve_planar(
     Y_local = sd.rotate(sd.quat_from_euler(0.0 * psi_dr, 0.0 * psi_dr, psi_dr), Y)
     sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_local)
 
-    s = planar_structure(options, n, P_dr, float(ell), options.solver)
     if method == "ekf":
+        s = planar_structure(options, n, P_dr, float(ell), options.solver)
         if s.tiled:
             raise DataError("model.form: the filter baseline needs the box map (reduced_rank)")
         nav = PlanarNav(
