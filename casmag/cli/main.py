@@ -103,7 +103,7 @@ def _problem_command(name: str, kind: str | None, help_text: str) -> click.Comma
         found = problem_kind(problem)
         if kind is not None:
             refuse_other_kind(problem, found, kind)
-        if found in ("translational", "imu"):
+        if found in ("translational", "imu", "oriented"):
             _solve_problem_file(problem, found, out_dir, overrides, no_figures, quiet, align)
         elif found == "recording":
             if overrides:
@@ -125,9 +125,10 @@ solve = _problem_command(
     "Solve PROBLEM, a problem file of any kind, and write its results to --out.\n\n"
     "The kind comes from the file's keys (casmag.problem.spec.document_kind): a translational "
     "problem (problems/paper, problems/bench) as casmag run, an IMU problem (problems/imu) "
-    "as casmag imu, a real-data problem (problems/real: recording or sessions) as make "
-    "bench-real solves one file. A table file (rows) is refused: it is run over seeds by "
-    "casmag sweep.",
+    "as casmag imu, a planar or pose problem (problems/planar, problems/pose: a simulated "
+    "recording, solved as casmag slam solves one), a real-data problem (problems/real: "
+    "recording or sessions) as make bench-real solves one file. A table file (rows) is "
+    "refused: it is run over seeds by casmag sweep.",
 )
 run = _problem_command(
     "run",
@@ -153,11 +154,13 @@ def _solve_problem_file(
     quiet: bool,
     align: str,
 ) -> None:
-    """Load a translational or IMU problem file, solve it (:func:`casmag.solver.api.solve`), print
+    """Load a translational, IMU, planar or pose problem file, solve it
+    (:func:`casmag.solver.api.solve`), print
     its plausibility warnings on stderr, save it, and end as every command does
     (:func:`casmag.cli.tools.finish`)."""
     from casmag.data.checks import warning_lines
     from casmag.problem.imu import load_imu_problem, refuse_unused_solver_keys
+    from casmag.problem.oriented import load_oriented_problem
     from casmag.problem.spec import load_problem
     from casmag.solver.api import solve
 
@@ -165,6 +168,8 @@ def _solve_problem_file(
         if kind == "imu":
             refuse_unused_solver_keys(overrides, "casmag imu")
             prob: Any = load_imu_problem(problem, overrides)
+        elif kind == "oriented":
+            prob = load_oriented_problem(problem, overrides)
         else:
             prob = load_problem(problem, overrides)
         result = solve(prob, progress=None if quiet else print_progress)

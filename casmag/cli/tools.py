@@ -156,12 +156,14 @@ class CasmagGroup(click.Group):
 COMMAND_OF_KIND = {
     "translational": "casmag run",
     "imu": "casmag imu",
+    "oriented": "casmag solve",
     "recording": "casmag solve",
     "table": "casmag sweep",
 }
 _KIND_NAMES = {
     "translational": "a translational problem file",
     "imu": "an IMU problem file",
+    "oriented": "a planar or pose problem file",
     "recording": "a real-data problem file",
     "table": "a table file (rows of overrides of a problem file)",
 }

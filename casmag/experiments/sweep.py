@@ -2,9 +2,9 @@
 
 A sweep is planned from a problem file or a table file (``problems/paper/table*.yaml``: a
 problem file plus rows of overrides, matched to the paper's published rows by key), the seeds
-and an optional grid of ``key.path=v1,v2`` values. The problem file is translational or IMU
-(``casmag.problem.spec.document_kind``): every run is one :func:`casmag.solve` or
-:func:`casmag.solver.imu.solve_imu` and is saved with its result's ``save`` under
+and an optional grid of ``key.path=v1,v2`` values. The problem file is translational, IMU,
+planar or pose (``casmag.problem.spec.document_kind``): every run is one :func:`casmag.solve`
+and is saved with its result's ``save`` under
 ``OUT/<row>/seed-<seed>/``; ``OUT/sweep.json`` records what the sweep is (kind, rows, labels,
 overrides, seeds), which is all the report needs.
 
@@ -43,6 +43,7 @@ from casmag import interrupt
 from casmag.errors import CasmagError, DataError, ProblemError, one_line
 from casmag.interrupt import Interrupted
 from casmag.problem.imu import ImuProblem, load_imu_problem
+from casmag.problem.oriented import OrientedProblem, load_oriented_problem
 from casmag.problem.paper import TABLES
 from casmag.problem.spec import (
     Problem,
@@ -57,7 +58,6 @@ from casmag.problem.spec import (
 from casmag.result import Result
 from casmag.result.outdir import save_atomic
 from casmag.solver.api import solve
-from casmag.solver.imu import solve_imu
 
 MANIFEST = "sweep.json"
 MANIFEST_FORMAT = "casmag-sweep/1"
@@ -119,7 +119,7 @@ class RunTask:
     source: str
     out_dir: str
     figures: bool
-    kind: str = "translational"  # or "imu": casmag.problem.spec.document_kind
+    kind: str = "translational"  # "imu", "oriented": casmag.problem.spec.document_kind
 
 
 @dataclass
@@ -134,7 +134,7 @@ class SweepPlan:
     rows: list[RowPlan]
     seeds: list[int]
     out_dir: Path
-    kind: str = "translational"  # or "imu"
+    kind: str = "translational"  # "imu", "oriented"
 
     def run_dir(self, row: str, seed: int) -> Path:
         return self.out_dir / row / f"seed-{seed:04d}"
@@ -178,7 +178,7 @@ class SweepPlan:
         }
 
 
-def _fingerprint(problem: Problem | ImuProblem) -> str:
+def _fingerprint(problem: Problem | ImuProblem | OrientedProblem) -> str:
     """A hash of the problem's settings other than seed and names. Values left at their
     defaults are left out, so a new option with a default (a schema addition) does not
     make saved runs look as if they had been solved with different settings."""
@@ -225,12 +225,13 @@ def _slug(text: str) -> str:
 LOADERS: dict[str, Callable[..., Any]] = {
     "translational": load_problem,
     "imu": load_imu_problem,
+    "oriented": load_oriented_problem,
 }
 
 
 def _resolve(
     base: dict[str, Any], base_source: str, origins: list[tuple[str, str, str]], kind: str
-) -> Problem | ImuProblem:
+) -> Problem | ImuProblem | OrientedProblem:
     """Validate the problem file with overrides given as (source, where, "key=value");
     an error in an overridden key names the override's source (table file row, --set, --grid)
     instead of the problem file."""
@@ -322,7 +323,10 @@ def load_sweep(
     else:
         base = data
         rows = [(None, None, None, [])]
-        name, title, base_source, problem_file = path.stem, None, src, src
+        # The problem's name when it gives one (its folder under --out with several files).
+        given = data.get("name")
+        name = _slug(given) if isinstance(given, str) and given.strip() else path.stem
+        title, base_source, problem_file = None, src, src
 
     kind = document_kind(base)
     if kind not in LOADERS:
@@ -465,7 +469,7 @@ def run_task(task: RunTask, save: bool = True) -> RunOutcome:
     try:
         with _SOLVE_LOCK:
             problem = LOADERS[task.kind](task.problem, source=task.source)
-            result = (solve_imu if task.kind == "imu" else solve)(problem)
+            result = solve(problem)  # every kind (casmag.solver.api.solve)
         interrupt.check()  # a pool worker being stopped: not saved (casmag.interrupt)
         if save:
             result.save(task.out_dir, figures=task.figures)

@@ -887,19 +887,22 @@ def apply_overrides(
 
 
 #: The kinds of casmag document (:func:`document_kind`).
-DOCUMENT_KINDS = ("translational", "imu", "recording", "table")
+DOCUMENT_KINDS = ("translational", "imu", "oriented", "recording", "table")
 
 
 def document_kind(data: Mapping[str, Any]) -> str:
     """Which casmag document a problem file's top-level mapping is, from its keys:
     ``table`` (``rows``: rows of overrides of a problem file, ``casmag sweep``),
-    ``recording`` (``recording`` or ``sessions``: real data, casmag.experiments.realbench), ``imu``
-    (``simulation.scenario`` or ``simulation.imu``: casmag.problem.imu), else
+    ``recording`` (``recording`` or ``sessions``: real data, casmag.experiments.realbench),
+    ``oriented`` (``motion``: a simulated planar or pose recording, casmag.problem.oriented),
+    ``imu`` (``simulation.scenario`` or ``simulation.imu``: casmag.problem.imu), else
     ``translational`` (casmag.problem.spec). The file's own schema then names any bad key."""
     if "rows" in data:
         return "table"
     if "recording" in data or "sessions" in data:
         return "recording"
+    if "motion" in data:
+        return "oriented"
     simulation = data.get("simulation")
     if isinstance(simulation, Mapping) and ("scenario" in simulation or "imu" in simulation):
         return "imu"

@@ -25,11 +25,13 @@ from casmag.model.translational import (
     parameters_and_guess,
 )
 from casmag.problem.imu import ImuProblem, load_imu_problem
+from casmag.problem.oriented import OrientedProblem, load_oriented_problem
 from casmag.problem.spec import Problem, document_kind, load_problem, read_yaml
 from casmag.result import Result
 from casmag.result.evaluation import anchor_info
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.imu import solve_imu
+from casmag.solver.oriented import solve_oriented
 from casmag.solver.sliding import solve_coarse_to_fine, solve_sliding
 from casmag.solver.translational import solve_translational
 from casmag.solver.uncertainty import (
@@ -43,7 +45,7 @@ from casmag.versions import __version__, versions
 
 
 def solve(
-    problem: Problem | ImuProblem | str | Path | dict[str, Any],
+    problem: Problem | ImuProblem | OrientedProblem | str | Path | dict[str, Any],
     data: Dataset | ImuData | None = None,
     progress: Callable[[int, float, float, float], None] | None = None,
     initial_positions: np.ndarray | None = None,
@@ -53,8 +55,10 @@ def solve(
     problem: a Problem, a YAML path or a dictionary (validated with :func:`load_problem`).
     A problem of the IMU model (an ImuProblem, or a file or dictionary whose keys say so,
     casmag.problem.spec.document_kind) is solved by :func:`casmag.solver.imu.solve_imu` (a Result
-    with ``motion`` imu); a table file or a real-data problem file is refused naming its
-    entry point.
+    with ``motion`` imu); a planar or pose problem (an OrientedProblem, or a file or
+    dictionary with a ``motion`` section) by :func:`casmag.solver.oriented.solve_oriented`
+    (its recording simulated, ``data`` not taken); a table file or a real-data problem file
+    is refused naming its entry point.
     data: the data set to use; simulated from the problem (with its seed) when omitted.
     Data not simulated (no ``M_true``, e.g. a recording) need the model's noise and GP
     settings given (or estimated): a null there means "the simulation's value" and is
@@ -71,6 +75,13 @@ def solve(
     kind = _kind(problem)
     if kind == "imu":
         return solve_imu(load_imu_problem(problem, source=source), data, progress)
+    if kind == "oriented":
+        if data is not None or initial_positions is not None:
+            raise TypeError(
+                "a planar or pose problem simulates its recording: solve a recording of "
+                "your own with casmag.slam"
+            )
+        return solve_oriented(load_oriented_problem(problem, source=source), progress)
     if kind in ("table", "recording"):
         where = (
             "casmag.experiments.sweep (casmag sweep FILE)"
@@ -215,6 +226,8 @@ def _kind(problem: Any) -> str:
     """The document kind of what :func:`solve` was given (casmag.problem.spec.document_kind)."""
     if isinstance(problem, ImuProblem):
         return "imu"
+    if isinstance(problem, OrientedProblem):
+        return "oriented"
     if isinstance(problem, Mapping):
         return document_kind(problem)
     return "translational"

@@ -16,19 +16,12 @@ from typing import Any
 import numpy as np
 
 from casmag.data.checks import model_warnings, recording_warnings, warning_lines
-from casmag.data.clock import LagEstimate, estimate_lag, lag_warning, shift_magnetometer
+from casmag.data.clock import estimate_lag, lag_warning, shift_magnetometer
 from casmag.data.recording import Recording, read_recording
 from casmag.data.simulate import Dataset
 from casmag.errors import DataError, ProblemError
 from casmag.gp.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
 from casmag.gp.savedmap import SavedMap, load_map
-from casmag.model.planar import dead_reckon_planar
-from casmag.problem.imu import (
-    PLANAR_WARM_START_KEYS,
-    load_planar_options,
-    refuse_unused_solver_keys,
-)
-from casmag.problem.pose import load_pose_options
 from casmag.problem.spec import (
     Problem,
     as_overrides,
@@ -39,7 +32,6 @@ from casmag.problem.spec import (
 )
 from casmag.result import Result
 from casmag.result.evaluation import anchor_info
-from casmag.result.metrics import heading_rms_deg
 from casmag.result.verdict import revisit_pairs, verdict
 from casmag.solver.api import solve
 from casmag.solver.ekf import localise_filter, translational_filter_result
@@ -51,10 +43,14 @@ from casmag.solver.multisession import (
     solve_two_starts,
     stack,
 )
-from casmag.solver.planar import solve_planar_recording
-from casmag.solver.pose import solve_pose_recording
+from casmag.solver.oriented import (
+    CONSTANT_FIELD,
+    constant_magnetometer,
+    lag_record,
+    refuse_constant_field,
+    slam_oriented,
+)
 from casmag.solver.uncertainty import PositionUncertainty
-from casmag.strapdown import dead_reckon_pose, rotate
 from casmag.versions import __version__, versions
 
 KNOT_SECONDS = 1.0
@@ -194,28 +190,6 @@ def recording_problem(
         merged["model"]["gp"]["sigma_lin"] = sigma_lin if sigma_lin > 0 else scale
     how["estimated"] = missing
     return load_problem(merged, overrides, source=source), how
-
-
-CONSTANT_FIELD = (
-    "the magnetometer is constant (every row of mx, my, mz the same), so the field carries "
-    "no position information; result is the odometry"
-)
-
-
-def constant_magnetometer(Y: np.ndarray) -> bool:
-    """Whether every magnetometer row is the same (to 1e-12 of the largest component)."""
-    Y = np.asarray(Y, dtype=float)
-    spread = float(np.ptp(Y, axis=0).max()) if Y.size else 0.0
-    return spread <= 1e-12 * float(np.abs(Y).max()) if Y.size else True
-
-
-def refuse_constant_field(source: Any) -> None:
-    """A solve forced on a constant magnetometer (no field check): one-line DataError."""
-    raise DataError(
-        f"{source}: mx, my, mz: the magnetometer is constant (every row the same), so GP-SLAM "
-        "has no field to correct the drift with; without --no-field-check the result is the "
-        "odometry (Odometry_Only)"
-    )
 
 
 #: Top-level problem keys a recording's problem does not use: its data come from the file.
@@ -458,7 +432,7 @@ def slam(
             result = refit_sigma_m(prob, data, result, progress)
     result.info["recording"] = str(recording)
     result.info["defaults"] = how
-    result.info["magnetometer_lag"] = _lag_record(lag, removed)
+    result.info["magnetometer_lag"] = lag_record(lag, removed)
     result.warnings = found + list(result.warnings or [])
     return result
 
@@ -587,30 +561,6 @@ def with_lag_removed(rec: Recording, mag_lag: float | None, how: str = "as asked
     )
 
 
-def _lag_record(lag: LagEstimate | None, applied: float | None) -> dict[str, Any]:
-    """``info["magnetometer_lag"]``: the estimate (on the recording as read, or after a lag
-    given with ``mag_lag``) and what was removed."""
-    return {"removed_seconds": applied or 0.0, "estimate": None if lag is None else lag.to_dict()}
-
-
-def _planar_lag(rec: Recording) -> LagEstimate | None:
-    """The magnetometer lag of a planar recording: its field turned into the world frame
-    along the dead-reckoned heading, against the dead-reckoned path (from the origin)."""
-    inc = rec.increments
-    P, psi = dead_reckon_planar(inc, np.zeros(2), 0.0)
-    c, s = np.cos(psi), np.sin(psi)
-    Y = rec.Y
-    world = np.column_stack([c * Y[:, 0] - s * Y[:, 1], s * Y[:, 0] + c * Y[:, 1], Y[:, 2]])
-    return estimate_lag(rec.t, P, world)
-
-
-def _pose_lag(rec: Recording) -> LagEstimate | None:
-    """The magnetometer lag of a pose recording: its field turned into the map frame along
-    the dead-reckoned orientation, against the dead-reckoned path (from the origin)."""
-    P, Q = dead_reckon_pose(rec.increments, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
-    return estimate_lag(rec.t, P, rotate(Q, rec.Y))
-
-
 def _plausibility(rec: Recording, data: Dataset, prob: Problem) -> list[dict[str, str]]:
     """What reading the recording changed (rows merged or resampled), then casmag.data.checks on
     it and on the lengthscale its problem uses."""
@@ -679,137 +629,3 @@ def slam_sessions(
     result.warnings = found
     result.verdict = verdict(result)  # again, with each session's errors
     return result
-
-
-def slam_oriented(
-    rec: Recording,
-    problem: str | Path | None = None,
-    overrides: str | Sequence[str] | Mapping[str, Any] = (),
-    progress: Callable[[int, float, float, float], None] | None = None,
-    field_check: bool = True,
-    on_warning: Callable[[str], None] | None = None,
-    anchor: str = "truth",
-    mag_lag: float | None = None,
-    method: str = "map",
-) -> Result:
-    """A recording whose magnetometer turns with the body: planar (``dfwd,dleft,dyaw``,
-    the planar model with a heading-rate bias, casmag.solver.planar) or pose odometry
-    (``dpx,dpy,dpz,dqw,dqx,dqy,dqz``, the pose model, casmag.solver.pose). Settings from the
-    problem file's ``model``/``solver`` sections and ``model.KEY=...`` overrides
-    (:class:`casmag.problem.imu.PlanarModelSpec`, :class:`casmag.problem.pose.PoseModelSpec`).
-    A constant magnetometer carries no position information: the result is the dead
-    reckoning, status ``Odometry_Only`` (with ``field_check`` off, DataError). The
-    magnetometer's lag is estimated with the field turned into the map frame along the dead
-    reckoning, and reported (``mag_lag``: what was removed before). ``method``: as for
-    :func:`slam`."""
-    load, lag_of, odometry_only, solve_recording = _ORIENTED[rec.motion]
-    overrides = as_overrides(overrides)
-    refuse_unused_solver_keys(
-        overrides, f"casmag slam on a {rec.motion} recording", PLANAR_WARM_START_KEYS
-    )
-    options = load(problem, overrides)
-    constant = constant_magnetometer(rec.Y)
-    lag = None if constant else lag_of(rec)  # a constant field has no lag to find
-    found = [
-        *rec.notes,
-        *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
-        *lag_warning(lag),
-    ]
-    for line in warning_lines(rec.path, found):
-        if on_warning is not None:
-            on_warning(line)
-    if constant:
-        if not field_check:
-            refuse_constant_field(rec.path)
-        result = odometry_only(rec, anchor)
-    else:
-        result = solve_recording(rec, options, progress=progress, anchor=anchor, method=method)
-    result.warnings = found
-    result.info["magnetometer_lag"] = _lag_record(lag, mag_lag)
-    a = result.arrays
-    if rec.motion == "planar" and a.get("P_true") is not None and a.get("psi_true") is None:
-        # True positions without a true heading: the heading column is written empty
-        # (NaN), as trajectory.csv has a heading beside every position.
-        a["psi_true"] = np.full(a["P_true"].shape[0], np.nan)
-    return result
-
-
-def _constant_field_info(rec: Recording, anchor: dict[str, Any]) -> dict[str, Any]:
-    """``info`` of the dead-reckoning result of a recording whose magnetometer is constant."""
-    return {
-        "name": Path(rec.path).stem,
-        "samples": int(rec.n_samples),
-        "num_basis": 0,
-        "anchor": anchor,
-        "fallback": "homogeneous field: " + CONSTANT_FIELD,
-        "recording": str(rec.path),
-        "casmag": __version__,
-        "versions": versions(),
-    }
-
-
-def pose_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
-    """The pose dead reckoning as the result of a recording whose magnetometer is constant
-    (status ``Odometry_Only``), started where :func:`casmag.solver.pose.solve_pose` starts."""
-    P_true = rec.P_true
-    if P_true is not None and P_true.shape[1] == 2:
-        P_true = np.column_stack([P_true, np.zeros(P_true.shape[0])])
-    known = P_true is not None and anchor == "truth"
-    p0 = P_true[0] if known else np.zeros(3)
-    q0 = rec.q_true[0] if known and rec.q_true is not None else np.array([1.0, 0, 0, 0])
-    P, Q = dead_reckon_pose(rec.increments, p0, q0)
-    anchor_entry = {
-        "kind": "first true position" if known else "origin",
-        "position": [float(v) for v in p0],
-        "quaternion": [float(v) for v in q0],
-    }
-    return Result.odometry_only(
-        "pose",
-        _constant_field_info(rec, anchor_entry),
-        P,
-        P_true,
-        arrays={"t": rec.t, "Q_odometry": Q, "Q_estimate": Q, "Q_true": rec.q_true},
-    )
-
-
-def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
-    """The planar dead reckoning as the result of a recording whose magnetometer is constant
-    (status ``Odometry_Only``, the reason in ``info.fallback``), started where
-    :func:`casmag.solver.planar.solve_planar` starts: the first true pose, else (or with
-    ``anchor`` ``origin``) the origin."""
-    P_true = None if rec.P_true is None else rec.P_true[:, :2]
-    known = P_true is not None and anchor == "truth"
-    p0 = P_true[0] if known else np.zeros(2)
-    psi0 = float(rec.yaw_true[0]) if known and rec.yaw_true is not None else 0.0
-    P, psi = dead_reckon_planar(rec.increments, np.asarray(p0, dtype=float), psi0)
-    heading = None
-    if P_true is not None and rec.yaw_true is not None:
-        heading = heading_rms_deg(psi, rec.yaw_true)
-    anchor_entry = {
-        "kind": "first true position"
-        if known
-        else ("origin (no truth)" if P_true is None else "origin"),
-        "position": [float(v) for v in p0],
-        "heading_rad": psi0,
-    }
-    return Result.odometry_only(
-        "planar",
-        _constant_field_info(rec, anchor_entry),
-        P,
-        P_true,
-        arrays={
-            "t": rec.t,
-            "psi_odometry": psi,
-            "psi_estimate": psi,
-            "psi_true": rec.yaw_true if P_true is not None else None,
-        },
-        details={"heading_rms_deg_before": heading, "heading_rms_deg_after": heading},
-    )
-
-
-#: The recordings whose magnetometer turns with the body, per motion input: (options
-#: loader, lag estimate, dead-reckoning result, solve) for :func:`slam_oriented`.
-_ORIENTED: dict[str, tuple[Callable[..., Any], ...]] = {
-    "planar": (load_planar_options, _planar_lag, planar_odometry_only, solve_planar_recording),
-    "pose": (load_pose_options, _pose_lag, pose_odometry_only, solve_pose_recording),
-}

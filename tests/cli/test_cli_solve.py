@@ -12,13 +12,22 @@ from casmag.cli.main import main
 from casmag.experiments.realbench import load_real_problem
 from casmag.experiments.sweep import TableSpec
 from casmag.problem.imu import load_imu_problem
+from casmag.problem.oriented import load_oriented_problem
 from casmag.problem.spec import DOCUMENT_KINDS, document_kind, load_problem, read_yaml
 
 # What each folder of problems/ holds (the tests' own list, independent of document_kind).
-FOLDER_KIND = {"paper": None, "bench": "translational", "imu": "imu", "real": "recording"}
+FOLDER_KIND = {
+    "paper": None,
+    "bench": "translational",
+    "imu": "imu",
+    "planar": "oriented",
+    "pose": "oriented",
+    "real": "recording",
+}
 LOADERS = {
     "translational": load_problem,
     "imu": load_imu_problem,
+    "oriented": load_oriented_problem,
     "recording": load_real_problem,
     "table": lambda path: TableSpec.model_validate(read_yaml(path)),
 }
@@ -45,6 +54,7 @@ def test_document_kind_reads_the_keys():
     assert document_kind({"sessions": []}) == "recording"
     assert document_kind({"simulation": {"scenario": {}}}) == "imu"
     assert document_kind({"simulation": {"imu": {}}}) == "imu"
+    assert document_kind({"motion": {"kind": "pose"}, "simulation": {}}) == "oriented"
     assert document_kind({"simulation": {"trajectory": {}}}) == "translational"
     assert document_kind({"seed": 1}) == "translational"
 
@@ -155,3 +165,20 @@ def test_an_imu_map_lengthscale_longer_than_the_path_is_named(tmp_path):
     assert "model.gp.lengthscale: 30 m is longer than the path's extent" in res.stderr
     r = json.loads((out / "result.json").read_text())
     assert [w["check"] for w in r["warnings"]] == ["lengthscale"]
+
+
+@pytest.mark.parametrize(
+    "path",
+    [*sorted((PROBLEMS / "planar").glob("*.yaml")), *sorted((PROBLEMS / "pose").glob("*.yaml"))],
+    ids=lambda p: f"{p.parent.name}/{p.stem}",
+)
+def test_every_planar_and_pose_file_is_solved_at_tiny_size(tmp_path, path):
+    out = tmp_path / "out"
+    args = ["solve", str(path), "--out", str(out), "-q", "--no-figures"]
+    res = _invoke([*args, "--set", "simulation.trajectory.samples=60"])
+    assert res.exit_code == 0, res.output
+    r = json.loads((out / "result.json").read_text())
+    assert r["motion"] == path.parent.name and r["status"] == "Solve_Succeeded"
+    assert r["info"]["samples"] == 60 and r["info"]["seed"] == read_yaml(path)["seed"]
+    assert r["rmse_after"] < r["rmse_before"]
+    assert r["odometry_bias_true"] is not None and r["info"]["recording"] is None

@@ -359,6 +359,23 @@ def test_an_imu_problem_is_swept_and_reported_in_the_imu_table(tmp_path):
     assert "IMU-only RMSE [m] mean" in text and "2/2 solved" in text
 
 
+def test_planar_and_pose_problems_are_swept_and_reported(tmp_path):
+    files = [ROOT / "problems/planar/walk.yaml", ROOT / "problems/pose/walk.yaml"]
+    out = tmp_path / "runs"
+    sets = ["--set", "simulation.trajectory.samples=40", "--figures", "none", "-q"]
+    res = _invoke(["sweep", *files, "--seeds", 2, "--out", out, *sets])
+    assert res.exit_code == 0, res.output
+    # two files both named walk.yaml: each sweep's folder is its problem's name
+    for name, motion in (("planar-walk", "planar"), ("pose-walk", "pose")):
+        assert json.loads((out / name / "sweep.json").read_text())["kind"] == "oriented"
+        runs = sorted((out / name).glob("*/seed-*/result.json"))
+        assert [json.loads(p.read_text())["motion"] for p in runs] == [motion, motion]
+    res = _invoke(["report", out, "--out", tmp_path / "report.md", "--no-figures"])
+    assert res.exit_code == 0, res.output
+    text = (tmp_path / "report.md").read_text()
+    assert "### planar-walk" in text and "### pose-walk" in text
+
+
 def _sigint_disposition(queue):
     """In a spawned process: how SIGINT is handled as it starts."""
     import signal

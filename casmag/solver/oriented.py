@@ -1,0 +1,258 @@
+"""GP-SLAM on recordings whose magnetometer turns with the body (planar and pose odometry,
+:func:`slam_oriented`: the magnetometer's lag, the field check, the model's solve), and the
+planar and pose problem files, whose recording is simulated (:func:`solve_oriented`,
+casmag.problem.oriented). ``casmag slam`` (casmag.solver.recslam) takes this path for such
+recordings; it sits below :mod:`casmag.solver.api`, which solves a problem file of any kind."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from casmag.data.checks import recording_warnings, warning_lines
+from casmag.data.clock import LagEstimate, estimate_lag, lag_warning
+from casmag.data.posesim import simulate_planar, simulate_pose
+from casmag.data.recording import Recording
+from casmag.errors import DataError
+from casmag.model.planar import dead_reckon_planar
+from casmag.problem.imu import (
+    PLANAR_WARM_START_KEYS,
+    load_planar_options,
+    refuse_unused_solver_keys,
+)
+from casmag.problem.oriented import OrientedProblem
+from casmag.problem.pose import load_pose_options
+from casmag.problem.spec import as_overrides
+from casmag.result import Result
+from casmag.result.metrics import heading_rms_deg
+from casmag.solver.planar import solve_planar_recording
+from casmag.solver.pose import solve_pose_recording
+from casmag.strapdown import dead_reckon_pose, rotate
+from casmag.versions import __version__, versions
+
+CONSTANT_FIELD = (
+    "the magnetometer is constant (every row of mx, my, mz the same), so the field carries "
+    "no position information; result is the odometry"
+)
+
+
+def constant_magnetometer(Y: np.ndarray) -> bool:
+    """Whether every magnetometer row is the same (to 1e-12 of the largest component)."""
+    Y = np.asarray(Y, dtype=float)
+    spread = float(np.ptp(Y, axis=0).max()) if Y.size else 0.0
+    return spread <= 1e-12 * float(np.abs(Y).max()) if Y.size else True
+
+
+def refuse_constant_field(source: Any) -> None:
+    """A solve forced on a constant magnetometer (no field check): one-line DataError."""
+    raise DataError(
+        f"{source}: mx, my, mz: the magnetometer is constant (every row the same), so GP-SLAM "
+        "has no field to correct the drift with; without --no-field-check the result is the "
+        "odometry (Odometry_Only)"
+    )
+
+
+def lag_record(lag: LagEstimate | None, applied: float | None) -> dict[str, Any]:
+    """``info["magnetometer_lag"]``: the estimate (on the recording as read, or after a lag
+    given with ``mag_lag``) and what was removed."""
+    return {"removed_seconds": applied or 0.0, "estimate": None if lag is None else lag.to_dict()}
+
+
+def _planar_lag(rec: Recording) -> LagEstimate | None:
+    """The magnetometer lag of a planar recording: its field turned into the world frame
+    along the dead-reckoned heading, against the dead-reckoned path (from the origin)."""
+    inc = rec.increments
+    P, psi = dead_reckon_planar(inc, np.zeros(2), 0.0)
+    c, s = np.cos(psi), np.sin(psi)
+    Y = rec.Y
+    world = np.column_stack([c * Y[:, 0] - s * Y[:, 1], s * Y[:, 0] + c * Y[:, 1], Y[:, 2]])
+    return estimate_lag(rec.t, P, world)
+
+
+def _pose_lag(rec: Recording) -> LagEstimate | None:
+    """The magnetometer lag of a pose recording: its field turned into the map frame along
+    the dead-reckoned orientation, against the dead-reckoned path (from the origin)."""
+    P, Q = dead_reckon_pose(rec.increments, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+    return estimate_lag(rec.t, P, rotate(Q, rec.Y))
+
+
+def slam_oriented(
+    rec: Recording,
+    problem: str | Path | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+    field_check: bool = True,
+    on_warning: Callable[[str], None] | None = None,
+    anchor: str = "truth",
+    mag_lag: float | None = None,
+    method: str = "map",
+) -> Result:
+    """A recording whose magnetometer turns with the body: planar (``dfwd,dleft,dyaw``,
+    the planar model with a heading-rate bias, casmag.solver.planar) or pose odometry
+    (``dpx,dpy,dpz,dqw,dqx,dqy,dqz``, the pose model, casmag.solver.pose). Settings from the
+    problem file's ``model``/``solver`` sections and ``model.KEY=...`` overrides
+    (:class:`casmag.problem.imu.PlanarModelSpec`, :class:`casmag.problem.pose.PoseModelSpec`).
+    A constant magnetometer carries no position information: the result is the dead
+    reckoning, status ``Odometry_Only`` (with ``field_check`` off, DataError). The
+    magnetometer's lag is estimated with the field turned into the map frame along the dead
+    reckoning, and reported (``mag_lag``: what was removed before). ``method``: as for
+    :func:`slam`."""
+    load, lag_of, odometry_only, solve_recording = _ORIENTED[rec.motion]
+    overrides = as_overrides(overrides)
+    refuse_unused_solver_keys(
+        overrides, f"casmag slam on a {rec.motion} recording", PLANAR_WARM_START_KEYS
+    )
+    options = load(problem, overrides)
+    constant = constant_magnetometer(rec.Y)
+    lag = None if constant else lag_of(rec)  # a constant field has no lag to find
+    found = [
+        *rec.notes,
+        *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
+        *lag_warning(lag),
+    ]
+    for line in warning_lines(rec.path, found):
+        if on_warning is not None:
+            on_warning(line)
+    if constant:
+        if not field_check:
+            refuse_constant_field(rec.path)
+        result = odometry_only(rec, anchor)
+    else:
+        result = solve_recording(rec, options, progress=progress, anchor=anchor, method=method)
+    result.warnings = found
+    result.info["magnetometer_lag"] = lag_record(lag, mag_lag)
+    a = result.arrays
+    if rec.motion == "planar" and a.get("P_true") is not None and a.get("psi_true") is None:
+        # True positions without a true heading: the heading column is written empty
+        # (NaN), as trajectory.csv has a heading beside every position.
+        a["psi_true"] = np.full(a["P_true"].shape[0], np.nan)
+    return result
+
+
+def _constant_field_info(rec: Recording, anchor: dict[str, Any]) -> dict[str, Any]:
+    """``info`` of the dead-reckoning result of a recording whose magnetometer is constant."""
+    return {
+        "name": Path(rec.path).stem,
+        "samples": int(rec.n_samples),
+        "num_basis": 0,
+        "anchor": anchor,
+        "fallback": "homogeneous field: " + CONSTANT_FIELD,
+        "recording": str(rec.path),
+        "casmag": __version__,
+        "versions": versions(),
+    }
+
+
+def pose_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
+    """The pose dead reckoning as the result of a recording whose magnetometer is constant
+    (status ``Odometry_Only``), started where :func:`casmag.solver.pose.solve_pose` starts."""
+    P_true = rec.P_true
+    if P_true is not None and P_true.shape[1] == 2:
+        P_true = np.column_stack([P_true, np.zeros(P_true.shape[0])])
+    known = P_true is not None and anchor == "truth"
+    p0 = P_true[0] if known else np.zeros(3)
+    q0 = rec.q_true[0] if known and rec.q_true is not None else np.array([1.0, 0, 0, 0])
+    P, Q = dead_reckon_pose(rec.increments, p0, q0)
+    anchor_entry = {
+        "kind": "first true position" if known else "origin",
+        "position": [float(v) for v in p0],
+        "quaternion": [float(v) for v in q0],
+    }
+    return Result.odometry_only(
+        "pose",
+        _constant_field_info(rec, anchor_entry),
+        P,
+        P_true,
+        arrays={"t": rec.t, "Q_odometry": Q, "Q_estimate": Q, "Q_true": rec.q_true},
+    )
+
+
+def planar_odometry_only(rec: Recording, anchor: str = "truth") -> Result:
+    """The planar dead reckoning as the result of a recording whose magnetometer is constant
+    (status ``Odometry_Only``, the reason in ``info.fallback``), started where
+    :func:`casmag.solver.planar.solve_planar` starts: the first true pose, else (or with
+    ``anchor`` ``origin``) the origin."""
+    P_true = None if rec.P_true is None else rec.P_true[:, :2]
+    known = P_true is not None and anchor == "truth"
+    p0 = P_true[0] if known else np.zeros(2)
+    psi0 = float(rec.yaw_true[0]) if known and rec.yaw_true is not None else 0.0
+    P, psi = dead_reckon_planar(rec.increments, np.asarray(p0, dtype=float), psi0)
+    heading = None
+    if P_true is not None and rec.yaw_true is not None:
+        heading = heading_rms_deg(psi, rec.yaw_true)
+    anchor_entry = {
+        "kind": "first true position"
+        if known
+        else ("origin (no truth)" if P_true is None else "origin"),
+        "position": [float(v) for v in p0],
+        "heading_rad": psi0,
+    }
+    return Result.odometry_only(
+        "planar",
+        _constant_field_info(rec, anchor_entry),
+        P,
+        P_true,
+        arrays={
+            "t": rec.t,
+            "psi_odometry": psi,
+            "psi_estimate": psi,
+            "psi_true": rec.yaw_true if P_true is not None else None,
+        },
+        details={"heading_rms_deg_before": heading, "heading_rms_deg_after": heading},
+    )
+
+
+#: The recordings whose magnetometer turns with the body, per motion input: (options
+#: loader, lag estimate, dead-reckoning result, solve) for :func:`slam_oriented`.
+_ORIENTED: dict[str, tuple[Callable[..., Any], ...]] = {
+    "planar": (load_planar_options, _planar_lag, planar_odometry_only, solve_planar_recording),
+    "pose": (load_pose_options, _pose_lag, pose_odometry_only, solve_pose_recording),
+}
+
+
+def simulate_oriented(problem: OrientedProblem) -> tuple[Recording, Any]:
+    """The problem's simulated recording (named after the problem and its seed) and the
+    simulation (casmag.data.posesim.PlanarRecording or PoseRecording: its true biases)."""
+    spec, m = problem.spec, problem.spec.motion
+    if m.kind == "planar":
+        sim: Any = simulate_planar(
+            spec.simulation, spec.seed, m.rate, m.heading_noise, m.heading_bias
+        )
+    else:
+        sim = simulate_pose(
+            spec.simulation, spec.seed, m.rate, m.rotation_noise, tuple(m.rate_bias),
+            None if m.displacement_bias is None else tuple(m.displacement_bias),
+            m.tilt_deg, m.height,
+        )  # fmt: skip
+    return sim.recording(f"{problem.name}-seed{spec.seed}"), sim
+
+
+def solve_oriented(
+    problem: OrientedProblem,
+    progress: Callable[[int, float, float, float], None] | None = None,
+    method: str = "map",
+) -> Result:
+    """Simulate the problem's recording and solve it (module docstring); ``method``:
+    ``map`` or the filter baseline ``ekf`` (casmag.solver.recslam.slam). The result's
+    ``info`` names the problem (``name``, ``source``, ``seed``, ``simulation``: the motion
+    section); the true biases sit beside the estimated ones: ``odometry_bias_true`` (planar:
+    the heading-rate bias; pose: the body-frame displacement bias) and, for pose,
+    ``details.bias_w_true`` (the rate bias)."""
+    rec, sim = simulate_oriented(problem)
+    result = slam_oriented(rec, problem.sections, progress=progress, method=method)
+    result.info.update(
+        name=problem.name,
+        source=problem.source,
+        seed=problem.spec.seed,
+        recording=None,
+        simulation={"motion": problem.spec.motion.model_dump(mode="json")},
+    )
+    if problem.motion == "planar":
+        result.odometry_bias_true = [float(sim.bias_w)]
+    else:
+        result.odometry_bias_true = [float(v) for v in sim.bias_p]
+        result.details["bias_w_true"] = [float(v) for v in sim.bias_w]
+    return result
