@@ -175,9 +175,12 @@ class RotatedFieldGaussNewton(HessianCallback):
             for j in range(d)
         ]
 
-    def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """The Hessian entries in the order of the pattern's triplets."""
-        lay, n, d, M = self.lay, self.n, self.d, self.basis.num_basis
+    def _linearised(self, x: np.ndarray, p: np.ndarray) -> tuple[Any, ...]:
+        """The block at x: positions P, orientation unknowns o, their parameters aux, the
+        weights w (dW/dV ``scale``), constant field c, 1 / sigma_m, the field m and its
+        Jacobians A (weights) and D (position), the rotations R (n, 3, 3) and the
+        residuals' Jacobian L (n, 3, nl) with respect to each sample's local unknowns."""
+        lay, n, M = self.lay, self.n, self.basis.num_basis
         P = x[lay.pos] if lay.pos_nominal is None else x[lay.pos] + p[lay.pos_nominal]
         o = x[lay.rot]
         aux = p[lay.aux] if lay.aux.shape[1] else np.zeros((n, 0))
@@ -197,6 +200,61 @@ class RotatedFieldGaussNewton(HessianCallback):
         Jo = np.asarray(Jv).T.reshape(n, 3, self.r, order="F")
         Jp = np.einsum("kba,kbj->kaj", R, D)  # R^T dm/dp
         L = -inv * np.concatenate([Jp, Jo], axis=2)  # (n, 3, nl)
+        return P, o, aux, w, scale, c, inv, m, A, D, R, L
+
+    def residual_jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, Any]:
+        """The block's whitened residuals e = (y - R^T (m + c)) / sigma_m (n, 3) at x and
+        their Jacobian (3n, n_x) with respect to x, a scipy CSR matrix whose rows are the
+        residuals sample by sample (e_k's three components together); J^T J is the
+        Gauss-Newton Hessian :meth:`values` gives (casmag.solver.uncertainty's correction
+        for correlated residuals)."""
+        import scipy.sparse as sp
+
+        lay, n = self.lay, self.n
+        _, _, _, _, scale, c, inv, m, A, _, R, L = self._linearised(x, p)
+        Y = p[lay.Y : lay.Y + 3 * n].reshape(n, 3, order="F")
+        e = (Y - np.einsum("kba,kb->ka", R, m + c)) * inv
+        local = np.hstack([lay.pos, lay.rot])  # (n, nl)
+        nl = local.shape[1]
+        rows = np.arange(3 * n).reshape(n, 3)
+        # de_a / du_b = -R[b, a] / sigma_m, u = m + c; m linear in the weights (A)
+        Ru = -inv * np.transpose(R, (0, 2, 1))  # (n, 3 [a], 3 [b])
+        if self.kernel == "se":  # m_b = A0 w_b: column W + b M + j
+            Jw = (Ru[:, :, :, None] * A[0][:, None, None, :]).reshape(n, 3, self.n_w)
+        else:  # m_b = A_b w
+            Jw = np.einsum("kab,bkj->kaj", Ru, np.stack(A))
+        parts = [
+            sp.csr_matrix(
+                (L.ravel(), (np.repeat(rows.ravel(), nl), np.repeat(local, 3, axis=0).ravel())),
+                shape=(3 * n, lay.n_x),
+            ),
+            sp.csr_matrix(
+                (
+                    (Jw * scale).ravel(),
+                    (
+                        np.repeat(rows.ravel(), self.n_w),
+                        np.tile(lay.W + np.arange(self.n_w), 3 * n),
+                    ),
+                ),
+                shape=(3 * n, lay.n_x),
+            ),
+        ]
+        if lay.c is not None:
+            parts.append(
+                sp.csr_matrix(
+                    (
+                        Ru.ravel(),
+                        (np.repeat(rows.ravel(), 3), np.tile(lay.c + np.arange(3), 3 * n)),
+                    ),
+                    shape=(3 * n, lay.n_x),
+                )
+            )
+        return e, sum(parts[1:], parts[0]).tocsr()
+
+    def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The Hessian entries in the order of the pattern's triplets."""
+        lay, n, d, M = self.lay, self.n, self.d, self.basis.num_basis
+        P, o, aux, w, scale, c, inv, m, A, D, R, L = self._linearised(x, p)
         # Coefficients of du/d(w, c) in the local-map blocks: -R L / sigma (Gauss-Newton)
         # plus F_ou (second order, orientation rows only).
         G = -inv * np.einsum("kab,kbl->kal", R, L)

@@ -676,26 +676,31 @@ def load_recording_spec(
     return spec
 
 
-#: Solver settings only the translational solver uses (warm starts, the Laplace
-#: covariance); the IMU and planar models ignore them.
+#: Solver settings the IMU model does not use (warm starts, the Laplace covariance); the
+#: planar and pose models read some of them (:data:`STAGED_SOLVER_KEYS`).
 UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncertainty_inflation")
 
 
-#: The warm-start keys the planar and pose models read (growing prefixes, coarse-to-fine).
-PLANAR_WARM_START_KEYS = tuple(
-    f"solver.warm_start.{k}"
-    for k in (
-        "strategy", "first_samples", "growth", "stage_max_iter", "lengthscale_start",
-        "lengthscale_stages",
-    )
+#: The keys under :data:`UNUSED_SOLVER_KEYS` the planar and pose models read: their warm
+#: starts (growing prefixes, coarse-to-fine; casmag.solver.staged) and the Laplace covariance.
+STAGED_SOLVER_KEYS = (
+    *(
+        f"solver.warm_start.{k}"
+        for k in (
+            "strategy", "first_samples", "growth", "stage_max_iter", "lengthscale_start",
+            "lengthscale_stages",
+        )
+    ),
+    "solver.uncertainty",
+    "solver.uncertainty_inflation",
 )  # fmt: skip
 
 
 def refuse_unused_solver_keys(
     overrides: Iterable[str], command: str, used: tuple[str, ...] = ()
 ) -> None:
-    """Refuse ``--set`` keys the IMU and planar models would ignore (ProblemError naming
-    the key), so that a setting never silently does nothing; ``used``: keys under those
+    """Refuse ``--set`` keys a model would ignore (ProblemError naming the key), so that a
+    setting never silently does nothing; ``used``: keys under :data:`UNUSED_SOLVER_KEYS`
     that the model reads."""
     for text in as_overrides(overrides):
         key = ".".join(parse_override(text)[0])
@@ -703,6 +708,4 @@ def refuse_unused_solver_keys(
             continue
         for unused in UNUSED_SOLVER_KEYS:
             if key == unused or key.startswith(unused + "."):
-                raise ProblemError(
-                    "--set", key, f"{command} does not use {unused} (translational problems only)"
-                )
+                raise ProblemError("--set", key, f"{command} does not use {key}")

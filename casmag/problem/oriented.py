@@ -27,7 +27,7 @@ from pydantic import Field
 
 from casmag.errors import ProblemError
 from casmag.problem.imu import (
-    PLANAR_WARM_START_KEYS,
+    STAGED_SOLVER_KEYS,
     PlanarOptions,
     PlanarSpec,
     load_planar_options,
@@ -193,7 +193,7 @@ def load_oriented_problem(
     data = apply_overrides(data, overrides, src)
     motion = data.get("motion")
     kind = motion.get("kind") if isinstance(motion, Mapping) else None
-    refuse_unused_solver_keys(overrides, f"a {kind} problem", PLANAR_WARM_START_KEYS)
+    refuse_unused_solver_keys(overrides, f"a {kind} problem", STAGED_SOLVER_KEYS)
     if kind not in _SPECS:
         where = "motion.kind" if isinstance(motion, Mapping) else "motion"
         raise ProblemError(

@@ -133,6 +133,24 @@ class Result:
         over the solver: a pickled result carries only a map already computed."""
         return {**self.__dict__, "map_maker": None}
 
+    def withhold_untrusted_covariance(self) -> None:
+        """When the verdict does not trust the estimate, its Laplace covariance (the
+        curvature at an optimum the checks reject) is not given as one: ``uncertainty``
+        becomes ``{"error": "withheld: ...", "computed": <the summary>}`` (kept to show how
+        far off it was, e.g. its NEES against the truth) and the covariance arrays are
+        dropped, so no figure, trajectory.csv column or library user reads a confident
+        covariance of a wrong result. The planar and pose models call it."""
+        u = self.uncertainty
+        if not u or "error" in u or (self.verdict or {}).get("trusted", True):
+            return
+        first = (self.verdict or {}).get("reasons") or ["not trusted"]
+        self.uncertainty = {
+            "error": f"withheld: the verdict does not trust the estimate ({first[0]})",
+            "computed": u,
+        }
+        for key in ("P_cov", "P_cov_uninflated"):
+            self.arrays[key] = None
+
     def saved_map(self) -> SavedMap | None:
         """The estimated map with its posterior (``field_map``), computed on first use by
         ``map_maker`` (a factorisation of the Hessian: only results that are saved or asked

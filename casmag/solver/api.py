@@ -35,10 +35,11 @@ from casmag.solver.oriented import solve_oriented
 from casmag.solver.sliding import solve_coarse_to_fine, solve_sliding
 from casmag.solver.translational import solve_translational
 from casmag.solver.uncertainty import (
+    UNCERTAINTY_MAX_UNKNOWNS,
     NotPositiveDefinite,
+    laplace_positions,
     magnetometer_correction,
     position_uncertainty,
-    residual_inflation,
 )
 from casmag.solver.windowing import Stage, continued, solve_growing
 from casmag.versions import __version__, versions
@@ -233,11 +234,6 @@ def _kind(problem: Any) -> str:
     return "translational"
 
 
-# Largest number of unknowns for which the Laplace covariance is computed (a dense factor
-# of the Hessian: 12,000 unknowns take 1.2 GB).
-UNCERTAINTY_MAX_UNKNOWNS = 12_000
-
-
 #: Largest number of map unknowns whose posterior precision is saved (a dense n_z x n_z
 #: matrix: 290 MB at 6,000, 108 MB at the real field's 3,675).
 MAP_MAX_UNKNOWNS = 6_000
@@ -304,25 +300,18 @@ def _uncertainty(
         reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
         return {"error": f"not computed: {reason}"}, None, None
     params, _ = parameters_and_guess(problem, solved, structure)
-    method = problem.spec.solver.uncertainty_inflation
-    sigma_o = problem.assumed_sigma_odometry
+    sigma_o, sigma_m = problem.assumed_sigma_odometry, problem.assumed_sigma_m
+    knots, dim = structure.knots, structure.dim
     try:
-        u0 = position_uncertainty(nlp, sol, params, structure.knots, structure.dim, sigma_o)
-        if method == "none":
-            return u0.summary(P_est, P_true), u0.cov, None
-        R = solved.Y - field_estimate(structure, sol, P_est)
-        sigma_m = problem.assumed_sigma_m
-        inflation = residual_inflation(R, structure.knots.bounds, sigma_m, method)
-        u = u0
-        if inflation.active:
-            factors = inflation.factors(solved.n_samples)
-            meat = magnetometer_correction(nlp, sol, structure, factors, sigma_m)
-            u = position_uncertainty(
-                nlp, sol, params, structure.knots, structure.dim, sigma_o, meat=meat
-            )
+        return laplace_positions(
+            lambda meat: position_uncertainty(nlp, sol, params, knots, dim, sigma_o, meat=meat),
+            lambda: solved.Y - field_estimate(structure, sol, P_est),
+            lambda factors: magnetometer_correction(nlp, sol, structure, factors, sigma_m),
+            knots.bounds,
+            sigma_m,
+            problem.spec.solver.uncertainty_inflation,
+            P_est,
+            P_true,
+        )
     except NotPositiveDefinite as exc:
         return {"error": str(exc)}, None, None
-    summary = u.summary(P_est, P_true)
-    summary["inflation"] = inflation.to_dict()
-    summary["uninflated"] = u0.summary(P_est, P_true)
-    return summary, u.cov, u0.cov

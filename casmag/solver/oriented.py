@@ -19,7 +19,7 @@ from casmag.data.recording import Recording
 from casmag.errors import DataError
 from casmag.model.planar import dead_reckon_planar
 from casmag.problem.imu import (
-    PLANAR_WARM_START_KEYS,
+    STAGED_SOLVER_KEYS,
     load_planar_options,
     refuse_unused_solver_keys,
 )
@@ -81,7 +81,7 @@ def _pose_lag(rec: Recording) -> LagEstimate | None:
 
 def slam_oriented(
     rec: Recording,
-    problem: str | Path | None = None,
+    problem: str | Path | Mapping[str, Any] | None = None,
     overrides: str | Sequence[str] | Mapping[str, Any] = (),
     progress: Callable[[int, float, float, float], None] | None = None,
     field_check: bool = True,
@@ -93,7 +93,7 @@ def slam_oriented(
     """A recording whose magnetometer turns with the body: planar (``dfwd,dleft,dyaw``,
     the planar model with a heading-rate bias, casmag.solver.planar) or pose odometry
     (``dpx,dpy,dpz,dqw,dqx,dqy,dqz``, the pose model, casmag.solver.pose). Settings from the
-    problem file's ``model``/``solver`` sections and ``model.KEY=...`` overrides
+    problem file's (or mapping's) ``model``/``solver`` sections and ``model.KEY=...`` overrides
     (:class:`casmag.problem.imu.PlanarModelSpec`, :class:`casmag.problem.pose.PoseModelSpec`).
     A constant magnetometer carries no position information: the result is the dead
     reckoning, status ``Odometry_Only`` (with ``field_check`` off, DataError). The
@@ -103,7 +103,7 @@ def slam_oriented(
     load, lag_of, odometry_only, solve_recording = _ORIENTED[rec.motion]
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(
-        overrides, f"casmag slam on a {rec.motion} recording", PLANAR_WARM_START_KEYS
+        overrides, f"casmag slam on a {rec.motion} recording", STAGED_SOLVER_KEYS
     )
     options = load(problem, overrides)
     constant = constant_magnetometer(rec.Y)

@@ -38,6 +38,7 @@ from casmag.solver.staged import (
     heading_bias_starts,
     solve_starts,
     truth_check,
+    uncertainty,
 )
 from casmag.versions import versions
 
@@ -154,6 +155,8 @@ def solve_planar(
             box = left_map_box(basis.domain.center, basis.domain.half_width, sol.x["P"])
         if box is not None:
             flags.append(box)
+    P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
+    u_summary, P_cov, P_cov_plain = uncertainty(final, P_true, sigma_m, options.solver)
     before = after = (None, None)
     hb_deg = ha_deg = None
     if truth is not None:
@@ -164,7 +167,7 @@ def solve_planar(
             after = rmse_and_max(sol.x["P"], truth["P"])
         if sol.success and "psi" in truth:
             ha_deg = heading_rms_deg(sol.x["psi"], truth["psi"])
-    return Result(
+    result = Result(
         motion="planar",
         flags=flags,
         status=sol.status,
@@ -183,6 +186,7 @@ def solve_planar(
         # each start's strategy (growing prefixes, coarse-to-fine, one batch); one kept
         stages=staged.records(),
         cost_per_iteration=sol.cost_per_iteration,
+        uncertainty=u_summary,
         info={
             "name": name,
             "samples": int(n),
@@ -206,6 +210,8 @@ def solve_planar(
             "P_odometry": P_dr,
             "psi_odometry": psi_dr,
             "P_estimate": sol.x["P"],
+            "P_cov": P_cov,
+            "P_cov_uninflated": P_cov_plain,
             "psi_estimate": sol.x["psi"].ravel(),
             "P_true": None if truth is None else truth["P"],
             "psi_true": None
@@ -213,6 +219,8 @@ def solve_planar(
             else np.asarray(truth["psi"], dtype=float),
         },
     )
+    result.withhold_untrusted_covariance()
+    return result
 
 
 def planar_structure(
@@ -324,7 +332,8 @@ class PlanarStaged(StagedModel):
             "W": self._initial_map(s_k, start["P"], Y0, lengthscale),
             "c": self.c0.reshape(3, 1),
         }
-        return Solved(nlp_k.solve(params_k, x0, progress=self.progress), nlp_k, s_k, lengthscale)
+        sol = nlp_k.solve(params_k, x0, progress=self.progress)
+        return Solved(sol, nlp_k, s_k, lengthscale, params=params_k)
 
 
 def hyperparameters_from_data(

@@ -30,7 +30,7 @@ from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
 from casmag.solver.planar import hyperparameter_info, hyperparameters_from_data
-from casmag.solver.staged import Solved, StagedModel, solve_starts, truth_check
+from casmag.solver.staged import Solved, StagedModel, solve_starts, truth_check, uncertainty
 
 #: Fixed biases are held at zero with IPOPT's fixed variables.
 _BIASES = ("bias_p", "bias_w")
@@ -174,6 +174,8 @@ def solve_pose(
         box = left_map_box(basis.domain.center, basis.domain.half_width, sol.x["P"][:, :dim])
         if box is not None:
             flags.append(box)
+    P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
+    u_summary, P_cov, P_cov_plain = uncertainty(final, P_true, sigma_m, options.solver)
     before = after = (None, None)
     att_before = att_after = None
     if truth is not None:
@@ -194,10 +196,11 @@ def solve_pose(
     arrays.update(
         t=np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
         P_odometry=P_dr, Q_odometry=Q_dr, P_estimate=sol.x["P"], Q_estimate=Q_est,
+        P_cov=P_cov, P_cov_uninflated=P_cov_plain,
         P_true=None if truth is None else np.asarray(truth["P"], dtype=float),
         Q_true=None if truth is None or "q" not in truth else np.asarray(truth["q"], float),
     )  # fmt: skip
-    return Result(
+    result = Result(
         motion="pose",
         flags=flags,
         status=sol.status,
@@ -220,6 +223,7 @@ def solve_pose(
         cost_blocks=sol.cost_blocks(),
         stages=staged.records(),
         cost_per_iteration=sol.cost_per_iteration,
+        uncertainty=u_summary,
         info={
             "name": name,
             "samples": int(n),
@@ -241,6 +245,8 @@ def solve_pose(
         convergence=[sol.trace("GP-SLAM")],
         arrays=arrays,
     )
+    result.withhold_untrusted_covariance()
+    return result
 
 
 def pose_structure(
@@ -325,7 +331,9 @@ class PoseStaged(StagedModel):
             "W": whiten(basis, kernel, sigma_f, lengthscale, w), "c": self.c0.reshape(3, 1),
         }  # fmt: skip
         sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=self.fixed)
-        return Solved(sol, nlp_k, s_k, lengthscale, nominal=Q0)
+        return Solved(
+            sol, nlp_k, s_k, lengthscale, nominal=Q0, params=params_k, fixed=tuple(self.fixed)
+        )
 
 
 def solve_pose_recording(

@@ -35,6 +35,7 @@ from casmag.nlp import NLP, Solution, lowest_cost
 from casmag.problem.imu import STAGED_STRATEGIES
 from casmag.problem.spec import SolverSpec, WarmStartSpec
 from casmag.result.metrics import rmse_and_max
+from casmag.solver.uncertainty import sample_state_uncertainty
 from casmag.solver.windowing import continues, grow, lengthscale_schedule, stage_lengths
 
 #: With truth (evaluation), an estimate whose position RMSE is above this fraction of the
@@ -48,14 +49,18 @@ TRUTH_START_RATIO = 0.25
 @dataclass
 class Solved:
     """One solve of a staged model: IPOPT's solution, the NLP, the structure it was built
-    from (its map box or tiles), the lengthscale it ran with, and what the model needs
-    besides (``nominal``: the orientations a pose solve is linearised about)."""
+    from (its map box or tiles), the lengthscale it ran with, what the model needs besides
+    (``nominal``: the orientations a pose solve is linearised about), and the parameter
+    values and the variables held fixed it was solved with (the Laplace covariance
+    evaluates the Hessian there: :func:`uncertainty`)."""
 
     sol: Solution
     nlp: NLP
     structure: Any
     lengthscale: float
     nominal: Any = None
+    params: dict[str, Any] | None = None
+    fixed: tuple[str, ...] = ()
 
 
 class StagedModel(ABC):
@@ -249,3 +254,22 @@ def truth_check(
     start = {**model.states(final), **true_states}
     true_start = model.solve(model.n, start, model.solver, model.lengthscale).sol
     return wrong_basin_flag(sol, true_start, P_true, ratio)
+
+
+def uncertainty(
+    final: Solved, P_true: np.ndarray | None, sigma_m: float, solver: SolverSpec
+) -> tuple[dict[str, Any] | None, np.ndarray | None, np.ndarray | None]:
+    """The Laplace position covariance of a staged model's final solve
+    (casmag.solver.uncertainty.sample_state_uncertainty, with ``solver.uncertainty_inflation``):
+    (summary, covariance, plain covariance); None for each when ``solver.uncertainty`` is off
+    or the solve failed. A tiled map's is not implemented (the summary says so)."""
+    if not (final.sol.success and solver.uncertainty):
+        return None, None, None
+    if getattr(final.structure, "tiled", False):
+        error = "not computed: the tiled map's Laplace covariance is not implemented"
+        return {"error": error}, None, None
+    assert final.params is not None, "a staged model's solve records its parameters"
+    return sample_state_uncertainty(
+        final.nlp, final.sol, final.params, final.sol.x["P"], P_true, sigma_m,
+        solver.uncertainty_inflation, final.fixed,
+    )  # fmt: skip

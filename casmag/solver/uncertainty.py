@@ -50,6 +50,7 @@ correlated noise, and the inflation does not change that.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -139,8 +140,13 @@ def position_uncertainty(
     dim: int,
     sigma_o: float = 0.0,
     meat: np.ndarray | None = None,
+    var: str = "C",
+    fixed: tuple[str, ...] = (),
 ) -> PositionUncertainty:
-    """Laplace covariances of the positions at the solution ``sol`` of ``nlp``.
+    """Laplace covariances of the positions at the solution ``sol`` of ``nlp``: the
+    unknowns ``var`` (K, dim) at the knots (``C``: the translational model's knot
+    corrections; ``P`` with one knot per sample: the positions of the planar and pose
+    models, every sample an unknown).
 
     The Hessian is factored densely (the unknowns are the knots, the bias, the map weights
     and estimated hyperparameters: a few thousand at most with knots), then solved for the
@@ -152,13 +158,21 @@ def position_uncertainty(
     quadratic, so the total bias a growing or sliding solve leaves in ``sol.x`` is harmless.)
     meat: a dense (n_x, n_x) matrix B - H (:func:`magnetometer_correction`): the sandwich
     covariance H^-1 B H^-1 of the knots instead of H^-1 (the covariance of the MAP estimate
-    when the score's covariance is B, not H).
+    when the score's covariance is B, not H). fixed: variables the solve held at their
+    start values (NLP.solve's ``fixed``): conditioned on, not marginalised.
     """
     x = {k: v for k, v in sol.x.items() if k in nlp.x_layout.entries}
     H = nlp.hessian(x, params).toarray()
-    entry = nlp.x_layout.entries["C"]
+    entries = nlp.x_layout.entries
+    free = np.ones(H.shape[0], dtype=bool)
+    for name in fixed:
+        free[entries[name].offset + np.arange(entries[name].size)] = False
+    H = H[np.ix_(free, free)]
+    if meat is not None:
+        meat = meat[np.ix_(free, free)]
     K = knots.count
-    cols = entry.offset + np.arange(K * dim)  # column-major (K, d): axis a at a*K + j
+    position = np.flatnonzero(free).searchsorted(entries[var].offset)
+    cols = position + np.arange(K * dim)  # column-major (K, d): axis a at a*K + j
     try:
         factor = sla.cho_factor(H, lower=True, check_finite=True)
     except (np.linalg.LinAlgError, ValueError) as exc:
@@ -191,6 +205,100 @@ def _row_quadratic(A, B: np.ndarray) -> np.ndarray:
     if hasattr(A, "multiply"):
         return np.asarray(A.multiply(AB).sum(axis=1)).ravel()
     return np.sum(np.asarray(A) * AB, axis=1)
+
+
+#: Largest number of unknowns for which the Laplace covariance is computed (a dense factor
+#: of the Hessian: 12,000 unknowns take 1.2 GB).
+UNCERTAINTY_MAX_UNKNOWNS = 12_000
+
+
+def laplace_positions(
+    covariance: Callable[[np.ndarray | None], PositionUncertainty],
+    residuals: Callable[[], np.ndarray],
+    correction: Callable[[np.ndarray], np.ndarray],
+    bounds: list[tuple[int, int]],
+    sigma_m: float,
+    method: str,
+    P_est: np.ndarray,
+    P_true: np.ndarray | None,
+) -> tuple[dict[str, Any], np.ndarray, np.ndarray | None]:
+    """The Laplace position covariance of any motion model with the correction for
+    correlated magnetometer residuals (module docstring): ``covariance(meat)`` the
+    covariance with a Hessian correction (None: H^-1), ``residuals()`` the magnetometer
+    residuals y - m (N, 3) at the solution, ``correction(factors)`` the Hessian correction
+    B - H for per-sample, per-component factors (N, 3) (:func:`magnetometer_correction`,
+    :func:`whitened_correction`); ``bounds`` the sessions' sample ranges. Returns the
+    summary (with ``inflation`` and ``uninflated`` unless ``method`` is ``none``), the
+    covariance and the plain one (None for ``none``). Raises NotPositiveDefinite."""
+    u0 = covariance(None)
+    if method == "none":
+        return u0.summary(P_est, P_true), u0.cov, None
+    inflation = residual_inflation(residuals(), bounds, sigma_m, method)
+    u = u0
+    if inflation.active:
+        u = covariance(correction(inflation.factors(P_est.shape[0])))
+    summary = u.summary(P_est, P_true)
+    summary["inflation"] = inflation.to_dict()
+    summary["uninflated"] = u0.summary(P_est, P_true)
+    return summary, u.cov, u0.cov
+
+
+def sample_state_uncertainty(
+    nlp: NLP,
+    sol: Solution,
+    params: dict,
+    P_est: np.ndarray,
+    P_true: np.ndarray | None,
+    sigma_m: float,
+    method: str,
+    fixed: tuple[str, ...] = (),
+) -> tuple[dict[str, Any], np.ndarray | None, np.ndarray | None]:
+    """:func:`laplace_positions` for a model whose positions ``P`` are unknowns at every
+    sample and whose magnetometer block is read through a rotation (the planar and pose
+    models: casmag.model.rotated, the block's Jacobian from its Hessian callback,
+    RotatedFieldGaussNewton.residual_jacobian); ``fixed``: variables the solve held
+    fixed. Returns (summary, covariance, plain covariance); the summary is ``{"error":
+    reason}`` (and the covariances None) when the Hessian is too large to factor densely or
+    not positive definite."""
+    if nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
+        reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
+        return {"error": f"not computed: {reason}"}, None, None
+    n, d = P_est.shape
+    knots = Knots(n, 1)
+    block = nlp.keep[1] if nlp.keep is not None else None
+    if not hasattr(block, "residual_jacobian"):
+        return {"error": "not computed: the magnetometer block gives no Jacobian"}, None, None
+    state: dict[str, Any] = {}
+
+    def residuals() -> np.ndarray:
+        x = nlp.x_layout.pack({k: v for k, v in sol.x.items() if k in nlp.x_layout.entries})
+        e, state["J"] = block.residual_jacobian(x, nlp.p_layout.pack(params))
+        return sigma_m * e
+
+    try:
+        return laplace_positions(
+            lambda meat: position_uncertainty(
+                nlp, sol, params, knots, d, meat=meat, var="P", fixed=fixed
+            ),
+            residuals,
+            lambda factors: whitened_correction(state["J"], factors),
+            knots.bounds,
+            sigma_m,
+            method,
+            P_est,
+            P_true,
+        )
+    except NotPositiveDefinite as exc:
+        return {"error": str(exc)}, None, None
+
+
+def whitened_correction(J: Any, factors: np.ndarray) -> np.ndarray:
+    """Dense (n_x, n_x) B - H = sum_kc (factors_kc - 1) J_kc^T J_kc for the Jacobian J
+    (3N, n_x) of whitened residuals (y - m) / sigma_m stacked sample by sample."""
+    import scipy.sparse as sp
+
+    v = np.asarray(factors, dtype=float).ravel() - 1.0  # (N, 3) row-major: sample-major
+    return np.asarray((J.T @ sp.diags(v) @ J).toarray())
 
 
 # ----------------------------------------------------------------- correlated residuals

@@ -175,10 +175,15 @@ def test_an_imu_map_lengthscale_longer_than_the_path_is_named(tmp_path):
 def test_every_planar_and_pose_file_is_solved_at_tiny_size(tmp_path, path):
     out = tmp_path / "out"
     args = ["solve", str(path), "--out", str(out), "-q", "--no-figures"]
-    res = _invoke([*args, "--set", "simulation.trajectory.samples=60"])
+    # the Laplace covariance is on by default, and solver.uncertainty turns it off
+    off = path.parent.name == "pose"
+    sets = ["simulation.trajectory.samples=60", f"solver.uncertainty={str(not off).lower()}"]
+    res = _invoke([*args, *(x for s in sets for x in ("--set", s))])
     assert res.exit_code == 0, res.output
     r = json.loads((out / "result.json").read_text())
     assert r["motion"] == path.parent.name and r["status"] == "Solve_Succeeded"
     assert r["info"]["samples"] == 60 and r["info"]["seed"] == read_yaml(path)["seed"]
     assert r["rmse_after"] < r["rmse_before"]
     assert r["odometry_bias_true"] is not None and r["info"]["recording"] is None
+    assert (r["uncertainty"] is None) == off
+    assert off or r["uncertainty"]["nees_expected"] == 2.0

@@ -84,7 +84,7 @@ def test_slam_solves_a_planar_recording(tmp_path, planar_recording):
             "solver.warm_start.strategy: 'sliding': the planar model takes none, growing, "
             "coarse-to-fine",
         ),
-        (["--set", "solver.warm_start.window=50"], "does not use solver.warm_start"),
+        (["--set", "solver.warm_start.window=50"], "does not use solver.warm_start.window"),
     ],
 )
 def test_slam_planar_bad_settings_exit_2(tmp_path, planar_recording, args, needle):
