@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-peers bench-peers-pose bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-peers bench-peers-pose bench-walks bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -134,6 +134,10 @@ bench-peers: $(STAMP) ## The MAP against the filter baseline (EKF), 20 seeds of 
 
 bench-peers-pose: $(STAMP) ## The same as pose odometry (6-DoF increments, rotation noise) -> results/bench/peers-pose/
 	$(PY) -m casmag.experiments.peers problems/bench/peers.yaml --motion pose --seeds 20 --out results/bench/peers-pose
+
+bench-walks: $(STAMP) ## Planar and pose odometry walks (problems/planar, problems/pose), 10 seeds -> results/bench/walks/report.md
+	$(VENV)/bin/casmag sweep problems/planar/walk.yaml problems/pose/walk.yaml --seeds 10 --figures first --out results/bench/walks
+	$(VENV)/bin/casmag report results/bench/walks --out results/bench/walks/report.md
 
 bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
 	$(PY) -m casmag.experiments.bench scale --out results/bench

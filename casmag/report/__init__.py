@@ -875,12 +875,98 @@ def markdown_table(table: Table, figures: dict[str, str] | None = None) -> str:
             f"{NEVER_WORSE:g} x our mean RMSE before; a row with unsolved seeds does not meet it."
         )
     out.append(note)
+    out += consistency_lines(table)
     if figures:
         out.append("")
         for kind, rel in figures.items():
             out.append(f"![{table.name} {kind}]({rel})")
     out.append("")
     return "\n".join(out)
+
+
+#: The orientation error each motion model's result reports (``details``), and its name.
+ORIENTATION_ERRORS = {
+    "heading_rms_deg_after": "heading",
+    "attitude_rms_deg_after": "attitude",
+}
+
+
+def _yaw_rate_bias(d: dict[str, Any]) -> tuple[float, float] | None:
+    """(estimated, true) heading- or yaw-rate bias [rad/s] of a planar or pose result on
+    simulated data (casmag.solver.oriented), None otherwise."""
+    details, true = d.get("details") or {}, d.get("odometry_bias_true")
+    if d.get("motion") == "planar" and d.get("odometry_bias") and true:
+        return float(d["odometry_bias"][-1]), float(true[0])
+    if d.get("motion") == "pose" and details.get("bias_w") and details.get("bias_w_true"):
+        return float(details["bias_w"][2]), float(details["bias_w_true"][2])
+    return None
+
+
+def consistency_lines(table: Table) -> list[str]:
+    """A second markdown table for the rows whose solved runs report them: the Laplace
+    covariance's consistency (median over the seeds of each run's mean NEES against the
+    expected value, and the seeds whose mean NEES is above the range an honest covariance
+    gives it, ``uncertainty.nees_interval_95``; covariances withheld or not computed are
+    counted), the orientation error after (mean) and, for the simulated planar and pose
+    problems, the heading- or yaw-rate bias estimated against the truth. Empty when no row
+    has any of these."""
+    rows = []
+    for row in table.rows:
+        solved = [r.data for r in row.runs if r.solved and r.data is not None]
+        u = [d.get("uncertainty") or {} for d in solved]
+        nees = [x for x in u if x.get("nees_mean") is not None]
+        not_given = sum(1 for x in u if "error" in x)
+        above = sum(1 for x in nees if x["nees_mean"] > x["nees_interval_95"][1])
+        orient = [
+            (name, float(d["details"][key]))
+            for d in solved
+            for key, name in ORIENTATION_ERRORS.items()
+            if (d.get("details") or {}).get(key) is not None
+        ]
+        biases = [b for b in (_yaw_rate_bias(d) for d in solved) if b is not None]
+        if not (nees or not_given or orient or biases):
+            continue
+        cells = [row.label]
+        if nees:
+            med = statistics.median(x["nees_mean"] for x in nees)
+            expected = nees[0]["nees_expected"]
+            cells += [f"{med:.2f} ({expected:g})", f"{above}/{len(nees)}"]
+        else:
+            cells += ["-", "-"]
+        cells.append(str(not_given) if not_given else "")
+        if orient:
+            cells.append(f"{orient[0][0]} {statistics.fmean(v for _, v in orient):.2f}")
+        else:
+            cells.append("-")
+        if biases:
+            err = [abs(e - t) for e, t in biases]
+            cells.append(f"{1e3 * biases[0][1]:.3g}: {1e3 * max(err):.3g}")
+        else:
+            cells.append("-")
+        rows.append("| " + " | ".join(cells) + " |")
+    if not rows:
+        return []
+    head = [
+        "",
+        "mean NEES, median over seeds (expected)",
+        "seeds above the honest range",
+        "covariance not given",
+        "orientation RMS after [deg], mean",
+        "rate bias true: worst error [mrad/s]",
+    ]
+    return [
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+        *rows,
+        "",
+        "The Laplace covariance of the solved runs (casmag.solver.uncertainty): each run's "
+        "mean NEES against the truth, the number of runs above the 95 % range an honest "
+        "covariance gives it (uncertainty.nees_interval_95), and the runs whose covariance was "
+        "withheld (the verdict did not trust them) or not computed; the heading (planar) or "
+        "attitude (pose) error after; the heading- or yaw-rate bias of the simulated planar "
+        "and pose problems, its true value and the largest error of its estimate.",
+    ]
 
 
 def _seed_text(table: Table) -> str:

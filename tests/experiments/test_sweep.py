@@ -374,6 +374,10 @@ def test_planar_and_pose_problems_are_swept_and_reported(tmp_path):
     assert res.exit_code == 0, res.output
     text = (tmp_path / "report.md").read_text()
     assert "### planar-walk" in text and "### pose-walk" in text
+    # the covariance's consistency, the orientation error and the rate bias, per row
+    assert text.count("| mean NEES, median over seeds (expected) |") == 2
+    assert "(2) |" in text and "(3) |" in text and "| heading " in text and "| attitude " in text
+    assert "| 2: " in text  # the true rate bias, 2 mrad/s, and the estimate's worst error
 
 
 def _sigint_disposition(queue):
