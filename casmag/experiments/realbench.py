@@ -265,6 +265,8 @@ def row(
 ) -> dict[str, Any]:
     rec = recording or spec.recording
     u = result.uncertainty or {}
+    withheld = "computed" in u  # not trusted: the covariance is not given, its figures kept
+    u = u.get("computed", u)
     hyp = result.info.get("defaults", {}).get("marginal_likelihood", {})
     return {
         "name": spec.name,
@@ -295,6 +297,7 @@ def row(
         "nees_interval_95": u.get("nees_interval_95"),
         "sigma_mean": u.get("sigma_mean"),
         "inside_95": u.get("inside_95"),
+        "covariance_withheld": withheld,
         "nees_mean_uninflated": (u.get("uninflated") or {}).get("nees_mean"),
         "inside_95_uninflated": (u.get("uninflated") or {}).get("inside_95"),
         "inflation_factor_mean": (u.get("inflation") or {}).get("factor_mean"),
@@ -348,6 +351,8 @@ def markdown(rows: list[dict[str, Any]]) -> str:
             span = r.get("nees_interval_95")
             rng = "" if span is None else f"; {span[0]:.2f}-{span[1]:.2f}"
             nees = f"{r['nees_mean']:.2f} ({r['nees_expected']:.0f}{rng})"
+            if r.get("covariance_withheld"):
+                nees += ", withheld: not trusted"
         lines.append(
             "| "
             + " | ".join(

@@ -126,7 +126,15 @@ class Result:
         if self.motion not in MOTIONS:
             raise ValueError(f"motion {self.motion!r} is not one of {', '.join(MOTIONS)}")
         if self.verdict is None:
-            self.verdict = verdict(self)
+            self.judge()
+
+    def judge(self) -> None:
+        """The verdict (casmag.result.verdict) of the result as it stands, and its
+        consequence for the covariance (:meth:`withhold_untrusted_covariance`): run when a
+        result is made, and again by whatever changes what the verdict reads (flags added,
+        the sessions' errors)."""
+        self.verdict = verdict(self)
+        self.withhold_untrusted_covariance()
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickled (a sweep's worker hands results back) without ``map_maker``, a closure
@@ -139,7 +147,8 @@ class Result:
         becomes ``{"error": "withheld: ...", "computed": <the summary>}`` (kept to show how
         far off it was, e.g. its NEES against the truth) and the covariance arrays are
         dropped, so no figure, trajectory.csv column or library user reads a confident
-        covariance of a wrong result. The planar and pose models call it."""
+        covariance of a wrong result, whatever the motion model or the method (the
+        filter's own covariance too). :meth:`judge` applies it."""
         u = self.uncertainty
         if not u or "error" in u or (self.verdict or {}).get("trusted", True):
             return

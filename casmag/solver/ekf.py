@@ -735,9 +735,7 @@ def localise_filter(
     flag = off_map_flag(on_map)
     if flag is not None:
         result.flags.append(flag)
-        from casmag.result.verdict import verdict
-
-        result.verdict = verdict(result)
+        result.judge()
     keep = np.r_[np.arange(n_w), n_w + np.arange(FIELD_DIM if saved.constant_field else 0)]
     cov = run.extra["map_cov"][np.ix_(keep, keep)]
     mean = np.concatenate([run.weights, run.constant])[keep]

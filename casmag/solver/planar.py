@@ -167,7 +167,7 @@ def solve_planar(
             after = rmse_and_max(sol.x["P"], truth["P"])
         if sol.success and "psi" in truth:
             ha_deg = heading_rms_deg(sol.x["psi"], truth["psi"])
-    result = Result(
+    return Result(
         motion="planar",
         flags=flags,
         status=sol.status,
@@ -219,8 +219,6 @@ def solve_planar(
             else np.asarray(truth["psi"], dtype=float),
         },
     )
-    result.withhold_untrusted_covariance()
-    return result
 
 
 def planar_structure(

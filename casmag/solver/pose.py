@@ -200,7 +200,7 @@ def solve_pose(
         P_true=None if truth is None else np.asarray(truth["P"], dtype=float),
         Q_true=None if truth is None or "q" not in truth else np.asarray(truth["q"], float),
     )  # fmt: skip
-    result = Result(
+    return Result(
         motion="pose",
         flags=flags,
         status=sol.status,
@@ -245,8 +245,6 @@ def solve_pose(
         convergence=[sol.trace("GP-SLAM")],
         arrays=arrays,
     )
-    result.withhold_untrusted_covariance()
-    return result
 
 
 def pose_structure(

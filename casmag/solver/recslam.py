@@ -32,7 +32,7 @@ from casmag.problem.spec import (
 )
 from casmag.result import Result
 from casmag.result.evaluation import anchor_info
-from casmag.result.verdict import revisit_pairs, verdict
+from casmag.result.verdict import revisit_pairs
 from casmag.solver.api import solve
 from casmag.solver.ekf import localise_filter, translational_filter_result
 from casmag.solver.localize import localise
@@ -627,5 +627,5 @@ def slam_sessions(
     result.info["defaults"] = how
     result.info["sessions"] = session_rows(data, result, names)
     result.warnings = found
-    result.verdict = verdict(result)  # again, with each session's errors
+    result.judge()  # again, with each session's errors
     return result

@@ -189,21 +189,20 @@ def test_revisit_noise_is_the_noise_that_does_not_repeat():
     assert np.isnan(revisit_noise(P[:500], Y[:500], field[:500], 0.3)[0])
 
 
-def test_an_untrusted_result_gives_no_covariance():
+@pytest.mark.parametrize("motion", ["translational", "planar", "pose"])
+def test_an_untrusted_result_gives_no_covariance(motion):
     cov = np.tile(np.eye(2) * 1e-4, (3, 1, 1))
     summary = {"sigma_mean": 0.014, "nees_mean": 2345.8}
     flag = {"name": "wrong_basin", "reason": "a worse local optimum", "evidence": {}}
 
-    def result(flags):
-        r = casmag.Result(
-            motion="planar", status="Solve_Succeeded", success=True, iterations=3,
+    def result(flags):  # judged as it is made (casmag.Result.judge)
+        return casmag.Result(
+            motion=motion, status="Solve_Succeeded", success=True, iterations=3,
             rmse_before=1.2, rmse_after=0.1, flags=flags, uncertainty=dict(summary), info={},
             build_seconds=0.1, solve_seconds=1.0, max_before=2.0, max_after=0.2,
             hyperparameters={}, cost_blocks={}, cost_per_iteration=[],
             arrays={"P_estimate": np.zeros((3, 2)), "P_cov": cov, "P_cov_uninflated": cov},
         )  # fmt: skip
-        r.withhold_untrusted_covariance()
-        return r
 
     trusted = result([])
     assert trusted.uncertainty == summary and trusted.arrays["P_cov"] is cov
@@ -212,3 +211,7 @@ def test_an_untrusted_result_gives_no_covariance():
     assert "wrong_basin" in wrong.uncertainty["error"]
     assert wrong.uncertainty["computed"] == summary
     assert wrong.arrays["P_cov"] is None and wrong.arrays["P_cov_uninflated"] is None
+    # judged again after a flag is added (as the filter's localisation does)
+    trusted.flags.append(flag)
+    trusted.judge()
+    assert not trusted.verdict["trusted"] and trusted.arrays["P_cov"] is None
