@@ -309,6 +309,10 @@ class Solution:
     stats: dict[str, Any] = field(repr=False, default_factory=dict)
     rounds: int = 1  # IPOPT runs summed in this solution (re-centred solves)
     inf_du_per_iteration: list[float] = field(default_factory=list)
+    # What it was solved with (NLP.solve): the parameter values and the variables held
+    # fixed; the Laplace covariance evaluates the Hessian there (casmag.solver.uncertainty).
+    params: Mapping[str, Any] | None = field(default=None, repr=False)
+    fixed: tuple[str, ...] = ()
 
     def cost_blocks(self) -> dict[str, dict[str, float]]:
         """Each named cost block at the initial guess and at the solution, as a result's
@@ -492,4 +496,6 @@ class NLP:
             blocks_before=before,
             blocks_after=self.evaluate_blocks(xopt, p),
             stats=stats,
+            params=params,
+            fixed=tuple(fixed),
         )

@@ -330,8 +330,7 @@ class PlanarStaged(StagedModel):
             "W": self._initial_map(s_k, start["P"], Y0, lengthscale),
             "c": self.c0.reshape(3, 1),
         }
-        sol = nlp_k.solve(params_k, x0, progress=self.progress)
-        return Solved(sol, nlp_k, s_k, lengthscale, params=params_k)
+        return Solved(nlp_k.solve(params_k, x0, progress=self.progress), nlp_k, s_k, lengthscale)
 
 
 def hyperparameters_from_data(

@@ -329,9 +329,7 @@ class PoseStaged(StagedModel):
             "W": whiten(basis, kernel, sigma_f, lengthscale, w), "c": self.c0.reshape(3, 1),
         }  # fmt: skip
         sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=self.fixed)
-        return Solved(
-            sol, nlp_k, s_k, lengthscale, nominal=Q0, params=params_k, fixed=tuple(self.fixed)
-        )
+        return Solved(sol, nlp_k, s_k, lengthscale, nominal=Q0)
 
 
 def solve_pose_recording(

@@ -49,18 +49,14 @@ TRUTH_START_RATIO = 0.25
 @dataclass
 class Solved:
     """One solve of a staged model: IPOPT's solution, the NLP, the structure it was built
-    from (its map box or tiles), the lengthscale it ran with, what the model needs besides
-    (``nominal``: the orientations a pose solve is linearised about), and the parameter
-    values and the variables held fixed it was solved with (the Laplace covariance
-    evaluates the Hessian there: :func:`uncertainty`)."""
+    from (its map box or tiles), the lengthscale it ran with, and what the model needs
+    besides (``nominal``: the orientations a pose solve is linearised about)."""
 
     sol: Solution
     nlp: NLP
     structure: Any
     lengthscale: float
     nominal: Any = None
-    params: dict[str, Any] | None = None
-    fixed: tuple[str, ...] = ()
 
 
 class StagedModel(ABC):
@@ -268,8 +264,6 @@ def uncertainty(
     if getattr(final.structure, "tiled", False):
         error = "not computed: the tiled map's Laplace covariance is not implemented"
         return {"error": error}, None, None
-    assert final.params is not None, "a staged model's solve records its parameters"
     return sample_state_uncertainty(
-        final.nlp, final.sol, final.params, final.sol.x["P"], P_true, sigma_m,
-        solver.uncertainty_inflation, final.fixed,
-    )  # fmt: skip
+        final.nlp, final.sol, final.sol.x["P"], P_true, sigma_m, solver.uncertainty_inflation
+    )

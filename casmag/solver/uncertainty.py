@@ -246,20 +246,22 @@ def laplace_positions(
 def sample_state_uncertainty(
     nlp: NLP,
     sol: Solution,
-    params: dict,
     P_est: np.ndarray,
     P_true: np.ndarray | None,
     sigma_m: float,
     method: str,
-    fixed: tuple[str, ...] = (),
 ) -> tuple[dict[str, Any], np.ndarray | None, np.ndarray | None]:
     """:func:`laplace_positions` for a model whose positions ``P`` are unknowns at every
     sample and whose magnetometer block is read through a rotation (the planar and pose
     models: casmag.model.rotated, the block's Jacobian from its Hessian callback,
-    RotatedFieldGaussNewton.residual_jacobian); ``fixed``: variables the solve held
-    fixed. Returns (summary, covariance, plain covariance); the summary is ``{"error":
-    reason}`` (and the covariances None) when the Hessian is too large to factor densely or
-    not positive definite."""
+    RotatedFieldGaussNewton.residual_jacobian), at the parameters it was solved with and
+    conditioned on the variables it held fixed (``sol.params``, ``sol.fixed``). Returns
+    (summary, covariance, plain covariance); the summary is ``{"error": reason}`` (and the
+    covariances None) when the Hessian is too large to factor densely or not positive
+    definite."""
+    params, fixed = sol.params, sol.fixed
+    if params is None:
+        return {"error": "not computed: the solution records no parameters"}, None, None
     if nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
         reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
         return {"error": f"not computed: {reason}"}, None, None
@@ -278,7 +280,7 @@ def sample_state_uncertainty(
     try:
         return laplace_positions(
             lambda meat: position_uncertainty(
-                nlp, sol, params, knots, d, meat=meat, var="P", fixed=fixed
+                nlp, sol, dict(params), knots, d, meat=meat, var="P", fixed=fixed
             ),
             residuals,
             lambda factors: whitened_correction(state["J"], factors),

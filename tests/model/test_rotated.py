@@ -21,9 +21,9 @@ def final_solve(request):
     seen = {}
     record = staged.sample_state_uncertainty
 
-    def spy(nlp, sol, params, *args, **kwargs):
-        seen.update(nlp=nlp, sol=sol, params=params, fixed=args[-1] if args else ())
-        return record(nlp, sol, params, *args, **kwargs)
+    def spy(nlp, sol, *args, **kwargs):
+        seen.update(nlp=nlp, sol=sol)
+        return record(nlp, sol, *args, **kwargs)
 
     path = ROOT / "problems" / request.param / "walk.yaml"
     problem = load_oriented_problem(path, ["simulation.trajectory.samples=30"])
@@ -33,7 +33,7 @@ def final_solve(request):
     assert result.success and seen
     nlp, sol = seen["nlp"], seen["sol"]
     x = nlp.x_layout.pack({k: v for k, v in sol.x.items() if k in nlp.x_layout.entries})
-    return nlp, x, nlp.p_layout.pack(seen["params"]), result
+    return nlp, x, nlp.p_layout.pack(sol.params), result
 
 
 def test_residuals_are_the_block_and_jacobian_its_gradient(final_solve):
