@@ -46,9 +46,6 @@ from casmag.problem.spec import (
     validate_spec,
 )
 
-#: The motion kinds of an oriented problem file, and the recording motion each simulates.
-ORIENTED_MOTIONS = ("planar", "pose")
-
 #: The kernels of the planar and pose models (PlanarModelSpec, PoseModelSpec).
 MODEL_KERNELS = ("se", "curl_free")
 
@@ -154,7 +151,8 @@ def _with_truths(data: dict[str, Any], kind: str, source: str) -> dict[str, Any]
     nulls = [k for k in TRUTH_OF if k in model and model[k] is None]
     if not nulls:
         return data
-    sim = validate_spec(_Oriented, {"seed": 0, "simulation": data.get("simulation", {})})[0]
+    simulation = {"seed": 0, "simulation": data.get("simulation", {})}
+    sim = validate_spec(_Oriented, simulation, (), source)[0]
     kernel = sim.simulation.field.kernel
     if kernel not in MODEL_KERNELS:
         raise ProblemError(
@@ -193,19 +191,18 @@ def load_oriented_problem(
     data = apply_overrides(data, overrides, src)
     motion = data.get("motion")
     kind = motion.get("kind") if isinstance(motion, Mapping) else None
-    refuse_unused_solver_keys(overrides, f"a {kind} problem", STAGED_SOLVER_KEYS)
     if kind not in _SPECS:
         where = "motion.kind" if isinstance(motion, Mapping) else "motion"
         raise ProblemError(
             src, where, f"the odometry the simulated walker carries: planar or pose (got {kind!r})"
         )
+    refuse_unused_solver_keys(overrides, f"a {kind} problem", STAGED_SOLVER_KEYS)
     data = _with_truths(data, kind, src)
     spec_class, solver = _SPECS[kind], data.get("solver")
     defaults = spec_class.model_fields["solver"].default.model_dump(exclude_unset=True)
     if solver is None or isinstance(solver, dict):
         data["solver"] = {**defaults, **(solver or {})}
     spec, _ = validate_spec(spec_class, data, (), src)
-    load = load_planar_options if kind == "planar" else load_pose_options
     oriented = OrientedProblem(spec=spec, source=src)
-    load(oriented.sections, source=src)  # the warm-start strategies the model takes
+    oriented.options  # noqa: B018  (the model's loader: the warm-start strategies it takes)
     return oriented

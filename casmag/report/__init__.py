@@ -916,7 +916,9 @@ def consistency_lines(table: Table) -> list[str]:
         u = [d.get("uncertainty") or {} for d in solved]
         nees = [x for x in u if x.get("nees_mean") is not None]
         not_given = sum(1 for x in u if "error" in x)
-        above = sum(1 for x in nees if x["nees_mean"] > x["nees_interval_95"][1])
+        above = sum(
+            1 for x in nees if x["nees_mean"] > (x.get("nees_interval_95") or [np.inf] * 2)[1]
+        )
         orient = [
             (name, float(d["details"][key]))
             for d in solved
