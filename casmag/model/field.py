@@ -267,16 +267,25 @@ class WindowField(ReducedRankField):
     0.5 (z - mu)^T Lambda (z - mu) on the unknowns z of shape ``prior_shape`` (the weights
     W (M, 3) when ``shared_prior``: the three columns share one precision; else the stacked
     [vec(W); c]), with the mean ``map_mean`` and precision ``map_precision`` carried from
-    earlier windows."""
+    earlier windows. Read through the pose's rotation (planar with heading), the unknowns are
+    the whitened weights and the constant field, z = [vec(V); c]
+    (casmag.model.rotated.add_rotated_map)."""
 
     prior_shape: tuple[int, int] = (0, 0)
     shared_prior: bool = False
     name = "window"
 
     def declare(self, b: NLPBuilder, pose: Pose, solver: SolverSpec) -> HessianPart | None:
-        if pose.rotation is not None:
-            raise ValueError("the window map is read in the map frame")
         basis = self.hilbert_basis()
+        if pose.rotation is not None:
+            if not self.constant_field or self.estimate:
+                raise ValueError(
+                    "a rotated window map has a constant field and fixed hyperparameters"
+                )
+            add_rotated_map(b, basis, self.kernel, pose, window=True)
+            if solver.hessian not in ("auto", "gauss-newton"):
+                return None
+            return rotated_gauss_newton(b, basis, self.kernel, pose, self.curvature)
         W, c = self._weights(b, basis)
         b.parameter("sigma_m", (1, 1))
         n_r, n_c = self.prior_shape

@@ -16,9 +16,9 @@ import numpy as np
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
 from casmag.gp.tiles import TiledBasis, TileGrid, cached_tiles
 from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
-from casmag.model.field import ReducedRankField, TiledField
+from casmag.model.field import ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
-from casmag.model.rotated import planar_rotation_function
+from casmag.model.rotated import planar_rotation_function, window_unknowns
 from casmag.nlp import NLP, NLPBuilder
 
 
@@ -37,6 +37,7 @@ class PlanarStructure:
     curvature: bool = True
     grid: TileGrid | None = None
     home: tuple[int, ...] = ()
+    window: bool = False
 
     @property
     def tiled(self) -> bool:
@@ -53,10 +54,18 @@ class PlanarStructure:
     def field(self) -> ReducedRankField | TiledField:
         """The map with a constant field: the tiles (Gauss-Newton Hessian), or the
         reduced-rank box; with ``curvature`` its Hessian callback carries the second-order
-        terms from the start (exact), else Gauss-Newton."""
+        terms from the start (exact), else Gauss-Newton. With ``window``, the box of a
+        sliding window, its prior carried from the earlier windows (a WindowField)."""
         if self.grid is not None:
+            if self.window:
+                raise ValueError("sliding windows need the reduced-rank map, not tiles")
             return TiledField(self.grid, self.home, constant_field=True)
         mode = "exact" if self.curvature else "gauss-newton"
+        if self.window:
+            nz = window_unknowns(self.hilbert_basis(), self.kernel)
+            return WindowField(
+                self.kernel, self.basis, constant_field=True, curvature=mode, prior_shape=(nz, 1)
+            )
         return ReducedRankField(self.kernel, self.basis, constant_field=True, curvature=mode)
 
 

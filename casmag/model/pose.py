@@ -38,9 +38,9 @@ import numpy as np
 from casmag import strapdown as sd
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
 from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
-from casmag.model.field import ReducedRankField
+from casmag.model.field import ReducedRankField, WindowField
 from casmag.model.knots import Knots
-from casmag.model.rotated import imu_rotation_function
+from casmag.model.rotated import imu_rotation_function, window_unknowns
 from casmag.nlp import NLP, NLPBuilder
 
 
@@ -133,7 +133,8 @@ class PoseMotion(MotionModel):
 class PoseStructure:
     """Everything that changes the pose NLP: samples, the map's dimension and its
     reduced-rank ``basis`` key (center, half width, number of functions), kernel, Hessian
-    mode of the magnetometer block, the solver settings as JSON."""
+    mode of the magnetometer block, the solver settings as JSON; ``window``: the box of a
+    sliding window, its prior carried from the earlier windows (a WindowField)."""
 
     n: int
     map_dim: int
@@ -142,11 +143,18 @@ class PoseStructure:
     solver: str
     curvature: str = "hybrid"
     height: bool = False
+    window: bool = False
 
     def hilbert_basis(self) -> HilbertBasis:
         return cached_basis(self.basis)
 
     def field(self) -> ReducedRankField:
+        if self.window:
+            nz = window_unknowns(self.hilbert_basis(), self.kernel)
+            return WindowField(
+                self.kernel, self.basis, constant_field=True, curvature=self.curvature,
+                prior_shape=(nz, 1),
+            )  # fmt: skip
         return ReducedRankField(
             self.kernel, self.basis, constant_field=True, curvature=self.curvature
         )

@@ -323,12 +323,16 @@ class RotatedFieldGaussNewton(HessianCallback):
 
 # --------------------------------------------------------------------------- map blocks
 def add_rotated_map(
-    b: NLPBuilder, basis: HilbertBasis, kernel: str, pose: Pose
+    b: NLPBuilder, basis: HilbertBasis, kernel: str, pose: Pose, window: bool = False
 ) -> tuple[ca.MX, ca.MX]:
     """Weights, constant field and the blocks ``magnetometer``, ``gp_prior``,
     ``constant_field_prior`` for a magnetometer read through the pose's rotation. The unknown
     named ``W`` holds the whitened weights V (map weights sqrt(S) V, S the prior variances).
-    Returns (W, c) with W the map weights (an expression)."""
+    With ``window`` (a window of the sliding windows, casmag.solver.staged) the two prior
+    blocks are replaced by ``map_prior``, 0.5 (z - mu)^T Lambda (z - mu) on z = [vec(V); c]
+    (:func:`rotated_design`), its mean ``map_mean`` and precision ``map_precision``
+    parameters carried from the earlier windows (casmag.nlp.NLPBuilder.quadratic). Returns
+    (W, c) with W the map weights (an expression)."""
     assert pose.rotation is not None
     M, n, dim, rot = basis.num_basis, pose.n, pose.dim, pose.rotation
     # Whitened weights V (the unknowns): W = sqrt(S) V, so the GP prior is 0.5 |V|^2. With
@@ -341,7 +345,7 @@ def add_rotated_map(
     sigma_m = b.parameter("sigma_m", (1, 1))
     sigma_f = b.parameter("sigma_f", (1, 1))
     ell = b.parameter("lengthscale", (1, 1))
-    sigma_lin = b.parameter("sigma_lin", (1, 1))
+    sigma_lin = None if window else b.parameter("sigma_lin", (1, 1))
     fieldf = basis.field_sx(kernel, position_dim=dim)
     x, y, sig = ca.SX.sym("x", dim), ca.SX.sym("y", FIELD_DIM), ca.SX.sym("sigma_m")
     o = ca.SX.sym("o", rot.unknowns.shape[1])
@@ -355,9 +359,50 @@ def add_rotated_map(
     aux_arg = rot.aux.T if rot.aux is not None else ca.MX(0, n)
     E = resid.map(n, "serial")(pose.positions.T, rot.unknowns.T, aux_arg, Y.T, W, c, sigma_m)
     b.cost("magnetometer", 0.5 * ca.sumsqr(E))
+    if window:
+        nz = V.numel() + FIELD_DIM
+        mu = b.parameter("map_mean", (nz, 1))
+        Lam = b.parameter("map_precision", (nz, nz))
+        b.quadratic("map_prior", "W", ca.vertcat(ca.vec(V), c), mu, Lam)
+        return W, c
     b.cost("gp_prior", 0.5 * ca.sumsqr(V))
     b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
     return W, c
+
+
+def window_unknowns(basis: HilbertBasis, kernel: str) -> int:
+    """Length of z = [vec(V); c], the unknowns of a rotated window map's prior."""
+    return basis.num_basis * (FIELD_DIM if kernel == "se" else 1) + FIELD_DIM
+
+
+def rotated_design(
+    basis: HilbertBasis,
+    kernel: str,
+    P: np.ndarray,
+    R: np.ndarray,
+    sigma_f: float,
+    lengthscale: float,
+) -> np.ndarray:
+    """(3N, nz) matrix J with the magnetometer readings y_k = R_k^T (m(p_k) + c) stacked as
+    J z, z = [vec(V); c] (V the whitened weights, column-major as CasADi's vec), at
+    positions P (N, d) with body-to-map rotations R (N, 3, 3): the reading is linear in the
+    map for a known pose, so a committed window's samples enter the map prior exactly as
+    linear-Gaussian observations."""
+    P = np.asarray(P, dtype=float)
+    N, M = P.shape[0], basis.num_basis
+    sqrt_s = np.sqrt(basis.prior_variances(kernel, sigma_f, lengthscale))
+    zero = np.zeros(M * FIELD_DIM if kernel == "se" else M)
+    _, A, _ = field_and_jacobians(basis, kernel, P, zero)
+    nv = window_unknowns(basis, kernel) - FIELD_DIM
+    G = np.zeros((N, FIELD_DIM, nv + FIELD_DIM))
+    for q in range(FIELD_DIM):
+        if kernel == "se":
+            G[:, q, q * M : (q + 1) * M] = A[0] * sqrt_s
+        else:
+            G[:, q, :M] = A[q] * sqrt_s
+        G[:, q, nv + q] = 1.0
+    J = np.einsum("kji,kjz->kiz", R, G)
+    return J.reshape(N * FIELD_DIM, nv + FIELD_DIM)
 
 
 def rotated_gauss_newton(

@@ -625,7 +625,16 @@ class PlanarOptions:
 
 
 #: The warm-start strategies the planar and pose models take (casmag.solver.staged).
-STAGED_STRATEGIES = ("none", "growing", "coarse-to-fine")
+STAGED_STRATEGIES = ("none", "growing", "coarse-to-fine", "sliding")
+
+#: Strategies a model does not take yet, per model name.
+STAGED_REFUSED: dict[str, tuple[str, ...]] = {}
+
+
+def staged_strategies(model_name: str) -> tuple[str, ...]:
+    """The warm-start strategies the named staged model takes."""
+    refused = STAGED_REFUSED.get(model_name, ())
+    return tuple(s for s in STAGED_STRATEGIES if s not in refused)
 
 
 def load_planar_options(
@@ -650,7 +659,7 @@ def load_recording_spec(
 ) -> Any:
     """A recording model's problem file (planar, pose: only its ``model`` and ``solver``
     sections are read; the solver's defaults are the class's own) with ``key.path=value``
-    overrides, validated; warm starts :data:`STAGED_STRATEGIES`. Raises ProblemError naming
+    overrides, validated; warm starts :func:`staged_strategies`. Raises ProblemError naming
     the file (or ``--set``), the key and the reason."""
     if problem is None:
         data: dict[str, Any] = {}
@@ -666,12 +675,19 @@ def load_recording_spec(
     if solver is not None and not isinstance(solver, dict):
         data["solver"] = solver  # let validation name the bad value
     spec, _ = validate_spec(spec_class, data, overrides, source)
-    if spec.solver.warm_start.strategy not in STAGED_STRATEGIES:
+    taken = staged_strategies(model_name)
+    if spec.solver.warm_start.strategy not in taken:
         raise ProblemError(
             source,
             "solver.warm_start.strategy",
             f"{spec.solver.warm_start.strategy!r}: the {model_name} model takes "
-            + ", ".join(STAGED_STRATEGIES),
+            + ", ".join(taken),
+        )
+    if spec.solver.warm_start.strategy == "sliding" and getattr(spec.model, "form", "") == "tiled":
+        raise ProblemError(
+            source,
+            "solver.warm_start.strategy",
+            "sliding windows need model.form: reduced_rank (a window's map is one box)",
         )
     return spec
 
@@ -694,6 +710,21 @@ STAGED_SOLVER_KEYS = (
     "solver.uncertainty",
     "solver.uncertainty_inflation",
 )  # fmt: skip
+
+#: The sliding windows' keys (read by the staged models that take ``sliding``).
+WINDOW_SOLVER_KEYS = tuple(
+    f"solver.warm_start.{k}"
+    for k in (
+        "window", "overlap", "window_lengthscales", "window_bias_prior", "unit",
+        "sample_period", "window_max_iter",
+    )
+)  # fmt: skip
+
+
+def staged_solver_keys(model_name: str) -> tuple[str, ...]:
+    """The keys under :data:`UNUSED_SOLVER_KEYS` the named staged model reads."""
+    windows = "sliding" in staged_strategies(model_name)
+    return STAGED_SOLVER_KEYS + (WINDOW_SOLVER_KEYS if windows else ())
 
 
 def refuse_unused_solver_keys(

@@ -263,13 +263,15 @@ class WarmStartSpec(Strict):
     ``sliding``: a fixed-lag smoother over windows of ``window`` samples that overlap by
     ``overlap`` (in ``unit``: samples, or seconds with ``sample_period`` [s] per sample),
     with a reduced-rank map carried from window to window as a Gaussian prior on its
-    weights; one NLP serves every window; each window stops after ``window_max_iter``
-    iterations; its trajectory starts the full batch. ``window: auto`` (the default) takes
-    the samples the dead reckoning needs to travel ``window_lengthscales`` assumed
-    lengthscales at its median speed, clamped to casmag.solver.sliding.AUTO_WINDOW; ``overlap:
-    auto`` is half the window. ``window_bias_prior``: ``laplace`` gives each window the
-    previous window's bias estimate as a Gaussian prior (its Laplace marginal covariance at
-    the previous solve), ``none`` only the model's ``bias_prior_sigma`` on every window.
+    weights (and, for the planar and pose models, each window's first state under the
+    previous window's Laplace marginal of it); one NLP serves every window; each window
+    stops after ``window_max_iter`` iterations; its trajectory starts the full batch.
+    ``window: auto`` (the default) takes the samples the dead reckoning needs to travel
+    ``window_lengthscales`` assumed lengthscales at its median speed, clamped to
+    casmag.solver.windowing.AUTO_WINDOW; ``overlap: auto`` is half the window.
+    ``window_bias_prior``: ``laplace`` gives each window the previous window's bias
+    estimate as a Gaussian prior (its Laplace marginal covariance at the previous solve),
+    ``none`` only the model's ``bias_prior_sigma`` on every window.
     ``coarse-to-fine``: ``lengthscale_stages`` batch solves with the lengthscale shrinking
     geometrically from ``lengthscale_start`` times the assumed one to the assumed one, each
     started from the previous (at most ``stage_max_iter`` iterations before the last).

@@ -6,6 +6,7 @@ wrong-basin check, the result."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,7 @@ from casmag.model.planar import (
     cached_planar_nlp,
     dead_reckon_planar,
 )
-from casmag.model.rotated import ridge_weights, whiten
+from casmag.model.rotated import ridge_weights, rotated_design, whiten
 from casmag.model.rrmap import make_basis
 from casmag.model.tiledmap import home_points, left_map_tiles, ridge_tile_weights, tile_grid
 from casmag.nlp import Progress
@@ -35,6 +36,7 @@ from casmag.solver.ekf import FilterMap, PlanarNav, filter_result, run_safely
 from casmag.solver.staged import (
     Solved,
     StagedModel,
+    WindowPrior,
     heading_bias_starts,
     solve_starts,
     truth_check,
@@ -221,6 +223,10 @@ def solve_planar(
     )
 
 
+def _anchor_state(anchor: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
+    return np.asarray(anchor["P"])[0], float(np.ravel(anchor["psi"])[0])
+
+
 def planar_structure(
     options: PlanarOptions, k: int, around: np.ndarray, ell: float, solver: Any
 ) -> PlanarStructure:
@@ -295,6 +301,107 @@ class PlanarStaged(StagedModel):
             bias = np.vstack([bias, np.repeat(bias[-1:], k - m, axis=0)])
         return {"P": np.vstack([P, Pr[1:]]), "psi": np.concatenate([psi, psr[1:]]), "bias": bias}
 
+    # ------------------------------------------------------------ sliding windows
+    sample_states = ("P", "psi")
+
+    def step_lengths(self) -> np.ndarray:
+        return np.linalg.norm(self.U[:, :2], axis=1)
+
+    def _window_structure(self, k: int, solver: SolverSpec) -> PlanarStructure:
+        """A window of k samples: a constant bias increment, the box around the whole dead
+        reckoning (so that it holds the truth wherever the drift took the odometry)."""
+        if self.options.form == "tiled":
+            raise ValueError("sliding windows need model.form reduced_rank, not tiled")
+        s = planar_structure(self.options, k, self.P_dr, self.lengthscale, solver)
+        return dataclasses.replace(s, bias="constant", window=True)
+
+    def window_prior(self) -> WindowPrior:
+        basis = self._window_structure(2, self.solver).hilbert_basis()
+        return WindowPrior.gp(basis, self.options.kernel, self.params["sigma_lin"], self.sigma_m)
+
+    def _window_odometry(self, a: int, k: int, bias: dict[str, np.ndarray]) -> np.ndarray:
+        U = self.U[a : a + k - 1].copy()
+        U[:, 2] -= float(np.ravel(bias["bias"])[0]) * self.dt[a : a + k - 1]
+        return U
+
+    def window_start(
+        self, a: int, k: int, anchor: dict[str, np.ndarray] | None,
+        carried: dict[str, np.ndarray] | None, bias: dict[str, np.ndarray],
+    ) -> dict[str, np.ndarray]:  # fmt: skip
+        U = self._window_odometry(a, k, bias)
+        if carried is None:
+            p0, psi0 = (self.p0, self.psi0) if anchor is None else _anchor_state(anchor)
+            P, psi = dead_reckon_planar(U, p0, psi0)
+        else:
+            m = carried["P"].shape[0]
+            Pr, psr = dead_reckon_planar(U[m - 1 :], carried["P"][-1], float(carried["psi"][-1]))
+            P = np.vstack([carried["P"], Pr[1:]])
+            psi = np.concatenate([np.ravel(carried["psi"]), psr[1:]])
+        return {"P": P, "psi": psi, "bias": np.zeros((1, 1))}
+
+    def solve_window(
+        self, a: int, k: int, start: dict[str, np.ndarray],
+        anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
+        bias: dict[str, np.ndarray], bias_sigma: dict[str, np.ndarray] | None,
+        prior: WindowPrior, solver: SolverSpec,
+    ) -> Solved:  # fmt: skip
+        s_k = self._window_structure(k, solver)
+        nlp_k = cached_planar_nlp(s_k)
+        p0, psi0 = (self.p0, self.psi0) if anchor is None else _anchor_state(anchor)
+        params = {
+            **self.params,
+            "U": self._window_odometry(a, k, bias),
+            "dt": self.dt[a : a + k - 1].reshape(-1, 1),
+            "Y": self.Y[a : a + k],
+            "lengthscale": self.lengthscale,
+            "anchor": np.array([[p0[0], p0[1], psi0]]),
+            "map_mean": prior.mean.reshape(-1, 1),
+            "map_precision": prior.Lam,
+        }
+        if bias_sigma is not None:
+            params["sigma_bias0"] = float(np.ravel(bias_sigma["bias"])[0])
+        if anchor_sigma is not None:  # one standard deviation for both axes: the larger
+            params["sigma_anchor"] = float(np.max(anchor_sigma["P"]))
+            params["sigma_psi0"] = float(np.ravel(anchor_sigma["psi"])[0])
+        basis = s_k.hilbert_basis()
+        psi = np.ravel(start["psi"])
+        J = rotated_design(
+            basis, self.options.kernel, start["P"], heading_rotations(psi), self.sigma_f,
+            self.lengthscale,
+        )  # fmt: skip
+        x0 = {
+            "P": start["P"],
+            "psi": psi.reshape(-1, 1),
+            "bias": np.zeros((1, 1)),
+            **prior.start(J, self.Y[a : a + k].reshape(-1), basis.num_basis),
+        }
+        sol = nlp_k.solve(params, x0, progress=self.progress)
+        return Solved(sol, nlp_k, s_k, self.lengthscale, first=a)
+
+    def anchor_indices(self, solved: Solved, j: int) -> dict[str, np.ndarray]:
+        entries, k = solved.nlp.x_layout.entries, solved.structure.n
+        return {
+            "P": entries["P"].offset + j + k * np.arange(2),  # column-major (k, 2)
+            "psi": entries["psi"].offset + np.array([j]),
+        }
+
+    def window_design(self, solved: Solved, m: int) -> tuple[np.ndarray, np.ndarray]:
+        x, a = solved.sol.x, solved.first
+        R = heading_rotations(np.ravel(x["psi"])[:m])
+        basis = solved.structure.hilbert_basis()
+        J = rotated_design(
+            basis, self.options.kernel, x["P"][:m], R, self.sigma_f, self.lengthscale
+        )
+        return J, self.Y[a : a + m].reshape(-1)
+
+    def joined(self, states: dict[str, np.ndarray], bias: dict[str, np.ndarray]) -> dict:
+        b = float(np.ravel(bias["bias"])[0])
+        return {
+            "P": states["P"],
+            "psi": np.ravel(states["psi"]),
+            "bias": np.full((self._bias_rows(states["P"].shape[0]), 1), b),
+        }
+
     def _initial_map(self, s_k: PlanarStructure, P0: np.ndarray, Y0: np.ndarray, ell: float):
         """The NLP's map unknowns fitted to the field Y0 (in the map frame) at P0: the
         tiles' weights, or the box's whitened weights."""
@@ -331,6 +438,14 @@ class PlanarStaged(StagedModel):
             "c": self.c0.reshape(3, 1),
         }
         return Solved(nlp_k.solve(params_k, x0, progress=self.progress), nlp_k, s_k, lengthscale)
+
+
+def heading_rotations(psi: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) body-to-map rotations Rz(psi) of headings psi (N,)."""
+    c, s = np.cos(psi), np.sin(psi)
+    R = np.zeros((psi.size, 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
 
 
 def hyperparameters_from_data(

@@ -5,6 +5,7 @@ starts casmag.solver.staged runs, the truth-free and with-truth checks, the resu
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ from casmag.model.pose import (
     nominal_parameters,
     orientations,
 )
-from casmag.model.rotated import ridge_weights, whiten
+from casmag.model.rotated import ridge_weights, rotated_design, whiten
 from casmag.model.rrmap import make_basis
 from casmag.nlp import Progress
 from casmag.problem.pose import PoseOptions
@@ -30,7 +31,14 @@ from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
 from casmag.solver.planar import hyperparameter_info, hyperparameters_from_data
-from casmag.solver.staged import Solved, StagedModel, solve_starts, truth_check, uncertainty
+from casmag.solver.staged import (
+    Solved,
+    StagedModel,
+    WindowPrior,
+    solve_starts,
+    truth_check,
+    uncertainty,
+)
 
 #: Fixed biases are held at zero with IPOPT's fixed variables.
 _BIASES = ("bias_p", "bias_w")
@@ -330,6 +338,105 @@ class PoseStaged(StagedModel):
         }  # fmt: skip
         sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=self.fixed)
         return Solved(sol, nlp_k, s_k, lengthscale, nominal=Q0)
+
+    # ------------------------------------------------------------ sliding windows
+    sample_states = ("P", "Q")
+
+    def step_lengths(self) -> np.ndarray:
+        return np.linalg.norm(self.U[:, :3], axis=1)
+
+    def _window_structure(self, k: int, solver: SolverSpec) -> PoseStructure:
+        """A window of k samples, its box around the whole dead reckoning."""
+        s = pose_structure(
+            self.options, k, self.P_dr, self.lengthscale, self.dim, self.height, solver
+        )
+        return dataclasses.replace(s, window=True)
+
+    def window_prior(self) -> WindowPrior:
+        basis = self._window_structure(2, self.solver).hilbert_basis()
+        sigma_lin, sigma_m = self.params["sigma_lin"], self.params["sigma_m"]
+        return WindowPrior.gp(basis, self.options.kernel, sigma_lin, sigma_m)
+
+    def _window_odometry(self, a: int, k: int, bias: dict[str, np.ndarray]) -> np.ndarray:
+        """Increments of [a, a + k) with the total biases removed: dp - b_p, dq exp(-b_w dt)."""
+        U = self.U[a : a + k - 1].copy()
+        U[:, :3] -= np.ravel(bias["bias_p"])
+        h = self.dt[a : a + k - 1].reshape(-1, 1)
+        U[:, 3:7] = sd.quat_mul(
+            sd.quat_normalize(U[:, 3:7]), sd.quat_exp(-h * np.ravel(bias["bias_w"]))
+        )
+        return U
+
+    def _anchor(self, anchor: dict[str, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+        if anchor is None:
+            return self.p0, self.q0
+        return np.asarray(anchor["P"])[0], sd.quat_normalize(np.asarray(anchor["Q"])[0])
+
+    def window_start(
+        self, a: int, k: int, anchor: dict[str, np.ndarray] | None,
+        carried: dict[str, np.ndarray] | None, bias: dict[str, np.ndarray],
+    ) -> dict[str, np.ndarray]:  # fmt: skip
+        U = self._window_odometry(a, k, bias)
+        if carried is None:
+            P, Q = sd.dead_reckon_pose(U, *self._anchor(anchor))
+        else:
+            m = carried["P"].shape[0]
+            Pr, Qr = sd.dead_reckon_pose(U[m - 1 :], carried["P"][-1], carried["Q"][-1])
+            P, Q = np.vstack([carried["P"], Pr[1:]]), np.vstack([carried["Q"], Qr[1:]])
+        return {"P": P, "Q": Q, "bias_p": np.zeros(3), "bias_w": np.zeros(3)}
+
+    def solve_window(
+        self, a: int, k: int, start: dict[str, np.ndarray],
+        anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
+        bias: dict[str, np.ndarray], bias_sigma: dict[str, np.ndarray] | None,
+        prior: WindowPrior, solver: SolverSpec,
+    ) -> Solved:  # fmt: skip
+        s_k = self._window_structure(k, solver)
+        nlp_k = cached_pose_nlp(s_k)
+        p0, q0 = self._anchor(anchor)
+        P0, Q0 = start["P"], sd.quat_normalize(start["Q"])
+        params = {
+            **self.params, "U": self._window_odometry(a, k, bias),
+            "dt": self.dt[a : a + k - 1].reshape(-1, 1), "Y": self.Y[a : a + k],
+            "anchor_p": p0.reshape(1, 3), "anchor_q": q0.reshape(1, 4),
+            "map_mean": prior.mean.reshape(-1, 1), "map_precision": prior.Lam,
+            **nominal_parameters(Q0),
+        }  # fmt: skip
+        for key, sigma in (("bias_p", "sigma_bp"), ("bias_w", "sigma_bw")):
+            if bias_sigma is not None and key in bias_sigma:  # one for every axis: the largest
+                params[sigma] = float(np.max(bias_sigma[key]))
+        if anchor_sigma is not None:
+            params["sigma_anchor"] = float(np.max(anchor_sigma["P"]))
+            params["sigma_att0"] = float(np.max(anchor_sigma["Q"]))
+        basis = s_k.hilbert_basis()
+        J = rotated_design(
+            basis, self.options.kernel, P0[:, : self.dim], sd.quat_to_rotmat(Q0),
+            self.params["sigma_f"], self.lengthscale,
+        )  # fmt: skip
+        x0 = {
+            "P": P0, "D": np.zeros((k, 3)), "bias_p": np.zeros((1, 3)), "bias_w": np.zeros((1, 3)),
+            **prior.start(J, self.Y[a : a + k].reshape(-1), basis.num_basis),
+        }  # fmt: skip
+        sol = nlp_k.solve(params, x0, progress=self.progress, fixed=self.fixed)
+        return Solved(sol, nlp_k, s_k, self.lengthscale, nominal=Q0, first=a)
+
+    def anchor_indices(self, solved: Solved, j: int) -> dict[str, np.ndarray]:
+        entries, k = solved.nlp.x_layout.entries, solved.structure.n
+        return {  # column-major (k, 3); D: the orientation's correction
+            "P": entries["P"].offset + j + k * np.arange(3),
+            "Q": entries["D"].offset + j + k * np.arange(3),
+        }
+
+    def window_design(self, solved: Solved, m: int) -> tuple[np.ndarray, np.ndarray]:
+        states, a = self.states(solved), solved.first
+        J = rotated_design(
+            solved.structure.hilbert_basis(), self.options.kernel, states["P"][:m, : self.dim],
+            sd.quat_to_rotmat(states["Q"][:m]), self.params["sigma_f"], self.lengthscale,
+        )  # fmt: skip
+        return J, self.Y[a : a + m].reshape(-1)
+
+    def joined(self, states: dict[str, np.ndarray], bias: dict[str, np.ndarray]) -> dict:
+        return {"P": states["P"], "Q": states["Q"], **bias}
 
 
 def solve_pose_recording(

@@ -1,4 +1,6 @@
-"""Sliding windows and a coarse-to-fine lengthscale schedule: warm starts for the batch.
+"""Sliding windows and a coarse-to-fine lengthscale schedule: warm starts for the batch of
+the translational model (the planar and pose models' windows are the same scheme written
+over their window methods: casmag.solver.staged.solve_sliding).
 
 GP-SLAM from the dead reckoning converges only when the drift is within about a lengthscale
 of the truth (paper Table 5). Two ways to start the batch closer:
@@ -86,12 +88,14 @@ from casmag.model.translational import (
 from casmag.nlp import NLP, Solution
 from casmag.problem.spec import Problem
 from casmag.solver.translational import solve_translational
-from casmag.solver.windowing import continued, lengthscale_schedule
-
-ACCEPTED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded")
-"""IPOPT outcomes after which a window or stage hands its point on (an early stage need not
-converge: it only starts the next)."""
-
+from casmag.solver.windowing import (
+    ACCEPTED,
+    AUTO_WINDOW,
+    bias_covariance,
+    continued,
+    lengthscale_schedule,
+    window_starts,
+)
 
 LEFT_BOX = "Left_Map_Box"
 """Status of a window whose positions left the map's box (IPOPT itself stopped normally)."""
@@ -245,9 +249,6 @@ def _unpack_z(s: WindowStructure, Z: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-AUTO_WINDOW = (12, 40)
-"""Range [samples] that ``window: auto`` is clamped to."""
-
 BIAS_PRIOR_INFLATION = 1.0
 """Factor on the previous window's bias covariance before it becomes the next window's
 prior. 1: none, so the overlap's samples inform the bias twice (other values not measured)."""
@@ -275,46 +276,6 @@ def auto_window(problem: Problem, data: Dataset) -> tuple[int, int]:
             f"(got {overlap} of {n} samples)",
         )
     return n, overlap
-
-
-def bias_covariance(
-    nlp: NLP, sol: Solution, params: dict[str, Any], fixed: tuple[str, ...] = ()
-) -> np.ndarray:
-    """(d, d) Laplace covariance of a window's bias at its solution: the bias block of the
-    inverse Gauss-Newton Hessian of the window objective (so it is the marginal, with the
-    trajectory and the map integrated out, and it includes the window's own bias prior);
-    variables in ``fixed`` are held known (conditioned on, not integrated out)."""
-    import scipy.sparse.linalg as spla
-
-    H = nlp.hessian(sol.x, params)
-    if fixed:  # held variables are known: condition on them (drop their rows and columns)
-        held = np.zeros(H.shape[0], dtype=bool)
-        for name in fixed:
-            f = nlp.x_layout.entries[name]
-            held[f.offset : f.offset + f.size] = True
-        keep = np.flatnonzero(~held)
-        H = H[keep][:, keep]
-        where = np.full(held.size, -1)
-        where[keep] = np.arange(keep.size)
-    else:
-        where = np.arange(H.shape[0])
-    e = nlp.x_layout.entries["bias"]
-    idx = where[e.offset + np.arange(e.size)]
-    E = np.zeros((H.shape[0], e.size))
-    E[idx, np.arange(e.size)] = 1.0
-    X = spla.splu(H.tocsc()).solve(E)
-    cov = X[idx, :]
-    return 0.5 * (cov + cov.T)
-
-
-def window_starts(n: int, window: int, overlap: int) -> list[int]:
-    """First samples of the windows: 0, window - overlap, ..., and n - window (the last
-    window ends at the last sample). One window [0] when n <= window."""
-    if n <= window:
-        return [0]
-    step = window - overlap
-    starts = list(range(0, n - window, step))
-    return [*starts, n - window]
 
 
 @dataclass

@@ -32,6 +32,73 @@ from casmag.nlp import NLP, Solution
 from casmag.problem.spec import Problem
 from casmag.solver.translational import solve_translational
 
+ACCEPTED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded")
+"""IPOPT outcomes after which a window or stage hands its point on (an early stage need not
+converge: it only starts the next)."""
+
+AUTO_WINDOW = (12, 40)
+"""Range [samples] that ``window: auto`` is clamped to (casmag.solver.sliding.auto_window,
+casmag.solver.staged.window_size)."""
+
+
+def window_starts(n: int, window: int, overlap: int) -> list[int]:
+    """First samples of the windows: 0, window - overlap, ..., and n - window (the last
+    window ends at the last sample). One window [0] when n <= window."""
+    if n <= window:
+        return [0]
+    step = window - overlap
+    starts = list(range(0, n - window, step))
+    return [*starts, n - window]
+
+
+def bias_covariance(
+    nlp: NLP,
+    sol: Solution,
+    params: dict[str, Any],
+    fixed: tuple[str, ...] = (),
+    names: tuple[str, ...] = ("bias",),
+) -> np.ndarray:
+    """Laplace covariance of a window's bias at its solution: the block of the variables
+    ``names`` (stacked in that order, each column-major) of the inverse Gauss-Newton Hessian
+    of the window objective (so it is the marginal, with the trajectory and the map
+    integrated out, and it includes the window's own bias prior); variables in ``fixed`` are
+    held known (conditioned on, not integrated out)."""
+    entries = [nlp.x_layout.entries[name] for name in names]
+    idx = np.concatenate([e.offset + np.arange(e.size) for e in entries])
+    return laplace_block(nlp, sol, params, idx, fixed)
+
+
+def laplace_block(
+    nlp: NLP,
+    sol: Solution,
+    params: dict[str, Any],
+    idx: np.ndarray,
+    fixed: tuple[str, ...] = (),
+) -> np.ndarray:
+    """The block ``idx`` (indices into the NLP's x vector, none of them in ``fixed``) of the
+    inverse Gauss-Newton Hessian of the objective at a solution: the Laplace marginal
+    covariance of those unknowns (:func:`bias_covariance`)."""
+    import scipy.sparse.linalg as spla
+
+    H = nlp.hessian(sol.x, params)
+    if fixed:  # held variables are known: condition on them (drop their rows and columns)
+        held = np.zeros(H.shape[0], dtype=bool)
+        for name in fixed:
+            f = nlp.x_layout.entries[name]
+            held[f.offset : f.offset + f.size] = True
+        keep = np.flatnonzero(~held)
+        H = H[keep][:, keep]
+        where = np.full(held.size, -1)
+        where[keep] = np.arange(keep.size)
+    else:
+        where = np.arange(H.shape[0])
+    idx = where[np.asarray(idx, dtype=np.int64)]
+    E = np.zeros((H.shape[0], idx.size))
+    E[idx, np.arange(idx.size)] = 1.0
+    X = spla.splu(H.tocsc()).solve(E)
+    cov = X[idx, :]
+    return 0.5 * (cov + cov.T)
+
 
 @dataclass(frozen=True)
 class Stage:

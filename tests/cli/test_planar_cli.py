@@ -80,11 +80,17 @@ def test_slam_solves_a_planar_recording(tmp_path, planar_recording):
         (["--set", "model.bias=drift"], "model.bias"),
         (["--set", "solver.max_iter=0"], "solver.max_iter"),
         (
-            ["--set", "solver.warm_start.strategy=sliding"],
-            "solver.warm_start.strategy: 'sliding': the planar model takes none, growing, "
-            "coarse-to-fine",
+            [
+                "--set",
+                "solver.warm_start.strategy=sliding",
+                "--set",
+                "model.form=tiled",
+                "--set",
+                "model.kernel=curl_free",
+            ],
+            "solver.warm_start.strategy: sliding windows need model.form: reduced_rank",
         ),
-        (["--set", "solver.warm_start.window=50"], "does not use solver.warm_start.window"),
+        (["--set", "solver.warm_start.stage_max_iter=0"], "solver.warm_start.stage_max_iter"),
     ],
 )
 def test_slam_planar_bad_settings_exit_2(tmp_path, planar_recording, args, needle):

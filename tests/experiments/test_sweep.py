@@ -327,6 +327,22 @@ def test_every_paper_table_file_runs_at_tiny_size(tmp_path):
         assert (out / path.stem / "sweep.json").is_file()
 
 
+def test_the_drift_tables_run_every_warm_start_at_tiny_size(tmp_path):
+    """Smoke run of the planar and pose drift tables (problems/planar/drift.yaml,
+    problems/pose/drift.yaml): every row, the sliding windows included, solves a 30-sample
+    walk and is saved with its stages (windows, then the batch)."""
+    paths = [ROOT / "problems/planar/drift.yaml", ROOT / "problems/pose/drift.yaml"]
+    out = tmp_path / "out"
+    tiny = ["--set", "simulation.trajectory.samples=30", "--set", "model.num_basis=60"]
+    res = _invoke(["sweep", *paths, "--out", out, "--seeds", 1, "--figures", "none", *tiny])
+    assert res.exit_code == 0, res.output
+    assert "4 runs: 0 already saved, 4 solved, 0 failed, 0 errors" in res.output
+    for name in ("planar-drift", "pose-drift"):
+        stages = json.loads((out / name / "sliding" / "seed-0001" / "result.json").read_text())
+        names = [s["name"] for s in stages["stages"]]
+        assert names[-1] == "batch" and set(names[:-1]) == {"window"} and len(names) > 2
+
+
 IMU_PROBLEM = """\
 seed: 2
 name: tiny imu

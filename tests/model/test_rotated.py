@@ -9,8 +9,11 @@ import numpy as np
 import pytest
 
 import casmag.solver.staged as staged
+from casmag.model.rotated import rotated_design, window_unknowns
+from casmag.model.rrmap import field_and_jacobians, make_basis
 from casmag.problem.oriented import load_oriented_problem
 from casmag.solver.oriented import solve_oriented
+from casmag.solver.planar import heading_rotations
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -85,3 +88,22 @@ def test_the_result_carries_an_honest_shaped_covariance(final_solve):
     # the first pose is anchored (1 mm): its standard deviation is the anchor's
     assert np.sqrt(cov[0, 0, 0]) < 2e-3 < np.sqrt(cov[-1, 0, 0])
     assert "inflation" in u and u["uninflated"]["nees_expected"] == d
+
+
+@pytest.mark.parametrize("kernel", ["se", "curl_free"])
+def test_rotated_design_is_the_reading_of_the_map(kernel):
+    """rotated_design: y_k = R_k^T (m(p_k) + c) stacked is J [vec(V); c], V the whitened
+    weights (the window map's unknowns), for both kernels, planar positions."""
+    rng = np.random.default_rng(3)
+    P, psi = rng.uniform(0.0, 2.0, (7, 2)), rng.uniform(-3.0, 3.0, 7)
+    basis = make_basis(kernel, P, 0.5, None, None)
+    S = basis.prior_variances(kernel, 1.3, 0.5)
+    V = rng.normal(size=(basis.num_basis, 3 if kernel == "se" else 1))
+    c = rng.normal(size=3)
+    m, _, _ = field_and_jacobians(basis, kernel, P, (V * np.sqrt(S)[:, None]).ravel(order="F"))
+    R = heading_rotations(psi)
+    y = np.einsum("kji,kj->ki", R, m + c)
+    J = rotated_design(basis, kernel, P, R, 1.3, 0.5)
+    assert J.shape == (21, window_unknowns(basis, kernel))
+    z = np.concatenate([V.ravel(order="F"), c])
+    np.testing.assert_allclose(J @ z, y.ravel(), atol=1e-12 * np.abs(y).max())

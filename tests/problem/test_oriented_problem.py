@@ -50,8 +50,12 @@ def test_null_with_another_kernel_is_refused():
         ({"seed": 1, "motion": "pose"}, (), "motion"),
         (_doc("pose", motion={"kind": "pose", "heading_bias": 0.1}), (), "motion.heading_bias"),
         (_doc("planar"), ("model.sigma_p=0.1",), "model.sigma_p"),
-        (_doc("pose"), ("solver.warm_start.strategy=sliding",), "solver.warm_start.strategy"),
-        (_doc("pose"), ("solver.warm_start.window=10",), "solver.warm_start.window"),
+        (
+            _doc("planar", model={"form": "tiled", "kernel": "curl_free"}),
+            ("solver.warm_start.strategy=sliding",),
+            "solver.warm_start.strategy",
+        ),
+        (_doc("pose"), ("solver.warm_start.window=2",), "solver.warm_start"),
         (_doc("planar", simulation={"trajectory": {"samples": 2}}), (), "simulation"),
     ],
 )

@@ -4,6 +4,7 @@ model at tiny size."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -14,7 +15,7 @@ from small_problems import planar_room_field
 
 from casmag.data.imusim import simulate_planar
 from casmag.data.posesim import simulate_pose
-from casmag.problem.imu import STAGED_STRATEGIES, load_planar_options
+from casmag.problem.imu import load_planar_options, staged_strategies
 from casmag.problem.pose import load_pose_options
 from casmag.problem.spec import SolverSpec, WarmStartSpec, load_problem
 from casmag.solver.planar import solve_planar
@@ -84,7 +85,7 @@ def test_each_strategy_chains_its_stages_and_ends_with_the_full_problem() -> Non
     m.calls.clear()
     assert [s.kind for s in solve_strategy(m, _ws("none"))] == ["batch"]
     assert m.calls == [(1000, -1, 80, 0.5)]
-    with pytest.raises(ValueError, match="sliding"):
+    with pytest.raises(NotImplementedError, match="no sliding windows"):
         solve_strategy(m, _ws("sliding"))
 
 
@@ -147,12 +148,16 @@ def _pose(strategy: str):
     sets = ["simulation.trajectory.samples=100", "simulation.trajectory.area=[4.0, 2.0]"]
     prob = load_problem(ROOT / "problems" / "bench" / "peers.yaml", ["seed=2", *sets])
     rec = simulate_pose(prob.spec.simulation, 2, bias_w=(0.0, 0.0, 0.002))
+    # the windows' map: a smaller basis, so that the dense map block of each window's
+    # KKT system stays small at this size
+    basis = ["model.num_basis=250"] if strategy == "sliding" else []
     opts = load_pose_options(
         None,
         [
             f"solver.warm_start.strategy={strategy}",
             "solver.warm_start.first_samples=40",
             "solver.warm_start.stage_max_iter=10",
+            *basis,
         ],
     )
     r = solve_pose(rec.U, rec.Y, opts, truth={"P": rec.P_true, "q": rec.q_true}, t=rec.t)
@@ -163,12 +168,18 @@ def _pose(strategy: str):
 #: (tests/cli/test_planar_cli.py::test_planar_starts_keep_the_lowest_cost), planar growing
 #: (tests/cli/test_planar_cli.py, first_samples 50), pose none
 #: (tests/solver/test_pose.py::test_slam_on_a_pose_recording_map_ekf_and_both).
-PAIRS = [("planar", "coarse-to-fine"), ("pose", "growing"), ("pose", "coarse-to-fine")]
+PAIRS = [
+    ("planar", "coarse-to-fine"),
+    ("planar", "sliding"),
+    ("pose", "growing"),
+    ("pose", "coarse-to-fine"),
+    ("pose", "sliding"),
+]
 
 
 def test_every_pair_is_solved_somewhere() -> None:
     solved_elsewhere = {("planar", "none"), ("planar", "growing"), ("pose", "none")}
-    every = {(m, s) for m in ("planar", "pose") for s in STAGED_STRATEGIES}
+    every = {(m, s) for m in ("planar", "pose") for s in staged_strategies(m)}
     assert every == solved_elsewhere | set(PAIRS)
 
 
@@ -188,6 +199,15 @@ def test_every_strategy_solves_every_staged_model(model: str, strategy: str) -> 
         assert [s["name"] for s in stages] == ["lengthscale", "lengthscale", "batch"]
         np.testing.assert_allclose([s["lengthscale"] for s in stages], [3 * ell, 3**0.5 * ell, ell])
         assert all(s["iterations"] <= 10 for s in stages[:-1])  # stage_max_iter
+    elif strategy == "sliding":
+        windows = stages[:-1]
+        assert [s["name"] for s in stages] == ["window"] * len(windows) + ["batch"]
+        firsts = [s["first"] for s in windows]
+        k = windows[0]["samples"]
+        assert firsts[0] == 0 and firsts[-1] + k == n and len(windows) > 2
+        # consecutive windows overlap, and every sample is in one
+        assert all(0 < b - a < k for a, b in itertools.pairwise(firsts))
+        assert all(s["iterations"] <= 50 for s in windows)  # window_max_iter
     else:
         assert [s["name"] for s in stages] == ["start"]
     assert stages[-1]["samples"] == n and stages[-1]["lengthscale"] == ell
