@@ -34,15 +34,16 @@ sample is counted twice. Each window
 
 Window length (``window: auto``, :func:`auto_window`): the samples the dead reckoning needs
 to travel ``window_lengthscales`` (1.375) assumed lengthscales at its median step, clamped
-to :data:`AUTO_WINDOW` (12 to 40 samples); ``overlap: auto`` is half the window. Measured
-with the bias prior (README, Windowing): on the Table 5 spiral (l = 0.4 m, 8 steps per
-lengthscale) at 3.4 l of drift and 1 mm noise, 12-sample windows reached the basin in 20 of
-20 seeds (at most 105 iterations in all), 14 in 19 of 20 (at most 229), 16 in 5 of 8 and 20
-in 1 of 5: a longer window drifts further before the map pulls it back. On base.yaml (l =
-0.1 m, 2 steps per lengthscale) 8-sample windows took 198-234 iterations and 10-sample ones
-missed the basin in one of three seeds, 12-16 did neither: hence the floor of 12. The
-ceiling of 40 is not measured. The first window has no previous bias estimate; at 5.1 l of
-drift it is where the remaining failures start (it stops at ``window_max_iter``).
+to casmag.solver.windowing.AUTO_WINDOW (12 to 40 samples); ``overlap: auto`` is half the
+window. Measured with the bias prior (README, Windowing): on the Table 5 spiral (l = 0.4 m,
+8 steps per lengthscale) at 3.4 l of drift and 1 mm noise, 12-sample windows reached the
+basin in 20 of 20 seeds (at most 105 iterations in all), 14 in 19 of 20 (at most 229), 16
+in 5 of 8 and 20 in 1 of 5: a longer window drifts further before the map pulls it back. On
+base.yaml (l = 0.1 m, 2 steps per lengthscale) 8-sample windows took 198-234 iterations and
+10-sample ones missed the basin in one of three seeds, 12-16 did neither: hence the floor
+of 12. The ceiling of 40 is not measured. The first window has no previous bias estimate;
+at 5.1 l of drift it is where the remaining failures start (it stops at
+``window_max_iter``).
 
 Window data, the anchor, the map prior (mu, Lambda) and the bias prior are CasADi
 parameters and the window length is fixed (the last window ends at the last sample and
@@ -90,10 +91,10 @@ from casmag.problem.spec import Problem
 from casmag.solver.translational import solve_translational
 from casmag.solver.windowing import (
     ACCEPTED,
-    AUTO_WINDOW,
     bias_covariance,
     continued,
     lengthscale_schedule,
+    window_size,
     window_starts,
 )
 
@@ -255,19 +256,11 @@ prior. 1: none, so the overlap's samples inform the bias twice (other values not
 
 
 def auto_window(problem: Problem, data: Dataset) -> tuple[int, int]:
-    """(window, overlap) in samples. ``window: auto``: the samples the dead reckoning
-    needs to travel ``window_lengthscales`` assumed lengthscales at its median step length,
-    round(k l / median |u|) + 1, clamped to :data:`AUTO_WINDOW` (and to the recording);
-    ``overlap: auto``: half the window."""
+    """(window, overlap) in samples (casmag.solver.windowing.window_size, from the
+    odometry's step lengths and the assumed lengthscale)."""
     ws = problem.spec.solver.warm_start
-    n = ws.window_samples
-    if n is None:
-        step = float(np.median(np.linalg.norm(data.U, axis=1))) if len(data.U) else 0.0
-        travel = ws.window_lengthscales * problem.assumed_lengthscale
-        n = AUTO_WINDOW[1] if step <= 0 else round(travel / step) + 1
-        n = int(np.clip(n, *AUTO_WINDOW))
-    n = min(n, data.n_samples)
-    overlap = max(1, n // 2) if ws.overlap == "auto" else ws.overlap_samples
+    steps = np.linalg.norm(data.U, axis=1)
+    n, overlap = window_size(ws, steps, problem.assumed_lengthscale, data.n_samples)
     if overlap is None or not 1 <= overlap < n:
         raise ProblemError(
             problem.source,

@@ -42,12 +42,12 @@ from casmag.result.metrics import rmse_and_max
 from casmag.solver.uncertainty import sample_state_uncertainty
 from casmag.solver.windowing import (
     ACCEPTED,
-    AUTO_WINDOW,
     continues,
     grow,
     laplace_block,
     lengthscale_schedule,
     stage_lengths,
+    window_size,
     window_starts,
 )
 
@@ -253,21 +253,10 @@ def solve_strategy(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> 
     return [Stage("batch", n, ell, model.solve(n, model.start(n, bias), model.solver, ell))]
 
 
-def window_size(model: StagedModel, ws: WarmStartSpec) -> tuple[int, int]:
-    """(window, overlap) in samples, as casmag.solver.sliding.auto_window for the
-    translational model: ``window: auto`` the samples the dead reckoning needs to travel
-    ``window_lengthscales`` assumed lengthscales at its median step, clamped to
-    :data:`casmag.solver.windowing.AUTO_WINDOW` and to the recording; ``overlap: auto`` half
-    the window."""
-    k = ws.window_samples
-    if k is None:
-        steps = model.step_lengths()
-        step = float(np.median(steps)) if steps.size else 0.0
-        travel = ws.window_lengthscales * model.lengthscale
-        k = AUTO_WINDOW[1] if step <= 0 else round(travel / step) + 1
-        k = int(np.clip(k, *AUTO_WINDOW))
-    k = min(k, model.n)
-    overlap = max(1, k // 2) if ws.overlap == "auto" else ws.overlap_samples
+def window_length(model: StagedModel, ws: WarmStartSpec) -> tuple[int, int]:
+    """(window, overlap) in samples (casmag.solver.windowing.window_size, from the model's
+    odometry step lengths and assumed lengthscale)."""
+    k, overlap = window_size(ws, model.step_lengths(), model.lengthscale, model.n)
     if overlap is None or not 1 <= overlap < k:
         raise ValueError(
             f"solver.warm_start.overlap: at least 1 sample and shorter than the window "
@@ -283,7 +272,7 @@ def _rows(states: dict[str, np.ndarray], keys: tuple[str, ...], rows: slice) -> 
 def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> list[Stage]:
     """Sliding windows (a fixed-lag smoother), then the full problem from their
     trajectory: the strategy ``sliding`` of casmag.solver.sliding written once for every
-    staged model. Windows of ``k`` samples overlapping by ``o`` (:func:`window_size`) are
+    staged model. Windows of ``k`` samples overlapping by ``o`` (:func:`window_length`) are
     solved in time order; the map is a reduced-rank box around the whole recording whose
     unknowns carry a Gaussian prior from window to window (:class:`WindowPrior`), which the
     samples a window commits (those before the next window starts) enter as linear-Gaussian
@@ -299,7 +288,7 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
     flagged ``wrong_basin``). ``bias``: the heading-rate
     bias of the start (:func:`solve_starts`)."""
     n, ell = model.n, model.lengthscale
-    k, overlap = window_size(model, ws)
+    k, overlap = window_length(model, ws)
     firsts = window_starts(n, k, overlap)
     window_solver = model.solver.model_copy(update={"max_iter": ws.window_max_iter})
     prior = model.window_prior()

@@ -41,6 +41,23 @@ AUTO_WINDOW = (12, 40)
 casmag.solver.staged.window_size)."""
 
 
+def window_size(ws: Any, steps: np.ndarray, lengthscale: float, n: int) -> tuple[int, int | None]:
+    """(window, overlap) in samples for the warm start ``ws`` (a WarmStartSpec) on ``n``
+    samples whose odometry steps have the lengths ``steps`` [m]. ``window: auto``: the
+    samples the dead reckoning needs to travel ``window_lengthscales`` assumed lengthscales
+    at its median step, round(k l / median |u|) + 1, clamped to :data:`AUTO_WINDOW` (and to
+    the recording); ``overlap: auto``: half the window. The overlap is None or outside
+    [1, window) when the settings do not fit the recording (the caller says so)."""
+    k = ws.window_samples
+    if k is None:
+        step = float(np.median(steps)) if np.size(steps) else 0.0
+        travel = ws.window_lengthscales * lengthscale
+        k = AUTO_WINDOW[1] if step <= 0 else round(travel / step) + 1
+        k = int(np.clip(k, *AUTO_WINDOW))
+    k = min(k, n)
+    return k, max(1, k // 2) if ws.overlap == "auto" else ws.overlap_samples
+
+
 def window_starts(n: int, window: int, overlap: int) -> list[int]:
     """First samples of the windows: 0, window - overlap, ..., and n - window (the last
     window ends at the last sample). One window [0] when n <= window."""

@@ -40,11 +40,11 @@ def _spiral(bias=0.012, noise=1.0e-3, seed=2, *extra):
 
 def test_window_starts_cover_every_sample():
     for n, w, o in [(81, 10, 5), (81, 20, 10), (100, 7, 1), (10, 20, 5), (50, 50, 10)]:
-        starts = sliding.window_starts(n, w, o)
+        starts = windowing.window_starts(n, w, o)
         assert starts[0] == 0 and starts[-1] + min(w, n) == n
         assert all(b - a <= w - o for a, b in itertools.pairwise(starts))
         assert all(b > a for a, b in itertools.pairwise(starts))
-    assert sliding.window_starts(81, 10, 5) == [
+    assert windowing.window_starts(81, 10, 5) == [
         0,
         5,
         10,
@@ -205,11 +205,11 @@ def test_auto_window_travels_the_documented_multiple_of_the_lengthscale():
     data = simulate_problem(problem)
     k = problem.spec.solver.warm_start.window_lengthscales
     n = round(k * 0.4 / 0.05) + 1
-    assert sliding.AUTO_WINDOW[0] <= n <= sliding.AUTO_WINDOW[1]
+    assert windowing.AUTO_WINDOW[0] <= n <= windowing.AUTO_WINDOW[1]
     assert sliding.auto_window(problem, data) == (n, n // 2) == (AUTO_SPIRAL, AUTO_SPIRAL // 2)
     # base.yaml: l = 0.1 m is 2 steps, below the floor of the clamp.
     base = casmag.load_problem(BASE, [])
-    assert sliding.auto_window(base, simulate_problem(base))[0] == sliding.AUTO_WINDOW[0]
+    assert sliding.auto_window(base, simulate_problem(base))[0] == windowing.AUTO_WINDOW[0]
     # A short recording: the window is the recording.
     short = casmag.load_problem(BASE, ["simulation.trajectory.samples=7"])
     assert sliding.auto_window(short, simulate_problem(short)) == (7, 3)
