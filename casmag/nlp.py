@@ -208,7 +208,7 @@ class NLPBuilder:
         the x entries from the variable ``first`` on (declared one after another), with the
         symmetric ``precision`` a parameter; its Hessian is that parameter, placed in the
         Hessian as it is (CasADi's symbolic Hessian of a dense quadratic form of 897
-        unknowns took 34 s to build, and J^T J of its Cholesky residual a dense product at
+        unknowns took 68 s to build, and J^T J of its Cholesky residual a dense product at
         every evaluation)."""
         r = z - mean
         self.quadratics[name] = (self.offset(first), precision)

@@ -309,7 +309,8 @@ class PlanarStaged(StagedModel):
 
     def _window_structure(self, k: int, solver: SolverSpec) -> PlanarStructure:
         """A window of k samples: a constant bias increment, the box around the whole dead
-        reckoning (so that it holds the truth wherever the drift took the odometry)."""
+        reckoning (as the translational windows': a window whose path leaves it ends the
+        smoother)."""
         if self.options.form == "tiled":
             raise ValueError("sliding windows need model.form reduced_rank, not tiled")
         s = planar_structure(self.options, k, self.P_dr, self.lengthscale, solver)

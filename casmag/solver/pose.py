@@ -346,7 +346,8 @@ class PoseStaged(StagedModel):
         return np.linalg.norm(self.U[:, :3], axis=1)
 
     def _window_structure(self, k: int, solver: SolverSpec) -> PoseStructure:
-        """A window of k samples, its box around the whole dead reckoning."""
+        """A window of k samples, its box around the whole dead reckoning (as the planar
+        windows')."""
         s = pose_structure(
             self.options, k, self.P_dr, self.lengthscale, self.dim, self.height, solver
         )

@@ -156,7 +156,7 @@ class StagedModel(ABC):
         domain = solved.structure.hilbert_basis().domain
         center, half = np.asarray(domain.center), np.asarray(domain.half_width)
         P = np.asarray(solved.sol.x["P"])
-        d = min(P.shape[1], center.size, solved.structure.__dict__.get("map_dim", P.shape[1]))
+        d = min(P.shape[1], center.size, getattr(solved.structure, "map_dim", P.shape[1]))
         P, lo, hi = P[:, :d], center[:d] - half[:d], center[:d] + half[:d]
         return bool(np.all(np.isfinite(P)) and np.all(P >= lo) and np.all(P <= hi))
 
@@ -285,8 +285,8 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
     the full problem starts from the dead reckoning instead (measured on the planar drift
     table's seed 5, a window left the box at sample 168: from the dead reckoning the batch
     ended at 5.0 m, from the committed states continued by the odometry at 6.9 m; both
-    flagged ``wrong_basin``). ``bias``: the heading-rate
-    bias of the start (:func:`solve_starts`)."""
+    flagged ``wrong_basin``). ``bias``: the heading-rate bias of the start
+    (:func:`solve_starts`)."""
     n, ell = model.n, model.lengthscale
     k, overlap = window_length(model, ws)
     firsts = window_starts(n, k, overlap)
