@@ -627,15 +627,6 @@ class PlanarOptions:
 #: The warm-start strategies the planar and pose models take (casmag.solver.staged).
 STAGED_STRATEGIES = ("none", "growing", "coarse-to-fine", "sliding")
 
-#: Strategies a model does not take yet, per model name.
-STAGED_REFUSED: dict[str, tuple[str, ...]] = {}
-
-
-def staged_strategies(model_name: str) -> tuple[str, ...]:
-    """The warm-start strategies the named staged model takes."""
-    refused = STAGED_REFUSED.get(model_name, ())
-    return tuple(s for s in STAGED_STRATEGIES if s not in refused)
-
 
 def load_planar_options(
     problem: str | Path | Mapping[str, Any] | None = None,
@@ -646,21 +637,21 @@ def load_planar_options(
     ``model`` and ``solver`` sections are read; other sections are ignored) and
     ``key.path=value`` overrides such as ``model.sigma_disp=0.002``. Raises ProblemError
     naming the file (or ``--set``), the key and the reason."""
-    spec = load_recording_spec(PlanarSpec, "planar", problem, overrides, source)
+    spec = load_recording_spec(PlanarSpec, problem, overrides, source)
     return PlanarOptions(**spec.model.model_dump(), solver=spec.solver)
 
 
 def load_recording_spec(
     spec_class: type[Strict],
-    model_name: str,
     problem: str | Path | Mapping[str, Any] | None = None,
     overrides: Iterable[str] = (),
     source: str | None = None,
 ) -> Any:
     """A recording model's problem file (planar, pose: only its ``model`` and ``solver``
     sections are read; the solver's defaults are the class's own) with ``key.path=value``
-    overrides, validated; warm starts :func:`staged_strategies`. Raises ProblemError naming
-    the file (or ``--set``), the key and the reason."""
+    overrides, validated; warm starts :data:`STAGED_STRATEGIES` (sliding windows need the
+    reduced-rank map). Raises ProblemError naming the file (or ``--set``), the key and the
+    reason."""
     if problem is None:
         data: dict[str, Any] = {}
         source = source or "--set"
@@ -675,14 +666,6 @@ def load_recording_spec(
     if solver is not None and not isinstance(solver, dict):
         data["solver"] = solver  # let validation name the bad value
     spec, _ = validate_spec(spec_class, data, overrides, source)
-    taken = staged_strategies(model_name)
-    if spec.solver.warm_start.strategy not in taken:
-        raise ProblemError(
-            source,
-            "solver.warm_start.strategy",
-            f"{spec.solver.warm_start.strategy!r}: the {model_name} model takes "
-            + ", ".join(taken),
-        )
     if spec.solver.warm_start.strategy == "sliding" and getattr(spec.model, "form", "") == "tiled":
         raise ProblemError(
             source,
@@ -698,33 +681,20 @@ UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncerta
 
 
 #: The keys under :data:`UNUSED_SOLVER_KEYS` the planar and pose models read: their warm
-#: starts (growing prefixes, coarse-to-fine; casmag.solver.staged) and the Laplace covariance.
+#: starts (growing prefixes, coarse-to-fine, sliding windows; casmag.solver.staged) and the
+#: Laplace covariance.
 STAGED_SOLVER_KEYS = (
     *(
         f"solver.warm_start.{k}"
         for k in (
             "strategy", "first_samples", "growth", "stage_max_iter", "lengthscale_start",
-            "lengthscale_stages",
+            "lengthscale_stages", "window", "overlap", "window_lengthscales",
+            "window_bias_prior", "unit", "sample_period", "window_max_iter",
         )
     ),
     "solver.uncertainty",
     "solver.uncertainty_inflation",
 )  # fmt: skip
-
-#: The sliding windows' keys (read by the staged models that take ``sliding``).
-WINDOW_SOLVER_KEYS = tuple(
-    f"solver.warm_start.{k}"
-    for k in (
-        "window", "overlap", "window_lengthscales", "window_bias_prior", "unit",
-        "sample_period", "window_max_iter",
-    )
-)  # fmt: skip
-
-
-def staged_solver_keys(model_name: str) -> tuple[str, ...]:
-    """The keys under :data:`UNUSED_SOLVER_KEYS` the named staged model reads."""
-    windows = "sliding" in staged_strategies(model_name)
-    return STAGED_SOLVER_KEYS + (WINDOW_SOLVER_KEYS if windows else ())
 
 
 def refuse_unused_solver_keys(

@@ -27,11 +27,11 @@ from pydantic import Field
 
 from casmag.errors import ProblemError
 from casmag.problem.imu import (
+    STAGED_SOLVER_KEYS,
     PlanarOptions,
     PlanarSpec,
     load_planar_options,
     refuse_unused_solver_keys,
-    staged_solver_keys,
 )
 from casmag.problem.pose import PoseOptions, PoseSpec, load_pose_options
 from casmag.problem.spec import (
@@ -196,7 +196,7 @@ def load_oriented_problem(
         raise ProblemError(
             src, where, f"the odometry the simulated walker carries: planar or pose (got {kind!r})"
         )
-    refuse_unused_solver_keys(overrides, f"a {kind} problem", staged_solver_keys(kind))
+    refuse_unused_solver_keys(overrides, f"a {kind} problem", STAGED_SOLVER_KEYS)
     data = _with_truths(data, kind, src)
     spec_class, solver = _SPECS[kind], data.get("solver")
     defaults = spec_class.model_fields["solver"].default.model_dump(exclude_unset=True)

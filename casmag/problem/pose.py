@@ -117,5 +117,5 @@ def load_pose_options(
     """:class:`PoseOptions` from an optional problem file (its ``model`` and ``solver``
     sections) and ``key.path=value`` overrides. Raises ProblemError naming the file (or
     ``--set``), the key and the reason."""
-    spec = load_recording_spec(PoseSpec, "pose", problem, overrides, source)
+    spec = load_recording_spec(PoseSpec, problem, overrides, source)
     return PoseOptions(**spec.model.model_dump(), solver=spec.solver)

@@ -19,9 +19,9 @@ from casmag.data.recording import Recording
 from casmag.errors import DataError
 from casmag.model.planar import dead_reckon_planar
 from casmag.problem.imu import (
+    STAGED_SOLVER_KEYS,
     load_planar_options,
     refuse_unused_solver_keys,
-    staged_solver_keys,
 )
 from casmag.problem.oriented import OrientedProblem
 from casmag.problem.pose import load_pose_options
@@ -103,7 +103,7 @@ def slam_oriented(
     load, lag_of, odometry_only, solve_recording = _ORIENTED[rec.motion]
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(
-        overrides, f"casmag slam on a {rec.motion} recording", staged_solver_keys(rec.motion)
+        overrides, f"casmag slam on a {rec.motion} recording", STAGED_SOLVER_KEYS
     )
     options = load(problem, overrides)
     constant = constant_magnetometer(rec.Y)
