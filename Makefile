@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -161,6 +161,11 @@ imu: $(STAMP) ## Solve every IMU problem; writes results/imu/<name>/ (about 10 m
 
 bench-imu: $(STAMP) ## Every IMU scenario over SEEDS seeds (resumable) -> results/bench/imu/imu.json, imu.md
 	$(PY) -m casmag.experiments.imubench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu
+
+bench-imu-strategies: $(STAMP) ## Every IMU scenario with each warm-start strategy (none, coarse-to-fine) over SEEDS seeds -> results/bench/imu-<strategy>/
+	@for s in none coarse-to-fine; do \
+	  $(PY) -m casmag.experiments.imubench problems/imu/*.yaml --seeds $(SEEDS) \
+	    --set solver.warm_start.strategy=$$s --out results/bench/imu-$$s || exit 1; done
 
 bench-imu-latest: ## The same on the newest versions (the environment of make test-latest) -> results/bench/imu-latest/
 	test -x $(LATEST)/bin/python || $(MAKE) test-latest

@@ -159,14 +159,14 @@ def _solve_problem_file(
     its plausibility warnings on stderr, save it, and end as every command does
     (:func:`casmag.cli.tools.finish`)."""
     from casmag.data.checks import warning_lines
-    from casmag.problem.imu import load_imu_problem, refuse_unused_solver_keys
+    from casmag.problem.imu import IMU_SOLVER_KEYS, load_imu_problem, refuse_unused_solver_keys
     from casmag.problem.oriented import load_oriented_problem
     from casmag.problem.spec import load_problem
     from casmag.solver.api import solve
 
     try:
         if kind == "imu":
-            refuse_unused_solver_keys(overrides, "casmag imu")
+            refuse_unused_solver_keys(overrides, "casmag imu", IMU_SOLVER_KEYS)
             prob: Any = load_imu_problem(problem, overrides)
         elif kind == "oriented":
             prob = load_oriented_problem(problem, overrides)

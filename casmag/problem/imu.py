@@ -26,6 +26,7 @@ from casmag.errors import ProblemError
 from casmag.problem.spec import (
     SolverSpec,
     Strict,
+    WarmStartSpec,
     as_overrides,
     parse_override,
     problem_name,
@@ -373,10 +374,27 @@ class ImuProblemSpec(Strict):
     description: str | None = None
     simulation: ImuSimulationSpec
     model: ImuProblemModelSpec = ImuProblemModelSpec()
-    solver: SolverSpec = SolverSpec()
+    solver: SolverSpec = SolverSpec(warm_start=WarmStartSpec(strategy="auto"))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _auto_warm_start(cls, data: Any) -> Any:
+        # The IMU model's default warm start is its own schedule ladder (``auto``), also
+        # when the file gives a solver section without a strategy.
+        solver = data.get("solver") if isinstance(data, dict) else None
+        if isinstance(solver, dict):
+            ws = solver.get("warm_start", {})
+            if isinstance(ws, dict) and "strategy" not in ws:
+                data = {**data, "solver": {**solver, "warm_start": {**ws, "strategy": "auto"}}}
+        return data
 
     @model_validator(mode="after")
     def _consistent(self) -> ImuProblemSpec:
+        if self.solver.warm_start.strategy == "sliding":
+            raise ValueError(
+                "solver.warm_start.strategy: sliding windows are not implemented for the IMU "
+                "model (it takes auto, none, growing or coarse-to-fine)"
+            )
         sim = self.simulation
         if sim.imu.levelling_seconds > sim.scenario.static:
             raise ValueError(
@@ -666,6 +684,13 @@ def load_recording_spec(
     if solver is not None and not isinstance(solver, dict):
         data["solver"] = solver  # let validation name the bad value
     spec, _ = validate_spec(spec_class, data, overrides, source)
+    ws = spec.solver.warm_start
+    if ws.strategy == "auto":  # the model's own default, with the keys the file gives
+        default = spec_class.model_fields["solver"].default.warm_start
+        given = {key: getattr(ws, key) for key in ws.model_fields_set - {"strategy"}}
+        spec.solver = spec.solver.model_copy(
+            update={"warm_start": default.model_copy(update=given)}
+        )
     if spec.solver.warm_start.strategy == "sliding" and getattr(spec.model, "form", "") == "tiled":
         raise ProblemError(
             source,
@@ -675,8 +700,9 @@ def load_recording_spec(
     return spec
 
 
-#: Solver settings the IMU model does not use (warm starts, the Laplace covariance); the
-#: planar and pose models read some of them (:data:`STAGED_SOLVER_KEYS`).
+#: Solver settings the IMU model does not use (the sliding windows' keys, the Laplace
+#: covariance); the IMU model reads :data:`IMU_SOLVER_KEYS` of them, the planar and pose
+#: models :data:`STAGED_SOLVER_KEYS`.
 UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncertainty_inflation")
 
 
@@ -694,6 +720,17 @@ STAGED_SOLVER_KEYS = (
     ),
     "solver.uncertainty",
     "solver.uncertainty_inflation",
+)  # fmt: skip
+
+
+#: The keys under :data:`UNUSED_SOLVER_KEYS` the IMU model reads: its warm starts (its
+#: schedule ladder, one batch, growing prefixes, coarse-to-fine; casmag.solver.imu).
+IMU_SOLVER_KEYS = tuple(
+    f"solver.warm_start.{k}"
+    for k in (
+        "strategy", "first_samples", "growth", "stage_max_iter", "lengthscale_start",
+        "lengthscale_stages",
+    )
 )  # fmt: skip
 
 

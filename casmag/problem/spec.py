@@ -275,13 +275,19 @@ class WarmStartSpec(Strict):
     ``coarse-to-fine``: ``lengthscale_stages`` batch solves with the lengthscale shrinking
     geometrically from ``lengthscale_start`` times the assumed one to the assumed one, each
     started from the previous (at most ``stage_max_iter`` iterations before the last).
+    ``auto``: the model's own default: ``none`` for the translational model, the solver
+    defaults' ``growing`` for the planar and pose models, and for the IMU model (whose
+    default it is) its schedule ladder (casmag.solver.imu: sigma_m annealed, then
+    coarse-to-fine and growing-prefix schedules when a schedule fails or fits badly). The
+    IMU model counts samples in keyframes and takes ``none``, ``growing`` and
+    ``coarse-to-fine`` besides; sliding windows are not implemented for it.
 
     Defaults: first_samples 4000, growth 4.0, stage_max_iter 25, window auto, overlap auto,
     window_lengthscales 1.375, window_bias_prior laplace, unit samples, sample_period null,
     window_max_iter 50, lengthscale_start 3.0, lengthscale_stages 3.
     """
 
-    strategy: Literal["none", "growing", "sliding", "coarse-to-fine"] = "none"
+    strategy: Literal["none", "growing", "sliding", "coarse-to-fine", "auto"] = "none"
     first_samples: Annotated[int, Field(ge=10)] = 4000
     growth: Annotated[float, Field(gt=1)] = 4.0
     stage_max_iter: Annotated[int, Field(ge=1)] = 25
@@ -474,6 +480,11 @@ class ProblemSpec(Strict):
                 )
         if gp.form == "tiled" and kernel != "curl_free":
             raise ValueError("model.gp.form: tiled needs model.gp.kernel: curl_free")
+        ws = self.solver.warm_start
+        if ws.strategy == "auto":  # the translational model's own default
+            self.solver = self.solver.model_copy(
+                update={"warm_start": ws.model_copy(update={"strategy": "none"})}
+            )
         if gp.form == "tiled" and self.solver.warm_start.strategy == "sliding":
             raise ValueError(
                 "solver.warm_start.strategy: sliding carries the reduced-rank map "

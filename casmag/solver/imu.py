@@ -50,11 +50,20 @@ from casmag.model.rotated import (
 from casmag.model.rrmap import make_basis
 from casmag.nlp import NLP, STALLED, Progress, Solution
 from casmag.problem.imu import HYPER_SECONDS, ImuProblem, load_imu_problem
+from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.closures import magnetic_closures
+from casmag.solver.staged import Solved, StagedModel, solve_starts
 from casmag.solver.windowing import continues, grow
 from casmag.versions import __version__, versions
+
+#: Why an IMU result carries no position covariance (``uncertainty``): the Laplace
+#: covariance at the GP-SLAM estimate was measured over-confident (problems/imu/README.md).
+IMU_NO_COVARIANCE = (
+    "not computed: the IMU model's Laplace covariance was measured over-confident (mean NEES "
+    "2.2-27.9 against 3 on the rectangle and spiral), so none is given"
+)
 
 #: Hessian of the imu block in the GP-SLAM stage (which starts near the optimum).
 IMU_HESSIAN_SLAM = "gauss-newton"
@@ -410,6 +419,10 @@ def solve_imu_stages(
         ladder.append(("grown", [("grow", list(m.gp.anneal), 1.0)], first, kept_hyper))
     if closed is not None:
         ladder.append(("without_closures", _anneal_schedule(m.gp), st1, imu_only_hyper))
+    if spec.solver.warm_start.strategy != "auto":  # a strategy of casmag.solver.staged
+        passes, s2, size, record = _strategy_pass(problem, data, kf, base, first, hyper, progress)
+        schedules.append(record)
+        ladder = []
     for name, steps, start, h in ladder:
         if passes and not schedule_needed(
             name, passes[-1].solution.success, schedules[_kept(schedules)]["misfit"],
@@ -663,9 +676,9 @@ def _hyperparameters(
 
 
 def _slam_setup(
-    problem: ImuProblem, prev: ImuSolveStage, hyper: dict[str, float]
+    problem: ImuProblem, P: np.ndarray, hyper: dict[str, float]
 ) -> tuple[tuple | None, str]:
-    """The map's basis key (built around the previous stage's trajectory) and the
+    """The map's basis key (built around the positions P: the previous stage's) and the
     magnetometer block's Hessian mode (``model.gp.curvature``: true ``exact``, false
     ``gauss-newton``, auto ``exact`` in a field that varies little, else ``hybrid``)."""
     m = problem.spec.model
@@ -673,9 +686,9 @@ def _slam_setup(
     if m.gp.form == "reduced_rank":
         num_basis = m.gp.num_basis
         if num_basis is None:
-            full = make_basis(m.gp.kernel, prev.P, hyper["lengthscale"], None, m.gp.margin)
+            full = make_basis(m.gp.kernel, P, hyper["lengthscale"], None, m.gp.margin)
             num_basis = min(full.num_basis, m.gp.max_num_basis)
-        hb = make_basis(m.gp.kernel, prev.P, hyper["lengthscale"], num_basis, m.gp.margin)
+        hb = make_basis(m.gp.kernel, P, hyper["lengthscale"], num_basis, m.gp.margin)
         basis_key = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
     variation = hyper["sigma_f"] / (hyper["lengthscale"] if m.gp.kernel == "curl_free" else 1.0)
     if m.gp.curvature == "auto":
@@ -805,7 +818,7 @@ def _slam_pass(
     """One GP-SLAM solve starting from a previous stage's estimates, with the map's basis
     built around that stage's trajectory and the magnetometer noise scaled by
     sigma_m_factor."""
-    basis_key, mode = _slam_setup(problem, prev, hyper)
+    basis_key, mode = _slam_setup(problem, prev.P, hyper)
     sigma_m = problem.sigma_m * kf.sigma_scale * sigma_m_factor
     st2, s2 = _slam_solve(
         problem, data, kf, base, basis_key, mode, hyper, sigma_m,
@@ -834,23 +847,40 @@ def continue_start(
     then the reference (IMU-only) trajectory continued from the prefix's last state:
     positions and velocities shifted to join it, orientations turned by its orientation
     correction, biases the prefix's last; map weights and constant field carried over."""
-    Kp = prefix.P.shape[0]
-    j = Kp - 1
-    corr = sd.quat_mul(prefix.Q[j : j + 1], sd.quat_conj(ref.Q[j : j + 1]))
-    Qn = sd.quat_mul(np.repeat(corr, K - Kp, 0), ref.Q[Kp:K])
     sol = prefix.solution
-    out = {
-        "P": np.vstack([prefix.P, ref.P[Kp:K] + (prefix.P[j] - ref.P[j])]),
-        "V": np.vstack([prefix.V, ref.V[Kp:K] + (prefix.V[j] - ref.V[j])]),
-        "Q": np.vstack([prefix.Q, Qn]),
+    states = {
+        "P": prefix.P,
+        "V": prefix.V,
+        "Q": prefix.Q,
+        "BW": sol.x["BW"],
+        "BA": sol.x["BA"],
         "zero_centre": sol.x.get("zero_centre", start["zero_centre"]),
     }
+    return {
+        **extend_states(states, ref, K),
+        **{name: sol.x[name] for name in ("W", "c") if name in sol.x},
+    }
+
+
+def extend_states(states: dict[str, Any], ref: ImuSolveStage, K: int) -> dict[str, Any]:
+    """The states of a prefix (P, V, Q at its keyframes, BW, BA, zero_centre) continued to K
+    keyframes by the reference trajectory ``ref`` from the prefix's last state: positions
+    and velocities shifted to join it, orientations turned by its orientation correction
+    there, biases the prefix's last (a random walk's repeated)."""
+    P, V, Q = states["P"], states["V"], states["Q"]
+    Kp = P.shape[0]
+    j = Kp - 1
+    corr = sd.quat_mul(Q[j : j + 1], sd.quat_conj(ref.Q[j : j + 1]))
+    Qn = sd.quat_mul(np.repeat(corr, K - Kp, 0), ref.Q[Kp:K])
+    out = {
+        "P": np.vstack([P, ref.P[Kp:K] + (P[j] - ref.P[j])]),
+        "V": np.vstack([V, ref.V[Kp:K] + (V[j] - ref.V[j])]),
+        "Q": np.vstack([Q, Qn]),
+        "zero_centre": states["zero_centre"],
+    }
     for b in ("BW", "BA"):
-        v = sol.x[b]
+        v = states[b]
         out[b] = v if v.shape[0] == 1 else np.vstack([v, np.repeat(v[-1:], K - Kp, 0)])
-    for name in ("W", "c"):
-        if name in sol.x:
-            out[name] = sol.x[name]
     return out
 
 
@@ -872,7 +902,7 @@ def _grown_pass(
     in ``grow`` (build_seconds 0 when the NLP was built for an earlier solve). A solve before
     the last that stops at the iteration limit still starts the next (measured, handwriting
     seed 7: the first 31-keyframe prefix, without a revisit, at sigma_m x1)."""
-    basis_key, mode = _slam_setup(problem, prev, hyper)
+    basis_key, mode = _slam_setup(problem, prev.P, hyper)
     K = kf.idx.size
     full = _start_from(prev, data)
     records: list[dict[str, Any]] = []
@@ -922,6 +952,98 @@ def _grown_pass(
     st, s2, _ = grow(grow_sizes(K, fractions), stage)[-1][2]
     size = s2.hilbert_basis().num_basis if problem.spec.model.gp.form == "reduced_rank" else None
     return st, s2, size
+
+
+# --------------------------------------------------------------------------- strategies
+class ImuStaged(StagedModel):
+    """The IMU model's GP-SLAM as the warm-start strategies see it (casmag.solver.staged),
+    for ``solver.warm_start.strategy`` ``none``, ``growing`` and ``coarse-to-fine`` (samples
+    are keyframes). States: P, V, Q at the keyframes, BW, BA (one row, or one per keyframe
+    for a random walk) and zero_centre. The start is the reference stage ``ref`` (the
+    IMU-only adjustment, or the closure-adjusted one), a prefix continued by it
+    (:func:`extend_states`); the hyperparameters are those estimated before the strategy
+    (``hyper``), a coarser lengthscale keeping the field's variance (:func:`_coarser`). Every
+    solve lays its map's box around its start's positions, as each pass of the schedule
+    ladder does around its previous pass's, and fits the map's weights there
+    (:func:`_slam_solve`), so no weights carry between stages."""
+
+    def __init__(
+        self, problem: ImuProblem, data: ImuData, kf: Keyframes, base: dict[str, Any],
+        ref: ImuSolveStage, hyper: dict[str, float], progress: Progress | None = None,
+    ) -> None:  # fmt: skip
+        self.problem, self.data, self.kf, self.base = problem, data, kf, base
+        self.ref, self.hyper, self.progress = ref, hyper, progress
+        self.n, self.solver = kf.idx.size, problem.spec.solver
+        self.lengthscale = hyper["lengthscale"]
+
+    def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
+        if bias != 0.0:
+            raise ValueError("the IMU model's strategies start from its IMU-only adjustment")
+        return self.states_of(self.ref, k)
+
+    def states_of(self, st: ImuSolveStage, k: int) -> dict[str, np.ndarray]:
+        """A stage's first k keyframes' states."""
+        out = _start_from(st, self.data)
+        rows = out["BW"].shape[0] > 1
+        return {
+            key: v[:k] if key in ("P", "V", "Q") or (rows and key in ("BW", "BA")) else v
+            for key, v in out.items()
+        }
+
+    def states(self, solved: Solved) -> dict[str, np.ndarray]:
+        return self.states_of(solved.nominal, solved.nominal.P.shape[0])
+
+    def extend(self, states: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
+        return extend_states(states, self.ref, k)
+
+    def solve(
+        self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float
+    ) -> Solved:
+        problem, kf = self.problem, self.kf
+        hyper = _coarser(problem.spec.model.gp.kernel, self.hyper, lengthscale / self.lengthscale)
+        basis_key, mode = _slam_setup(problem, start["P"], hyper)
+        base = {**self.base, "solver": solver.model_dump_json()}
+        st, s2 = _slam_solve(
+            problem, self.data, kf if k == self.n else prefix_keyframes(kf, k), base,
+            basis_key, mode, hyper, problem.sigma_m * kf.sigma_scale, start, self.progress,
+        )  # fmt: skip
+        return Solved(st.solution, st.nlp, s2, lengthscale, nominal=st)
+
+
+def _strategy_pass(
+    problem: ImuProblem, data: ImuData, kf: Keyframes, base: dict[str, Any],
+    ref: ImuSolveStage, hyper: dict[str, float], progress: Progress | None,
+) -> tuple[list[ImuSolveStage], ImuStructure, int | None, dict[str, Any]]:  # fmt: skip
+    """``solver.warm_start``'s strategy (:class:`ImuStaged`) from ``ref``: the final solve
+    as the one pass (with the strategy's records in ``grow``: every solve, the last the
+    full problem's), its structure and map size, and the schedule record."""
+    model = ImuStaged(problem, data, kf, base, ref, hyper, progress)
+    run = solve_starts(model, problem.spec.solver.warm_start, [0.0])
+    final = run.final
+    st: ImuSolveStage = final.nominal
+    st.grow = [
+        {
+            "keyframes": r["samples"],
+            "sigma_m_factor": 1.0,
+            "lengthscale": r["lengthscale"],
+            "kind": stage.kind,
+            "status": r["status"],
+            "success": stage.solved.sol.success,
+            "iterations": r["iterations"],
+            "rounds": stage.solved.sol.rounds,
+            "solve_seconds": r["solve_seconds"],
+            "build_seconds": stage.solved.nlp.build_seconds,
+            "cost": r["cost"],
+        }
+        for r, stage in zip(run.records(), run.runs[0], strict=True)
+    ]
+    size = (
+        final.structure.hilbert_basis().num_basis
+        if final.structure.form == "reduced_rank"
+        else None
+    )
+    record = {**_schedule_record(problem.spec.solver.warm_start.strategy, [st], kf.idx.size)}
+    return [st], final.structure, size, record
 
 
 # --------------------------------------------------------------------------- result
@@ -1060,6 +1182,7 @@ def solve_imu(
         "kernel": spec.model.gp.kernel,
         "num_basis": res.basis_size,
         "map_decision": decision,
+        "warm_start": spec.solver.warm_start.strategy,
         "hessian": "gauss-newton" if spec.solver.hessian == "auto" else spec.solver.hessian,
         "casmag": __version__,
         "casadi": ca.__version__,
@@ -1167,6 +1290,8 @@ def solve_imu(
             for i, p in enumerate(res.slam_passes)
         ],
         arrays=arrays,
+        # solver.uncertainty asks for a covariance this model does not give: said so.
+        uncertainty={"error": IMU_NO_COVARIANCE} if spec.solver.uncertainty else None,
     )
 
 
@@ -1189,7 +1314,7 @@ def _truth_start_cost(
         "BA": ba,
         "zero_centre": data.p0.reshape(1, 3),
     }
-    _, mode = _slam_setup(problem, slam, res.hyperparameters)
+    _, mode = _slam_setup(problem, slam.P, res.hyperparameters)
     base = {
         k: getattr(res.structure, k)
         for k in ("n", "T", "bias", "zero_position", "zero_centre", "kernel", "jitter", "solver")

@@ -392,7 +392,7 @@ def test_slam_refuses_set_keys_a_recording_ignores(previous, tmp_path, override,
 @pytest.mark.parametrize(
     "override",
     [
-        "solver.warm_start.strategy=growing",
+        "solver.warm_start.overlap=3",
         "solver.uncertainty=false",
         "solver.warm_start={}",
         "solver.warm_start.window=10",
