@@ -278,6 +278,29 @@ def dead_reckon_pose(
     return P, Q
 
 
+def turn_heading(
+    P: np.ndarray, Q: np.ndarray, t: np.ndarray, rate: float, V: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A trajectory (positions P, orientations Q body to local, velocities V) with a
+    heading-rate ``rate`` [rad/s] about the vertical (z) removed: the orientation and
+    velocity at time t turned by -rate (t - t[0]), each step's displacement by the turn at
+    its start, from P[0]. For pose odometry dead-reckoned from body-frame increments this
+    is exact: the same increments from the turned orientations."""
+    theta = -rate * (np.asarray(t, dtype=float) - float(t[0]))
+    c, s = np.cos(theta), np.sin(theta)
+
+    def turned(v: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
+        return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
+
+    P = np.asarray(P, dtype=float)
+    steps = turned(np.diff(P, axis=0), c[:-1], s[:-1])
+    P_t = np.vstack([P[:1], P[:1] + np.cumsum(steps, axis=0)])
+    half = 0.5 * theta
+    qz = np.column_stack([np.cos(half), np.zeros_like(half), np.zeros_like(half), np.sin(half)])
+    Q_t = quat_normalize(quat_mul(qz, np.asarray(Q, dtype=float)))
+    return P_t, Q_t, None if V is None else turned(np.asarray(V, dtype=float), c, s)
+
+
 def pose_increments(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """(N-1, 7) increments (dp in the earlier body frame, dq) of a trajectory: the inverse
     of :func:`dead_reckon_pose`."""

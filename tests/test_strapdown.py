@@ -187,3 +187,26 @@ def test_preintegration_covariance_matches_monte_carlo(motion):
     # Correlations too (velocity-position and rotation-velocity couplings).
     corr = lambda A: A / np.outer(np.sqrt(np.diag(A)), np.sqrt(np.diag(A)))  # noqa: E731
     np.testing.assert_allclose(corr(C), corr(S), atol=0.1)
+
+
+def test_turn_heading_removes_a_vertical_rate_from_a_pose_dead_reckoning():
+    """Turned by a heading rate about the vertical, a pose dead reckoning is the same
+    body-frame displacements from the turned orientations (exact), its first pose kept, its
+    last orientation turned by rate x duration about z, velocities turned with it."""
+    rng = np.random.default_rng(4)
+    n = 25
+    dq = sd.quat_exp(rng.normal(0.0, 0.05, (n - 1, 3)))
+    U = np.column_stack([rng.normal(0.1, 0.05, (n - 1, 3)), dq])
+    t = np.concatenate([[2.0], 2.0 + np.cumsum(np.full(n - 1, 0.5))])
+    P, Q = sd.dead_reckon_pose(
+        U, np.array([1.0, 2.0, 3.0]), sd.quat_exp(np.array([[0.1, -0.2, 0.3]]))[0]
+    )
+    V = rng.standard_normal((n, 3))
+    rate = 0.03
+    Pt, Qt, Vt = sd.turn_heading(P, Q, t, rate, V)
+    np.testing.assert_allclose(np.diff(Pt, axis=0), sd.rotate(Qt[:-1], U[:, :3]), atol=1e-12)
+    np.testing.assert_array_equal(Pt[0], P[0])
+    turn = sd.quat_mul(Qt[-1:], sd.quat_conj(Q[-1:]))[0]
+    np.testing.assert_allclose(turn, [np.cos(-rate * 6.0), 0, 0, np.sin(-rate * 6.0)], atol=1e-12)
+    np.testing.assert_allclose(Vt[:, 2], V[:, 2])
+    np.testing.assert_allclose(np.linalg.norm(Vt, axis=1), np.linalg.norm(V, axis=1))

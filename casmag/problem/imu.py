@@ -355,7 +355,25 @@ class MagnetometerModelSpec(Strict):
         return v
 
 
-class ImuProblemModelSpec(Strict):
+class StartsSpec(Strict):
+    """Several starts (a model section's keys): ``starts`` (odd: the start itself and pairs
+    of +-heading-rate biases removed from it, casmag.solver.staged.heading_bias_starts,
+    each running ``solver.warm_start``'s strategy, the lowest MAP cost kept) [1];
+    ``start_heading_deg``: the heading the first pair's bias turns over the recording
+    [10]."""
+
+    starts: Annotated[int, Field(ge=1, le=21)] = 1
+    start_heading_deg: PositiveFloat = 10.0
+
+    @field_validator("starts")
+    @classmethod
+    def _odd(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError("must be odd (the start and pairs of +-biases)")
+        return v
+
+
+class ImuProblemModelSpec(StartsSpec):
     """keyframe_rate [Hz]: states are kept at this rate, the IMU increments between them
     composed (the IMU rate must be a whole multiple); the magnetometer is used at keyframes,
     averaged over ``magnetometer.samples`` samples around each."""
@@ -366,6 +384,8 @@ class ImuProblemModelSpec(Strict):
     zero_position: ZeroPositionSpec = ZeroPositionSpec()
     gp: ImuGPSpec = ImuGPSpec()
     magnetometer: MagnetometerModelSpec = MagnetometerModelSpec()
+    # starts, start_heading_deg (StartsSpec): several starts turned from the IMU-only
+    # adjustment (casmag.solver.imu.ImuStaged), with a strategy other than auto.
 
 
 class ImuProblemSpec(Strict):
@@ -394,6 +414,12 @@ class ImuProblemSpec(Strict):
             raise ValueError(
                 "solver.warm_start.strategy: sliding windows are not implemented for the IMU "
                 "model (it takes auto, none, growing or coarse-to-fine)"
+            )
+        if self.model.starts > 1 and self.solver.warm_start.strategy == "auto":
+            raise ValueError(
+                "model.starts: each start runs solver.warm_start's strategy, and auto (the "
+                "schedule ladder) runs once; set solver.warm_start.strategy to none, growing "
+                "or coarse-to-fine"
             )
         sim = self.simulation
         if sim.imu.levelling_seconds > sim.scenario.static:
@@ -527,7 +553,7 @@ def no_truth_on_a_recording(value: Any) -> Any:
     return value
 
 
-class PlanarModelSpec(Strict):
+class PlanarModelSpec(StartsSpec):
     """The planar odometry-with-heading model for ``casmag slam`` on a recording with
     ``dfwd,dleft,dyaw`` columns: the fields of :class:`PlanarOptions` (units
     there: metres, radians, seconds; field units of the recording)."""
@@ -547,20 +573,11 @@ class PlanarModelSpec(Strict):
     sigma_anchor: PositiveFloat = 1.0e-3
     sigma_psi0: PositiveFloat = 1.0e-3
     curvature: bool = True
-    starts: Annotated[int, Field(ge=1, le=21)] = 1
-    start_heading_deg: PositiveFloat = 10.0
     form: Literal["reduced_rank", "tiled"] = "reduced_rank"
 
     _no_truth = field_validator("sigma_m", "sigma_f", "lengthscale", mode="before")(
         no_truth_on_a_recording
     )
-
-    @field_validator("starts")
-    @classmethod
-    def _odd(cls, v: int) -> int:
-        if v % 2 == 0:
-            raise ValueError("must be odd (the dead reckoning and pairs of +-biases)")
-        return v
 
     @model_validator(mode="after")
     def _tiled_is_curl_free(self) -> PlanarModelSpec:

@@ -12,7 +12,12 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator
 
-from casmag.problem.imu import PLANAR_SOLVER_DEFAULTS, load_recording_spec, no_truth_on_a_recording
+from casmag.problem.imu import (
+    PLANAR_SOLVER_DEFAULTS,
+    StartsSpec,
+    load_recording_spec,
+    no_truth_on_a_recording,
+)
 from casmag.problem.spec import PositiveFloat, SolverSpec, Strict
 
 #: Solver settings of pose recordings that differ from SolverSpec's defaults: those of the
@@ -20,7 +25,7 @@ from casmag.problem.spec import PositiveFloat, SolverSpec, Strict
 POSE_SOLVER_DEFAULTS: dict[str, Any] = PLANAR_SOLVER_DEFAULTS
 
 
-class PoseModelSpec(Strict):
+class PoseModelSpec(StartsSpec):
     """The pose-odometry model: the fields of :class:`PoseOptions` (metres, radians,
     seconds; field units of the recording)."""
 
@@ -84,7 +89,11 @@ class PoseOptions:
     height_sigma [m]: with a planar map, a prior on every sample's height about the first's
     (the magnetometer cannot see height; the hand-held ARKit recordings' heights have
     standard deviations 0.04 and 0.16 m), None: none [0.2]; sigma_anchor [m], sigma_att0
-    [rad]: priors on the known first pose [1e-3 each]; solver: IPOPT settings."""
+    [rad]: priors on the known first pose [1e-3 each]; starts: number of starts (odd: the
+    dead reckoning and pairs with +-heading-rate biases removed about the vertical,
+    casmag.strapdown.turn_heading, each running ``solver.warm_start``'s strategy, the lowest
+    MAP cost kept) [1]; start_heading_deg: the heading the first pair's bias turns over the
+    recording [10]; solver: IPOPT settings."""
 
     sigma_p: float = 0.01
     sigma_r: float = 0.002
@@ -104,6 +113,8 @@ class PoseOptions:
     sigma_anchor: float = 1e-3
     sigma_att0: float = 1e-3
     curvature: str = "hybrid"
+    starts: int = 1
+    start_heading_deg: float = 10.0
     solver: SolverSpec = dataclasses.field(
         default_factory=lambda: SolverSpec(**POSE_SOLVER_DEFAULTS)
     )

@@ -54,7 +54,13 @@ from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.closures import magnetic_closures
-from casmag.solver.staged import Solved, StagedModel, solve_starts
+from casmag.solver.staged import (
+    Solved,
+    StagedModel,
+    StagedRun,
+    heading_bias_starts,
+    solve_starts,
+)
 from casmag.solver.windowing import continues, grow
 from casmag.versions import __version__, versions
 
@@ -977,9 +983,13 @@ class ImuStaged(StagedModel):
         self.lengthscale = hyper["lengthscale"]
 
     def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
+        """The reference stage's first k keyframes, turned about the vertical by a
+        heading-rate ``bias`` (casmag.strapdown.turn_heading; its biases as they are)."""
+        out = self.states_of(self.ref, k)
         if bias != 0.0:
-            raise ValueError("the IMU model's strategies start from its IMU-only adjustment")
-        return self.states_of(self.ref, k)
+            t = self.kf.idx[:k] * self.data.T
+            out["P"], out["Q"], out["V"] = sd.turn_heading(out["P"], out["Q"], t, bias, out["V"])
+        return out
 
     def states_of(self, st: ImuSolveStage, k: int) -> dict[str, np.ndarray]:
         """A stage's first k keyframes' states."""
@@ -1014,13 +1024,20 @@ def _strategy_pass(
     problem: ImuProblem, data: ImuData, kf: Keyframes, base: dict[str, Any],
     ref: ImuSolveStage, hyper: dict[str, float], progress: Progress | None,
 ) -> tuple[list[ImuSolveStage], ImuStructure, int | None, dict[str, Any]]:  # fmt: skip
-    """``solver.warm_start``'s strategy (:class:`ImuStaged`) from ``ref``: the final solve
-    as the one pass (with the strategy's records in ``grow``: every solve, the last the
-    full problem's), its structure and map size, and the schedule record."""
+    """``solver.warm_start``'s strategy (:class:`ImuStaged`) from ``ref`` and, with
+    ``model.starts``, from it turned by heading-rate biases (the lowest MAP cost kept): the
+    kept final solve as the one pass (with its start's records in ``grow``: every solve,
+    the last the full problem's), its structure and map size, and the schedule record (with
+    every start's solves under ``starts`` when there are several)."""
+    m = problem.spec.model
     model = ImuStaged(problem, data, kf, base, ref, hyper, progress)
-    run = solve_starts(model, problem.spec.solver.warm_start, [0.0])
+    duration = float(kf.idx[-1] * data.T)
+    biases = heading_bias_starts(m.starts, m.start_heading_deg, duration)
+    run = solve_starts(model, problem.spec.solver.warm_start, biases)
     final = run.final
     st: ImuSolveStage = final.nominal
+    records = run.records()
+    kept = [r for r, i in zip(records, _start_of(run), strict=True) if i == run.kept]
     st.grow = [
         {
             "keyframes": r["samples"],
@@ -1035,15 +1052,24 @@ def _strategy_pass(
             "build_seconds": stage.solved.nlp.build_seconds,
             "cost": r["cost"],
         }
-        for r, stage in zip(run.records(), run.runs[0], strict=True)
+        for r, stage in zip(kept, run.runs[run.kept], strict=True)
     ]
     size = (
         final.structure.hilbert_basis().num_basis
         if final.structure.form == "reduced_rank"
         else None
     )
-    record = {**_schedule_record(problem.spec.solver.warm_start.strategy, [st], kf.idx.size)}
+    record = _schedule_record(problem.spec.solver.warm_start.strategy, [st], kf.idx.size)
+    # Every start's solves count in the time (the iterations are the kept start's).
+    record["solve_seconds"] = float(sum(r["solve_seconds"] for r in records))
+    if len(biases) > 1:
+        record["starts"] = records
     return [st], final.structure, size, record
+
+
+def _start_of(run: StagedRun) -> list[int]:
+    """The start each of ``run.records()`` belongs to."""
+    return [i for i, stages in enumerate(run.runs) for _ in stages]
 
 
 # --------------------------------------------------------------------------- result

@@ -35,6 +35,7 @@ from casmag.solver.staged import (
     Solved,
     StagedModel,
     WindowPrior,
+    heading_bias_starts,
     solve_starts,
     truth_check,
     uncertainty,
@@ -164,8 +165,9 @@ def solve_pose(
             result.details["bias_w"] = [float(v) for v in run.states[-1, 6:9]]
         return result
     model = PoseStaged(options, U, dt, Y, p0, q0, P_dr, Q_dr, c0, params, dim, height, progress)
-    staged = solve_starts(model, options.solver.warm_start, [0.0])
-    grown = staged.runs[0]
+    biases = heading_bias_starts(options.starts, options.start_heading_deg, float(dt.sum()))
+    staged = solve_starts(model, options.solver.warm_start, biases)
+    grown = staged.runs[staged.kept]
     final = staged.final
     sol, nlp, s, Q_nom = final.sol, final.nlp, final.structure, final.nominal
     Q_est = orientations(Q_nom, sol.x["D"])
@@ -274,7 +276,8 @@ class PoseStaged(StagedModel):
     (casmag.solver.staged): states P (k, 3), the nominal orientations Q (k, 4) the solve is
     linearised about (its unknowns D are the rotation errors, zero at the start) and the
     biases. The full problem's box is laid around the dead reckoning ``P_dr``, a prefix's
-    around its start. It has no heading-bias starts (:meth:`start` takes bias 0 only)."""
+    around its start. A start with a heading-rate bias is the dead reckoning turned about
+    the vertical (casmag.strapdown.turn_heading), its rate bias zero."""
 
     def __init__(
         self, options: PoseOptions, U: np.ndarray, dt: np.ndarray, Y: np.ndarray,
@@ -289,11 +292,13 @@ class PoseStaged(StagedModel):
         self.fixed = [b for b in _BIASES if not getattr(options, f"estimate_{b}")]
 
     def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
-        if bias != 0.0:  # a body-frame rate bias is a heading rate only for a level body
-            raise ValueError("the pose model has no heading-bias starts")
+        P, Q = self.P_dr[:k], self.Q_dr[:k]
+        if bias != 0.0:  # about the vertical: a body-frame rate is one only for a level body
+            t = np.concatenate([[0.0], np.cumsum(self.dt[: k - 1])])
+            P, Q, _ = sd.turn_heading(P, Q, t, bias)
         return {
-            "P": self.P_dr[:k],
-            "Q": self.Q_dr[:k],
+            "P": P,
+            "Q": Q,
             "bias_p": np.zeros(3),
             "bias_w": np.zeros(3),
         }

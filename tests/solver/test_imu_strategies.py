@@ -32,12 +32,19 @@ def test_auto_is_each_models_own_default():
     assert (planar.strategy, planar.first_samples, planar.growth) == ("growing", 150, 3.0)
 
 
-def test_sliding_windows_are_refused_for_the_imu_model_in_one_line():
+@pytest.mark.parametrize(
+    ("overrides", "key", "reason"),
+    [
+        (["solver.warm_start.strategy=sliding"], "solver.warm_start.strategy", "not implemented"),
+        (["model.starts=3"], "model.starts", "auto (the schedule ladder) runs once"),
+        (["model.starts=2", "solver.warm_start.strategy=none"], "model.starts", "must be odd"),
+    ],
+)
+def test_what_the_imu_model_cannot_run_is_refused_in_one_line(overrides, key, reason):
     with pytest.raises(ProblemError) as err:
-        load_imu_problem(tiny_imu(), ["solver.warm_start.strategy=sliding"])
+        load_imu_problem(tiny_imu(), overrides)
     msg = str(err.value)
-    assert "solver.warm_start.strategy" in msg and "not implemented for the IMU" in msg
-    assert "\n" not in msg
+    assert key in msg and reason in msg and "\n" not in msg
 
 
 def test_the_imu_command_takes_its_warm_start_keys_and_refuses_the_windows():
@@ -59,6 +66,8 @@ def _noise_free_rectangle(strategy: str) -> dict:
     data["model"]["imu"]["bias"] = "constant"
     data["model"]["zero_position"] = {"sigma": 1.0}
     data["solver"]["warm_start"] = {"strategy": strategy, "first_samples": 10, "growth": 2.0}
+    if strategy == "none":  # and three starts: the IMU-only adjustment and it turned +-10 deg
+        data["model"]["starts"] = 3
     return data
 
 
@@ -76,6 +85,15 @@ def test_each_strategy_returns_the_truth_on_a_noise_free_rectangle(strategy):
     assert r.uncertainty == {"error": IMU_NO_COVARIANCE}  # solver.uncertainty is on
     (record,) = r.details["schedules"]
     assert record["schedule"] == strategy and record["kept"]
+    if strategy == "none":
+        starts = record["starts"]
+        assert len(starts) == 3 and starts[0]["bias"] == 0.0
+        assert starts[1]["bias"] == pytest.approx(-starts[2]["bias"]) != 0.0
+        kept = [s for s in starts if s["kept"]]
+        assert len(kept) == 1 and kept[0]["cost"] == min(s["cost"] for s in starts)
+        assert kept[0]["cost"] == pytest.approx(record["cost"])
+    else:
+        assert "starts" not in record
     (gp_slam,) = r.stages_named("gp_slam")
     solves = gp_slam["grow"]
     K = r.info["keyframes"]

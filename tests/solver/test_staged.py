@@ -144,7 +144,7 @@ def _planar(strategy: str):
     return r, d.P.shape[0]
 
 
-def _pose(strategy: str):
+def _pose(strategy: str, *more: str):
     sets = ["simulation.trajectory.samples=100", "simulation.trajectory.area=[4.0, 2.0]"]
     prob = load_problem(ROOT / "problems" / "bench" / "peers.yaml", ["seed=2", *sets])
     rec = simulate_pose(prob.spec.simulation, 2, bias_w=(0.0, 0.0, 0.002))
@@ -158,6 +158,7 @@ def _pose(strategy: str):
             "solver.warm_start.first_samples=40",
             "solver.warm_start.stage_max_iter=10",
             *basis,
+            *more,
         ],
     )
     r = solve_pose(rec.U, rec.Y, opts, truth={"P": rec.P_true, "q": rec.q_true}, t=rec.t)
@@ -178,9 +179,30 @@ PAIRS = [
 
 
 def test_every_pair_is_solved_somewhere() -> None:
+    """Every motion model with every strategy: solved here or elsewhere (the IMU model's in
+    tests/solver/test_imu_strategies.py), or refused at load (the IMU model's sliding
+    windows, tested there too)."""
     solved_elsewhere = {("planar", "none"), ("planar", "growing"), ("pose", "none")}
-    every = {(m, s) for m in ("planar", "pose") for s in STAGED_STRATEGIES}
-    assert every == solved_elsewhere | set(PAIRS)
+    solved_elsewhere |= {("imu", "none"), ("imu", "growing"), ("imu", "coarse-to-fine")}
+    refused = {("imu", "sliding")}
+    every = {(m, s) for m in ("planar", "pose", "imu") for s in STAGED_STRATEGIES}
+    assert every == solved_elsewhere | set(PAIRS) | refused
+
+
+def test_pose_starts_are_turned_dead_reckonings_and_the_lowest_cost_is_kept() -> None:
+    """model.starts = 3 for the pose model: the dead reckoning and the dead reckoning turned
+    about the vertical by +-10 deg over the recording (casmag.strapdown.turn_heading), each
+    solved, the lowest MAP cost kept."""
+    r, n = _pose("none", "model.starts=3")
+    assert r.success, r.status
+    starts = r.stages_named("start")
+    assert len(starts) == 3 and starts[0]["bias"] == 0.0
+    assert starts[1]["bias"] == pytest.approx(-starts[2]["bias"])
+    t = r.arrays["t"]
+    assert len(t) == n and starts[1]["bias"] == pytest.approx(np.radians(10.0) / (t[-1] - t[0]))
+    kept = [s for s in starts if s["kept"]]
+    assert len(kept) == 1 and kept[0]["cost"] == min(s["cost"] for s in starts)
+    assert r.rmse_after < 0.5 * r.rmse_before
 
 
 @pytest.mark.parametrize(("model", "strategy"), PAIRS)
