@@ -723,23 +723,6 @@ def load_recording_spec(
 UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncertainty_inflation")
 
 
-#: The keys under :data:`UNUSED_SOLVER_KEYS` the planar and pose models read: their warm
-#: starts (growing prefixes, coarse-to-fine, sliding windows; casmag.solver.staged) and the
-#: Laplace covariance.
-STAGED_SOLVER_KEYS = (
-    *(
-        f"solver.warm_start.{k}"
-        for k in (
-            "strategy", "first_samples", "growth", "stage_max_iter", "lengthscale_start",
-            "lengthscale_stages", "window", "overlap", "window_lengthscales",
-            "window_bias_prior", "unit", "sample_period", "window_max_iter",
-        )
-    ),
-    "solver.uncertainty",
-    "solver.uncertainty_inflation",
-)  # fmt: skip
-
-
 #: The keys under :data:`UNUSED_SOLVER_KEYS` the IMU model reads: its warm starts (its
 #: schedule ladder, one batch, growing prefixes, coarse-to-fine; casmag.solver.imu).
 IMU_SOLVER_KEYS = tuple(
@@ -748,6 +731,22 @@ IMU_SOLVER_KEYS = tuple(
         "strategy", "first_samples", "growth", "stage_max_iter", "lengthscale_start",
         "lengthscale_stages",
     )
+)  # fmt: skip
+
+
+#: The keys under :data:`UNUSED_SOLVER_KEYS` the planar and pose models read: the IMU
+#: model's, the sliding windows' (casmag.solver.staged) and the Laplace covariance.
+STAGED_SOLVER_KEYS = (
+    *IMU_SOLVER_KEYS,
+    *(
+        f"solver.warm_start.{k}"
+        for k in (
+            "window", "overlap", "window_lengthscales", "window_bias_prior", "unit",
+            "sample_period", "window_max_iter",
+        )
+    ),
+    "solver.uncertainty",
+    "solver.uncertainty_inflation",
 )  # fmt: skip
 
 

@@ -417,18 +417,19 @@ def solve_imu_stages(
                 problem, kf, closed, "closure-adjusted IMU-only"
             )
     kept_hyper = (hyper, source, windows)
-    ladder = [("anneal", _anneal_schedule(m.gp), first, kept_hyper)]
-    if m.gp.coarse_to_fine is not None:
-        steps = [("pass", [f], f) for f in m.gp.coarse_to_fine]
-        ladder.append(("coarse_to_fine", steps, first, kept_hyper))
-    if m.gp.fallback_grow is not None:
-        ladder.append(("grown", [("grow", list(m.gp.anneal), 1.0)], first, kept_hyper))
-    if closed is not None:
-        ladder.append(("without_closures", _anneal_schedule(m.gp), st1, imu_only_hyper))
+    ladder: list[tuple[str, Any, ImuSolveStage, tuple]] = []
     if spec.solver.warm_start.strategy != "auto":  # a strategy of casmag.solver.staged
         passes, s2, size, record = _strategy_pass(problem, data, kf, base, first, hyper, progress)
         schedules.append(record)
-        ladder = []
+    else:
+        ladder.append(("anneal", _anneal_schedule(m.gp), first, kept_hyper))
+        if m.gp.coarse_to_fine is not None:
+            steps = [("pass", [f], f) for f in m.gp.coarse_to_fine]
+            ladder.append(("coarse_to_fine", steps, first, kept_hyper))
+        if m.gp.fallback_grow is not None:
+            ladder.append(("grown", [("grow", list(m.gp.anneal), 1.0)], first, kept_hyper))
+        if closed is not None:
+            ladder.append(("without_closures", _anneal_schedule(m.gp), st1, imu_only_hyper))
     for name, steps, start, h in ladder:
         if passes and not schedule_needed(
             name, passes[-1].solution.success, schedules[_kept(schedules)]["misfit"],
