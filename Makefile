@@ -162,8 +162,8 @@ imu: $(STAMP) ## Solve every IMU problem; writes results/imu/<name>/ (about 10 m
 bench-imu: $(STAMP) ## Every IMU scenario over SEEDS seeds (resumable) -> results/bench/imu/imu.json, imu.md
 	$(PY) -m casmag.experiments.imubench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu
 
-bench-imu-strategies: $(STAMP) ## Every IMU scenario with each warm-start strategy (none, coarse-to-fine) over SEEDS seeds -> results/bench/imu-<strategy>/
-	@for s in none coarse-to-fine; do \
+bench-imu-strategies: $(STAMP) ## Every IMU scenario with each warm-start strategy (none, coarse-to-fine, sliding) over SEEDS seeds -> results/bench/imu-<strategy>/
+	@for s in none coarse-to-fine sliding; do \
 	  $(PY) -m casmag.experiments.imubench problems/imu/*.yaml --seeds $(SEEDS) \
 	    --set solver.warm_start.strategy=$$s --out results/bench/imu-$$s || exit 1; done
 

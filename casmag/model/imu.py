@@ -55,7 +55,7 @@ from casmag.model.builder import (
     Rotation,
     cached_slam,
 )
-from casmag.model.field import ExactField, ReducedRankField
+from casmag.model.field import ExactField, ReducedRankField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rotated import (
     imu_rotation_function,
@@ -81,6 +81,7 @@ class ImuStructure:
     imu_hessian: str = "gauss-newton"  # or "exact": CasADi's Hessian of the imu block
     zero_centre: str = "start"  # or "free": the zero-position sphere's centre is estimated
     closures: tuple[tuple[int, int], ...] = ()  # form none: loop-closure pairs (LoopClosures)
+    window: bool = False  # a sliding window: anchored first state, map under a carried prior
 
     def hilbert_basis(self) -> HilbertBasis:
         return cached_basis(self.basis)
@@ -193,7 +194,13 @@ class ImuMotion(MotionModel):
     dP, dV, D about a nominal trajectory, biases BW, BA (per keyframe or constant), the
     blocks ``imu`` (a residual: Gauss-Newton, or CasADi's exact Hessian with
     ``imu_hessian: exact``), ``bias_walk``, ``bias_prior``, ``initial_state`` and
-    ``zero_position``; the field is read in the body frame R = Rnom R(1, D / 2)."""
+    ``zero_position``; the field is read in the body frame R = Rnom R(1, D / 2).
+
+    ``anchored`` (a window of the sliding windows, casmag.solver.imu.ImuStaged): the first
+    state's prior is 0.5 r^T I r on its position, velocity and (world-frame) rotation errors
+    r with the precision ``anchor_info`` (9 x 9: the inverse of the previous window's
+    Laplace covariance there, correlations kept), and the zero-position sphere's centre is
+    the parameter ``centre``."""
 
     K: int
     n: int
@@ -202,6 +209,7 @@ class ImuMotion(MotionModel):
     zero_position: bool = False
     zero_centre: str = "start"
     imu_hessian: str = "gauss-newton"
+    anchored: bool = False
     name = "imu"
 
     def declare(self, b: NLPBuilder) -> Pose:
@@ -224,10 +232,11 @@ class ImuMotion(MotionModel):
         }  # fmt: skip
         LINV = b.parameter("LINV", (K - 1, 81))
         p0, v0 = b.parameter("p0", (1, 3)), b.parameter("v0", (1, 3))
-        sig = {
-            k: b.parameter(k, (1, 1))
-            for k in ("sigma_p0", "sigma_v0", "sigma_tilt", "sigma_yaw", "sigma_bw0", "sigma_ba0")
-        }
+        if self.anchored:  # the first state's precision: anchor_info
+            sig = {k: b.parameter(k, (1, 1)) for k in ("sigma_bw0", "sigma_ba0")}
+        else:
+            names = ("sigma_p0", "sigma_v0", "sigma_tilt", "sigma_yaw", "sigma_bw0", "sigma_ba0")
+            sig = {k: b.parameter(k, (1, 1)) for k in names}
         if self.bias == "random_walk":
             BWi, BAi = BW[:-1, :], BA[:-1, :]
         else:
@@ -263,16 +272,23 @@ class ImuMotion(MotionModel):
         eps = sd.ca_rotation_residual(
             sd.ca_quat_mul(sd.ca_quat_mul(QNOM0.T, sd.ca_gibbs(D[0, :].T)), sd.ca_quat_conj(Q0.T))
         )
-        b.cost(
-            "initial_state",
-            0.5 * ca.sumsqr((dP[0, :] + (PNOM[0, :] - p0)) / sig["sigma_p0"])
-            + 0.5 * ca.sumsqr((dV[0, :] + (VNOM[0, :] - v0)) / sig["sigma_v0"])
-            + 0.5 * ca.sumsqr(eps[0:2] / sig["sigma_tilt"])
-            + 0.5 * (eps[2] / sig["sigma_yaw"]) ** 2,
-        )
+        if self.anchored:  # r = (position, velocity, rotation) error, 0.5 r^T Info r
+            info = b.parameter("anchor_info", (9, 9))
+            r = ca.vertcat((dP[0, :] + (PNOM[0, :] - p0)).T, (dV[0, :] + (VNOM[0, :] - v0)).T, eps)
+            b.cost("initial_state", 0.5 * ca.dot(r, ca.mtimes(info, r)))
+        else:
+            b.cost(
+                "initial_state",
+                0.5 * ca.sumsqr((dP[0, :] + (PNOM[0, :] - p0)) / sig["sigma_p0"])
+                + 0.5 * ca.sumsqr((dV[0, :] + (VNOM[0, :] - v0)) / sig["sigma_v0"])
+                + 0.5 * ca.sumsqr(eps[0:2] / sig["sigma_tilt"])
+                + 0.5 * (eps[2] / sig["sigma_yaw"]) ** 2,
+            )
         if self.zero_position:
             sz = b.parameter("sigma_zero", (1, 1))
-            if self.zero_centre == "free":
+            if self.anchored:
+                centre = b.parameter("centre", (1, 3))
+            elif self.zero_centre == "free":
                 centre = b.variable("zero_centre", (1, 3))
             else:
                 centre = p0
@@ -289,13 +305,17 @@ def imu_field(s: ImuStructure) -> FieldModel:
         return LoopClosures(s.closures) if s.closures else NoField()
     if s.form == "exact":
         return ExactField(s.kernel, s.jitter, constant_field=True)
+    if s.window:  # the map under the prior carried from the earlier windows
+        return WindowField(s.kernel, s.basis, constant_field=True, metis=False)
     # MUMPS's own ordering: the IMU solves were measured with it (METIS not measured here).
     return ReducedRankField(s.kernel, s.basis, constant_field=True, metis=False)
 
 
 def cached_imu_nlp(s: ImuStructure) -> NLP:
     """The built NLP for a structure, built once per process."""
-    motion = ImuMotion(s.K, s.n, s.T, s.bias, s.zero_position, s.zero_centre, s.imu_hessian)
+    motion = ImuMotion(
+        s.K, s.n, s.T, s.bias, s.zero_position, s.zero_centre, s.imu_hessian, s.window
+    )
     return cached_slam(motion, imu_field(s), s.solver)
 
 
@@ -371,11 +391,16 @@ def averaged_magnetometer(
 
 def prefix_keyframes(kf: Keyframes, K: int) -> Keyframes:
     """The first K keyframes' data."""
+    return window_keyframes(kf, 0, K)
+
+
+def window_keyframes(kf: Keyframes, a: int, K: int) -> Keyframes:
+    """The data of the K keyframes from keyframe a."""
     return Keyframes(
-        idx=kf.idx[:K],
-        DQ=kf.DQ[: K - 1],
-        DV=kf.DV[: K - 1],
-        LINV=kf.LINV[: K - 1],
-        Y=kf.Y[:K],
+        idx=kf.idx[a : a + K],
+        DQ=kf.DQ[a : a + K - 1],
+        DV=kf.DV[a : a + K - 1],
+        LINV=kf.LINV[a : a + K - 1],
+        Y=kf.Y[a : a + K],
         samples=kf.samples,
     )

@@ -411,10 +411,16 @@ class ImuProblemSpec(Strict):
     @model_validator(mode="after")
     def _consistent(self) -> ImuProblemSpec:
         if self.solver.warm_start.strategy == "sliding":
-            raise ValueError(
-                "solver.warm_start.strategy: sliding windows are not implemented for the IMU "
-                "model (it takes auto, none, growing or coarse-to-fine)"
-            )
+            if self.model.gp.form != "reduced_rank":
+                raise ValueError(
+                    "solver.warm_start.strategy: sliding windows carry a reduced-rank map; "
+                    f"set model.gp.form to reduced_rank (got {self.model.gp.form})"
+                )
+            if self.model.starts > 1:
+                raise ValueError(
+                    "model.starts: the IMU model's sliding windows start from the IMU-only "
+                    "adjustment alone; set model.starts to 1 or choose another strategy"
+                )
         if self.model.starts > 1 and self.solver.warm_start.strategy == "auto":
             raise ValueError(
                 "model.starts: each start runs solver.warm_start's strategy, and auto (the "
@@ -717,37 +723,28 @@ def load_recording_spec(
     return spec
 
 
-#: Solver settings the IMU model does not use (the sliding windows' keys, the Laplace
-#: covariance); the IMU model reads :data:`IMU_SOLVER_KEYS` of them, the planar and pose
-#: models :data:`STAGED_SOLVER_KEYS`.
+#: Solver settings the IMU model does not use (the Laplace covariance) and those it does
+#: (the warm starts); the IMU model reads :data:`IMU_SOLVER_KEYS` of them, the planar and
+#: pose models :data:`STAGED_SOLVER_KEYS`.
 UNUSED_SOLVER_KEYS = ("solver.warm_start", "solver.uncertainty", "solver.uncertainty_inflation")
 
 
 #: The keys under :data:`UNUSED_SOLVER_KEYS` the IMU model reads: its warm starts (its
-#: schedule ladder, one batch, growing prefixes, coarse-to-fine; casmag.solver.imu).
+#: schedule ladder, one batch, growing prefixes, coarse-to-fine, sliding windows;
+#: casmag.solver.imu, casmag.solver.staged).
 IMU_SOLVER_KEYS = tuple(
     f"solver.warm_start.{k}"
     for k in (
         "strategy", "first_samples", "growth", "stage_max_iter", "lengthscale_start",
-        "lengthscale_stages",
+        "lengthscale_stages", "window", "overlap", "window_lengthscales", "window_bias_prior",
+        "unit", "sample_period", "window_max_iter",
     )
 )  # fmt: skip
 
 
 #: The keys under :data:`UNUSED_SOLVER_KEYS` the planar and pose models read: the IMU
-#: model's, the sliding windows' (casmag.solver.staged) and the Laplace covariance.
-STAGED_SOLVER_KEYS = (
-    *IMU_SOLVER_KEYS,
-    *(
-        f"solver.warm_start.{k}"
-        for k in (
-            "window", "overlap", "window_lengthscales", "window_bias_prior", "unit",
-            "sample_period", "window_max_iter",
-        )
-    ),
-    "solver.uncertainty",
-    "solver.uncertainty_inflation",
-)  # fmt: skip
+#: model's and the Laplace covariance.
+STAGED_SOLVER_KEYS = (*IMU_SOLVER_KEYS, "solver.uncertainty", "solver.uncertainty_inflation")
 
 
 def refuse_unused_solver_keys(

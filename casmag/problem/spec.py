@@ -279,8 +279,9 @@ class WarmStartSpec(Strict):
     defaults' ``growing`` for the planar and pose models, and for the IMU model (whose
     default it is) its schedule ladder (casmag.solver.imu: sigma_m annealed, then
     coarse-to-fine and growing-prefix schedules when a schedule fails or fits badly). The
-    IMU model counts samples in keyframes and takes ``none``, ``growing`` and
-    ``coarse-to-fine`` besides; sliding windows are not implemented for it.
+    IMU model counts samples in keyframes and takes ``none``, ``growing``,
+    ``coarse-to-fine`` and ``sliding`` besides (its windows hold the biases at the IMU-only
+    adjustment's; ``window_bias_prior`` does not apply to it).
 
     Defaults: first_samples 4000, growth 4.0, stage_max_iter 25, window auto, overlap auto,
     window_lengthscales 1.375, window_bias_prior laplace, unit samples, sample_period null,

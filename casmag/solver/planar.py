@@ -344,8 +344,9 @@ class PlanarStaged(StagedModel):
         self, a: int, k: int, start: dict[str, np.ndarray],
         anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
         bias: dict[str, np.ndarray], bias_sigma: dict[str, np.ndarray] | None,
-        prior: WindowPrior, solver: SolverSpec,
+        prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
     ) -> Solved:  # fmt: skip
+        # The anchor prior takes the standard deviations (anchor_sigma), not anchor_cov.
         s_k = self._window_structure(k, solver)
         nlp_k = cached_planar_nlp(s_k)
         p0, psi0 = (self.p0, self.psi0) if anchor is None else _anchor_state(anchor)

@@ -395,8 +395,9 @@ class PoseStaged(StagedModel):
         self, a: int, k: int, start: dict[str, np.ndarray],
         anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
         bias: dict[str, np.ndarray], bias_sigma: dict[str, np.ndarray] | None,
-        prior: WindowPrior, solver: SolverSpec,
+        prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
     ) -> Solved:  # fmt: skip
+        # The anchor prior takes the standard deviations (anchor_sigma), not anchor_cov.
         s_k = self._window_structure(k, solver)
         nlp_k = cached_pose_nlp(s_k)
         p0, q0 = self._anchor(anchor)

@@ -133,13 +133,15 @@ class StagedModel(ABC):
         self, a: int, k: int, start: dict[str, np.ndarray],
         anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
         bias: dict[str, np.ndarray], bias_sigma: dict[str, np.ndarray] | None,
-        prior: WindowPrior, solver: SolverSpec,
+        prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
     ) -> Solved:  # fmt: skip
         """The window [a, a + k) with the total ``bias`` removed from its odometry, its own
         bias unknowns the increments on it (prior: zero mean, ``bias_sigma``, None for the
         model's own), its first state under a prior at ``anchor`` with standard deviations
         ``anchor_sigma`` (None: the model's known start and its own priors), the map under
-        ``prior``; its states are those of :meth:`states` with the increments as biases."""
+        ``prior``; its states are those of :meth:`states` with the increments as biases.
+        ``anchor_cov``: the anchor's whole Laplace covariance (its states in the order of
+        :meth:`anchor_indices`), for a model whose prior takes the correlations."""
         raise NotImplementedError(f"{type(self).__name__} has no sliding windows")
 
     def anchor_indices(self, solved: Solved, j: int) -> dict[str, np.ndarray]:
@@ -298,6 +300,7 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
     sigma: dict[str, np.ndarray] | None = None
     anchor: dict[str, np.ndarray] | None = None
     anchor_sigma: dict[str, np.ndarray] | None = None
+    anchor_cov: np.ndarray | None = None
     carried: dict[str, np.ndarray] | None = None
     parts: list[dict[str, np.ndarray]] = []
     stages: list[Stage] = []
@@ -305,7 +308,7 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
         nxt = firsts[i + 1] if i + 1 < len(firsts) else n
         start = model.window_start(a, k, anchor, carried, total)
         solved = model.solve_window(
-            a, k, start, anchor, anchor_sigma, total, sigma, prior, window_solver
+            a, k, start, anchor, anchor_sigma, total, sigma, prior, window_solver, anchor_cov
         )
         stages.append(Stage("window", k, ell, solved, first=a))
         if solved.sol.status not in ACCEPTED or not model.window_inside(solved):
@@ -316,16 +319,20 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
         # The Laplace marginals of the bias increments and of the next window's anchor state
         # (its first sample): the next window's priors on them.
         layout = solved.nlp.x_layout.entries
-        names = tuple(key for key in total if key not in solved.sol.fixed)  # estimated
+        # The estimated ones (a state the window holds as a parameter is not in its layout).
+        names = tuple(key for key in total if key in layout and key not in solved.sol.fixed)
         blocks = {key: layout[key].offset + np.arange(layout[key].size) for key in names}
         if nxt < n:
             blocks |= {f"anchor_{k_}": v for k_, v in model.anchor_indices(solved, m).items()}
         sizes = [v.size for v in blocks.values()]
-        cov = laplace_block(solved.nlp, solved.sol, solved.sol.params,
-                            np.concatenate(list(blocks.values())), solved.sol.fixed)  # fmt: skip
+        cov = (  # none: the last window of a model whose biases are per-sample states
+            laplace_block(solved.nlp, solved.sol, solved.sol.params,
+                          np.concatenate(list(blocks.values())), solved.sol.fixed)
+            if blocks else np.zeros((0, 0))
+        )  # fmt: skip
         var = np.diag(cov)
         marginal = dict(zip(blocks, np.split(np.sqrt(np.abs(var)), np.cumsum(sizes)[:-1]),
-                            strict=True))  # fmt: skip
+                            strict=True)) if blocks else {}  # fmt: skip
         informative = bool(np.all(np.isfinite(var)) and np.all(var > 0))
         if ws.window_bias_prior == "laplace":  # a singular Hessian hands on no information
             sigma = {key: marginal[key] for key in names} if informative else None
@@ -333,6 +340,10 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
             {key[7:]: v for key, v in marginal.items() if key.startswith("anchor_")}
             if informative else None
         )  # fmt: skip
+        at = np.zeros(0, dtype=bool)  # where the anchor's entries sit in cov
+        for key, size in zip(blocks, sizes, strict=True):
+            at = np.concatenate([at, np.full(size, key.startswith("anchor_"))])
+        anchor_cov = cov[np.ix_(at, at)] if informative and at.any() else None
         total = {
             key: v + np.reshape(states[key], np.shape(v)) if key in names else v
             for key, v in total.items()

@@ -392,10 +392,9 @@ def test_slam_refuses_set_keys_a_recording_ignores(previous, tmp_path, override,
 @pytest.mark.parametrize(
     "override",
     [
-        "solver.warm_start.overlap=3",
+        "solver.uncertainty_inflation=2.0",
         "solver.uncertainty=false",
         "solver.warm_start={}",
-        "solver.warm_start.window=10",
     ],
 )
 def test_imu_and_planar_refuse_solver_keys_they_ignore(tmp_path, override):

@@ -35,7 +35,16 @@ def test_auto_is_each_models_own_default():
 @pytest.mark.parametrize(
     ("overrides", "key", "reason"),
     [
-        (["solver.warm_start.strategy=sliding"], "solver.warm_start.strategy", "not implemented"),
+        (
+            ["solver.warm_start.strategy=sliding", "model.gp.form=exact"],
+            "solver.warm_start.strategy",
+            "reduced-rank map",
+        ),
+        (
+            ["solver.warm_start.strategy=sliding", "model.starts=3"],
+            "model.starts",
+            "IMU-only adjustment alone",
+        ),
         (["model.starts=3"], "model.starts", "auto (the schedule ladder) runs once"),
         (["model.starts=2", "solver.warm_start.strategy=none"], "model.starts", "must be odd"),
     ],
@@ -47,14 +56,15 @@ def test_what_the_imu_model_cannot_run_is_refused_in_one_line(overrides, key, re
     assert key in msg and reason in msg and "\n" not in msg
 
 
-def test_the_imu_command_takes_its_warm_start_keys_and_refuses_the_windows():
+def test_the_imu_command_takes_its_warm_start_keys_and_refuses_the_covariance():
     refuse_unused_solver_keys(
         ["solver.warm_start.strategy=growing", "solver.warm_start.first_samples=20"],
         "casmag imu",
         IMU_SOLVER_KEYS,
     )
-    with pytest.raises(ProblemError, match=r"solver\.warm_start\.window"):
-        refuse_unused_solver_keys(["solver.warm_start.window=30"], "casmag imu", IMU_SOLVER_KEYS)
+    refuse_unused_solver_keys(["solver.warm_start.window=30"], "casmag imu", IMU_SOLVER_KEYS)
+    with pytest.raises(ProblemError, match=r"solver\.uncertainty"):
+        refuse_unused_solver_keys(["solver.uncertainty=false"], "casmag imu", IMU_SOLVER_KEYS)
 
 
 def _noise_free_rectangle(strategy: str) -> dict:
@@ -71,7 +81,7 @@ def _noise_free_rectangle(strategy: str) -> dict:
     return data
 
 
-@pytest.mark.parametrize("strategy", ["none", "growing", "coarse-to-fine"])
+@pytest.mark.parametrize("strategy", ["none", "growing", "coarse-to-fine", "sliding"])
 def test_each_strategy_returns_the_truth_on_a_noise_free_rectangle(strategy):
     """Each strategy from the IMU-only adjustment ends at the truth (the noise-free
     optimum), the strategy's solves recorded in its one pass, the last the full problem at
@@ -105,6 +115,12 @@ def test_each_strategy_returns_the_truth_on_a_noise_free_rectangle(strategy):
     elif strategy == "growing":
         assert kinds == ["prefix"] * len(solves)
         assert [s["keyframes"] for s in solves[:2]] == [10, 20]
+    elif strategy == "sliding":  # windows of auto length
+        windows = solves[:-1]
+        assert kinds == ["window"] * len(windows) + ["batch"] and len(windows) >= 3
+        firsts = [s["first"] for s in windows]
+        assert firsts[0] == 0 and firsts[-1] + windows[-1]["keyframes"] == K
+        assert all(s["success"] for s in windows)
     else:
         ells = [s["lengthscale"] for s in solves]
         assert kinds == ["lengthscale", "lengthscale", "batch"]

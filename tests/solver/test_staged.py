@@ -180,13 +180,11 @@ PAIRS = [
 
 def test_every_pair_is_solved_somewhere() -> None:
     """Every motion model with every strategy: solved here or elsewhere (the IMU model's in
-    tests/solver/test_imu_strategies.py), or refused at load (the IMU model's sliding
-    windows, tested there too)."""
+    tests/solver/test_imu_strategies.py)."""
     solved_elsewhere = {("planar", "none"), ("planar", "growing"), ("pose", "none")}
-    solved_elsewhere |= {("imu", "none"), ("imu", "growing"), ("imu", "coarse-to-fine")}
-    refused = {("imu", "sliding")}
+    solved_elsewhere |= {("imu", s) for s in ("none", "growing", "coarse-to-fine", "sliding")}
     every = {(m, s) for m in ("planar", "pose", "imu") for s in STAGED_STRATEGIES}
-    assert every == solved_elsewhere | set(PAIRS) | refused
+    assert every == solved_elsewhere | set(PAIRS)
 
 
 def test_pose_starts_are_turned_dead_reckonings_and_the_lowest_cost_is_kept() -> None:
