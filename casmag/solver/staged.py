@@ -1,7 +1,8 @@
 """Warm-start strategies written once for the motion models solved from a start state.
 
 A motion model whose solve starts from its own states (positions, heading or orientation,
-biases: the planar and pose models) is seen by the strategies as a :class:`StagedModel`:
+biases: the planar, pose and IMU models) is seen by the strategies as a
+:class:`StagedModel`:
 
 - :meth:`StagedModel.start`: the dead reckoning of the first k samples, with a heading-rate
   bias removed (a start of its own, :func:`solve_starts`);
