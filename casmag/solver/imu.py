@@ -1191,12 +1191,6 @@ class ImuStaged(StagedModel):
         a = solved.first
         return J, self.kf.Y[a : a + m].reshape(-1)
 
-    def window_inside(self, solved: Solved) -> bool:
-        domain = solved.structure.hilbert_basis().domain
-        center, half = np.asarray(domain.center), np.asarray(domain.half_width)
-        P = solved.nominal.P
-        return bool(np.all(np.isfinite(P)) and np.all(np.abs(P - center) <= half))
-
     def joined(self, states: dict[str, np.ndarray], bias: dict[str, np.ndarray]) -> dict:
         return {**states, **self._biases(0, self.n), "zero_centre": bias["zero_centre"]}
 

@@ -158,7 +158,7 @@ class StagedModel(ABC):
         """The window's positions (those the map reads) stayed inside its map's box."""
         domain = solved.structure.hilbert_basis().domain
         center, half = np.asarray(domain.center), np.asarray(domain.half_width)
-        P = np.asarray(solved.sol.x["P"])
+        P = np.asarray(self.states(solved)["P"])
         d = min(P.shape[1], center.size, getattr(solved.structure, "map_dim", P.shape[1]))
         P, lo, hi = P[:, :d], center[:d] - half[:d], center[:d] + half[:d]
         return bool(np.all(np.isfinite(P)) and np.all(P >= lo) and np.all(P <= hi))
@@ -341,9 +341,7 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
             {key[7:]: v for key, v in marginal.items() if key.startswith("anchor_")}
             if informative else None
         )  # fmt: skip
-        at = np.zeros(0, dtype=bool)  # where the anchor's entries sit in cov
-        for key, size in zip(blocks, sizes, strict=True):
-            at = np.concatenate([at, np.full(size, key.startswith("anchor_"))])
+        at = np.repeat([key.startswith("anchor_") for key in blocks], sizes).astype(bool)
         anchor_cov = cov[np.ix_(at, at)] if informative and at.any() else None
         total = {
             key: v + np.reshape(states[key], np.shape(v)) if key in names else v
