@@ -259,10 +259,14 @@ def _noise_free_rectangle(gp: dict):
     r = solve_imu(load_imu_problem(data))
     assert r.success, r.status
     # Noise-free: few iterations per solve (measured 9 for the IMU-only adjustment from
-    # strapdown over three re-centred solves; reduced rank 13 + 13 for the two GP-SLAM
-    # passes with the hybrid Hessian, the exact GP 34 + 6).
+    # strapdown over three re-centred solves; reduced rank 12 + 13 for the two GP-SLAM
+    # passes with the hybrid Hessian). The exact GP: 32 + 6 with two BLAS threads, 39 + 16
+    # with one. Its dense kernel with sigma_m 1e-3 against sigma_f 0.3 resolves the cost to
+    # about 1e-10 of itself, so near the optimum the line search cuts steps of 1e-6 m forty
+    # times over until IPOPT's watchdog (after 10 shortened steps) takes one whole; how
+    # soon that floor is met depends on the order of the sums.
     assert r.stage("imu_only")["iterations"] <= 15
-    caps = [40, 10] if gp.get("form") == "exact" else [20, 20]
+    caps = [50, 20] if gp.get("form") == "exact" else [20, 20]
     its = [p["iterations"] for p in r.stages_named("gp_slam")]
     assert len(its) == 2 and all(i <= c for i, c in zip(its, caps, strict=True)), its
     return r
