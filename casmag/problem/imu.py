@@ -388,10 +388,18 @@ class ImuProblemModelSpec(StartsSpec):
     # adjustment (casmag.solver.imu.ImuStaged), with a strategy other than auto.
 
 
+class ImuMotionSpec(Strict):
+    """``motion`` of an IMU problem: the kind alone (the IMU's errors are
+    ``simulation.imu``'s, the model's ``model.imu``'s)."""
+
+    kind: Literal["imu"] = "imu"
+
+
 class ImuProblemSpec(Strict):
     seed: Annotated[int, Field(ge=0, le=2**32 - 1)]  # numpy's generators: 0 .. 2^32 - 1
     name: str | None = None
     description: str | None = None
+    motion: ImuMotionSpec = ImuMotionSpec()
     simulation: ImuSimulationSpec
     model: ImuProblemModelSpec = ImuProblemModelSpec()
     solver: SolverSpec = SolverSpec(warm_start=WarmStartSpec(strategy="auto"))
@@ -559,39 +567,104 @@ def no_truth_on_a_recording(value: Any) -> Any:
     return value
 
 
-class PlanarModelSpec(StartsSpec):
-    """The planar odometry-with-heading model for ``casmag slam`` on a recording with
-    ``dfwd,dleft,dyaw`` columns: the fields of :class:`PlanarOptions` (units
-    there: metres, radians, seconds; field units of the recording)."""
+class RecordingGPSpec(Strict):
+    """The field map of a planar recording (``model.gp``, the section translational and IMU
+    problems spell it in): ``form`` ``reduced_rank`` (one box around the dead reckoning) or
+    ``tiled`` (casmag.gp.tiles; kernel ``curl_free`` only); ``kernel``; ``sigma_f``,
+    ``lengthscale``: a value or ``estimate`` (the windowed marginal likelihood on the
+    dead-reckoned path); ``sigma_lin``: the constant field's prior (None: from the data);
+    ``num_basis``, ``margin``: the reduced-rank basis (None: casmag.model.rrmap's)."""
 
-    sigma_disp: PositiveFloat = 0.01
-    sigma_dyaw: PositiveFloat = 0.002
-    bias: Literal["constant", "random_walk"] = "constant"
-    bias_walk: PositiveFloat = 1.0e-4
-    bias_prior: PositiveFloat = 0.05
-    sigma_m: PositiveFloat | Literal["estimate"] = "estimate"
+    form: Literal["reduced_rank", "tiled"] = "reduced_rank"
     kernel: Literal["se", "curl_free"] = "se"
     sigma_f: PositiveFloat | Literal["estimate"] = "estimate"
     lengthscale: PositiveFloat | Literal["estimate"] = "estimate"
     sigma_lin: PositiveFloat | None = None
     num_basis: Annotated[int, Field(ge=1, le=5000)] | None = None
     margin: PositiveFloat | None = None
-    sigma_anchor: PositiveFloat = 1.0e-3
-    sigma_psi0: PositiveFloat = 1.0e-3
-    curvature: bool = True
-    form: Literal["reduced_rank", "tiled"] = "reduced_rank"
 
-    _no_truth = field_validator("sigma_m", "sigma_f", "lengthscale", mode="before")(
-        no_truth_on_a_recording
-    )
+    _no_truth = field_validator("sigma_f", "lengthscale", mode="before")(no_truth_on_a_recording)
 
     @model_validator(mode="after")
-    def _tiled_is_curl_free(self) -> PlanarModelSpec:
+    def _tiled_is_curl_free(self) -> RecordingGPSpec:
         if self.form == "tiled" and self.kernel != "curl_free":
             raise ValueError(
                 "form tiled needs kernel: curl_free (the tiles blend a scalar potential)"
             )
         return self
+
+
+class RecordingMagnetometerSpec(Strict):
+    """``model.magnetometer.sigma_m`` of a recording model: the magnetometer noise the model
+    assumes [field units], a value or ``estimate``."""
+
+    sigma_m: PositiveFloat | Literal["estimate"] = "estimate"
+
+    _no_truth = field_validator("sigma_m", mode="before")(no_truth_on_a_recording)
+
+
+#: The keys of a planar or pose model that live in its ``gp`` and ``magnetometer``
+#: sections, as every model spells them. Earlier problem files gave them at the top of
+#: ``model`` (``model.sigma_f``); that spelling still loads (:func:`nest_field_keys`).
+FIELD_SECTIONS = {
+    "sigma_m": "magnetometer",
+    **{
+        k: "gp"
+        for k in ("form", "kernel", "sigma_f", "lengthscale", "sigma_lin", "num_basis", "margin")
+    },
+}
+
+
+def nest_field_keys(model: Any) -> Any:
+    """A planar or pose ``model`` section with the earlier top-level spelling of its field
+    keys (``sigma_m``, ``sigma_f``, ...) moved into ``gp`` and ``magnetometer``
+    (:data:`FIELD_SECTIONS`); a key given both ways is refused. Anything but a mapping is
+    left for validation to name."""
+    if not isinstance(model, Mapping) or not any(k in model for k in FIELD_SECTIONS):
+        return model
+    out = {k: v for k, v in model.items() if k not in FIELD_SECTIONS}
+    for key, section in FIELD_SECTIONS.items():
+        if key not in model:
+            continue
+        inner = out.get(section, {})
+        if not isinstance(inner, Mapping):
+            return model
+        if key in inner:
+            raise ValueError(
+                f"{section}.{key} is given twice, also as {key} (the earlier spelling); "
+                f"keep {section}.{key}"
+            )
+        out[section] = {**inner, key: model[key]}
+    return out
+
+
+def flat_options(model: Strict) -> dict[str, Any]:
+    """A planar or pose model section as the keyword arguments of its options dataclass
+    (the ``gp`` and ``magnetometer`` keys beside the others)."""
+    data = model.model_dump()
+    for section in ("gp", "magnetometer"):
+        data.update(data.pop(section))
+    return data
+
+
+class PlanarModelSpec(StartsSpec):
+    """The planar odometry-with-heading model for ``casmag slam`` on a recording with
+    ``dfwd,dleft,dyaw`` columns: the fields of :class:`PlanarOptions` (units
+    there: metres, radians, seconds; field units of the recording), the map's in ``gp``
+    (:class:`RecordingGPSpec`) and the magnetometer's noise in ``magnetometer``."""
+
+    sigma_disp: PositiveFloat = 0.01
+    sigma_dyaw: PositiveFloat = 0.002
+    bias: Literal["constant", "random_walk"] = "constant"
+    bias_walk: PositiveFloat = 1.0e-4
+    bias_prior: PositiveFloat = 0.05
+    gp: RecordingGPSpec = RecordingGPSpec()
+    magnetometer: RecordingMagnetometerSpec = RecordingMagnetometerSpec()
+    sigma_anchor: PositiveFloat = 1.0e-3
+    sigma_psi0: PositiveFloat = 1.0e-3
+    curvature: bool = True
+
+    _nest = model_validator(mode="before")(nest_field_keys)
 
 
 #: Solver settings of planar recordings that differ from SolverSpec's defaults (keys a
@@ -679,7 +752,7 @@ def load_planar_options(
     ``key.path=value`` overrides such as ``model.sigma_disp=0.002``. Raises ProblemError
     naming the file (or ``--set``), the key and the reason."""
     spec = load_recording_spec(PlanarSpec, problem, overrides, source)
-    return PlanarOptions(**spec.model.model_dump(), solver=spec.solver)
+    return PlanarOptions(**flat_options(spec.model), solver=spec.solver)
 
 
 def load_recording_spec(
@@ -714,11 +787,11 @@ def load_recording_spec(
         spec.solver = spec.solver.model_copy(
             update={"warm_start": default.model_copy(update=given)}
         )
-    if spec.solver.warm_start.strategy == "sliding" and getattr(spec.model, "form", "") == "tiled":
+    if spec.solver.warm_start.strategy == "sliding" and spec.model.gp.form == "tiled":
         raise ProblemError(
             source,
             "solver.warm_start.strategy",
-            "sliding windows need model.form: reduced_rank (a window's map is one box)",
+            "sliding windows need model.gp.form: reduced_rank (a window's map is one box)",
         )
     return spec
 

@@ -31,10 +31,12 @@ from casmag.problem.imu import (
     PlanarOptions,
     PlanarSpec,
     load_planar_options,
+    nest_field_keys,
     refuse_unused_solver_keys,
 )
 from casmag.problem.pose import PoseOptions, PoseSpec, load_pose_options
 from casmag.problem.spec import (
+    MOTION_KINDS,
     NonNegativeFloat,
     PositiveFloat,
     SimulationSpec,
@@ -49,12 +51,12 @@ from casmag.problem.spec import (
 #: The kernels of the planar and pose models (PlanarModelSpec, PoseModelSpec).
 MODEL_KERNELS = ("se", "curl_free")
 
-#: The model's hyperparameters that ``null`` sets to the simulation's value, and where
-#: that value is.
+#: The model's hyperparameters that ``null`` sets to the simulation's value (as
+#: ``model.SECTION.KEY``), and where that value is (``simulation.SECTION.KEY``).
 TRUTH_OF = {
-    "sigma_m": ("magnetometer", "noise"),
-    "sigma_f": ("field", "sigma_f"),
-    "lengthscale": ("field", "lengthscale"),
+    ("magnetometer", "sigma_m"): ("magnetometer", "noise"),
+    ("gp", "sigma_f"): ("field", "sigma_f"),
+    ("gp", "lengthscale"): ("field", "lengthscale"),
 }
 
 
@@ -145,30 +147,41 @@ def _with_truths(data: dict[str, Any], kind: str, source: str) -> dict[str, Any]
     """``null`` model hyperparameters replaced by the simulation's values (module
     docstring); the model's kernel is then the simulation's (a different one is refused:
     sigma_f means a different thing for it)."""
-    model = data.get("model")
+    try:
+        model = nest_field_keys(data.get("model"))
+    except ValueError as exc:
+        raise ProblemError(source, "model", str(exc)) from None
     if not isinstance(model, dict):
         return data
-    nulls = [k for k in TRUTH_OF if k in model and model[k] is None]
+    sections = {s: model.get(s) for s in ("gp", "magnetometer")}
+    nulls = [
+        (s, k)
+        for s, k in TRUTH_OF
+        if isinstance(sections[s], dict) and k in sections[s] and sections[s][k] is None
+    ]
     if not nulls:
         return data
+    where = f"model.{nulls[0][0]}.{nulls[0][1]}"
     simulation = {"seed": 0, "simulation": data.get("simulation", {})}
     sim = validate_spec(_Oriented, simulation, (), source)[0]
     kernel = sim.simulation.field.kernel
     if kernel not in MODEL_KERNELS:
         raise ProblemError(
-            source, f"model.{nulls[0]}", f"null is the simulation's value, for its kernel "
-            f"{kernel}, which the {kind} model does not take ({', '.join(MODEL_KERNELS)})"
+            source, where, f"null is the simulation's value, for its kernel {kernel}, which "
+            f"the {kind} model does not take ({', '.join(MODEL_KERNELS)})"
         )  # fmt: skip
-    given = model.get("kernel", kernel)
+    gp = dict(sections["gp"] or {})
+    given = gp.get("kernel", kernel)
     if given != kernel:
         raise ProblemError(
-            source, f"model.{nulls[0]}", f"null is the simulation's value, for its kernel "
-            f"{kernel}, not model.kernel {given}: give a number or estimate"
+            source, where, f"null is the simulation's value, for its kernel {kernel}, not "
+            f"model.gp.kernel {given}: give a number or estimate"
         )  # fmt: skip
-    model = {**model, "kernel": kernel}
-    for k in nulls:
-        section, key = TRUTH_OF[k]
-        model[k] = getattr(getattr(sim.simulation, section), key)
+    model = {**model, "gp": {**gp, "kernel": kernel}}
+    for (section, key), (sim_section, sim_key) in TRUTH_OF.items():
+        if (section, key) in nulls:
+            value = getattr(getattr(sim.simulation, sim_section), sim_key)
+            model[section] = {**model.get(section, {}), key: value}
     return {**data, "model": model}
 
 
@@ -194,7 +207,10 @@ def load_oriented_problem(
     if kind not in _SPECS:
         where = "motion.kind" if isinstance(motion, Mapping) else "motion"
         raise ProblemError(
-            src, where, f"the odometry the simulated walker carries: planar or pose (got {kind!r})"
+            src,
+            where,
+            f"the motion model: {', '.join(MOTION_KINDS[:-1])} or {MOTION_KINDS[-1]} "
+            f"(got {kind!r})",
         )
     refuse_unused_solver_keys(overrides, f"a {kind} problem", STAGED_SOLVER_KEYS)
     data = _with_truths(data, kind, src)

@@ -8,21 +8,32 @@ import dataclasses
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import model_validator
 
 from casmag.problem.imu import (
     PLANAR_SOLVER_DEFAULTS,
+    RecordingGPSpec,
+    RecordingMagnetometerSpec,
     StartsSpec,
+    flat_options,
     load_recording_spec,
-    no_truth_on_a_recording,
+    nest_field_keys,
 )
 from casmag.problem.spec import PositiveFloat, SolverSpec, Strict
 
 #: Solver settings of pose recordings that differ from SolverSpec's defaults: those of the
 #: planar recordings (growing prefixes of 150, 300, ... samples on long recordings).
 POSE_SOLVER_DEFAULTS: dict[str, Any] = PLANAR_SOLVER_DEFAULTS
+
+
+class PoseGPSpec(RecordingGPSpec):
+    """The pose model's map (``model.gp``): :class:`~casmag.problem.imu.RecordingGPSpec`
+    with the curl-free kernel by default and the reduced-rank box only."""
+
+    form: Literal["reduced_rank"] = "reduced_rank"
+    kernel: Literal["se", "curl_free"] = "curl_free"
 
 
 class PoseModelSpec(StartsSpec):
@@ -35,22 +46,15 @@ class PoseModelSpec(StartsSpec):
     estimate_bias_w: bool = True
     bias_p_prior: PositiveFloat = 0.01
     bias_w_prior: PositiveFloat = 0.05
-    sigma_m: PositiveFloat | Literal["estimate"] = "estimate"
-    kernel: Literal["se", "curl_free"] = "curl_free"
-    sigma_f: PositiveFloat | Literal["estimate"] = "estimate"
-    lengthscale: PositiveFloat | Literal["estimate"] = "estimate"
-    sigma_lin: PositiveFloat | None = None
-    num_basis: Annotated[int, Field(ge=1, le=5000)] | None = None
-    margin: PositiveFloat | None = None
+    gp: PoseGPSpec = PoseGPSpec()
+    magnetometer: RecordingMagnetometerSpec = RecordingMagnetometerSpec()
     map_dim: Literal["auto", 2, 3] = "auto"
     height_sigma: PositiveFloat | None = 0.2
     sigma_anchor: PositiveFloat = 1.0e-3
     sigma_att0: PositiveFloat = 1.0e-3
     curvature: Literal["hybrid", "exact", "gauss-newton"] = "hybrid"
 
-    _no_truth = field_validator("sigma_m", "sigma_f", "lengthscale", mode="before")(
-        no_truth_on_a_recording
-    )
+    _nest = model_validator(mode="before")(nest_field_keys)
 
 
 class PoseSpec(Strict):
@@ -129,4 +133,6 @@ def load_pose_options(
     sections) and ``key.path=value`` overrides. Raises ProblemError naming the file (or
     ``--set``), the key and the reason."""
     spec = load_recording_spec(PoseSpec, problem, overrides, source)
-    return PoseOptions(**spec.model.model_dump(), solver=spec.solver)
+    options = flat_options(spec.model)
+    del options["form"]  # the reduced-rank box, the one map the pose model takes
+    return PoseOptions(**options, solver=spec.solver)

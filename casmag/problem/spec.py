@@ -431,10 +431,22 @@ class SolverSpec(Strict):
         return value
 
 
+#: The motion models a problem file names in ``motion.kind`` (:func:`document_kind`).
+MOTION_KINDS = ("translational", "planar", "pose", "imu")
+
+
+class TranslationalMotionSpec(Strict):
+    """``motion`` of a translational problem: the kind alone (a file without a ``motion``
+    section is translational unless its simulation is an IMU's)."""
+
+    kind: Literal["translational"] = "translational"
+
+
 class ProblemSpec(Strict):
     seed: Annotated[int, Field(ge=0, le=2**32 - 1)]  # numpy's generators take 0 .. 2^32 - 1
     name: str | None = None
     description: str | None = None
+    motion: TranslationalMotionSpec = TranslationalMotionSpec()
     simulation: SimulationSpec = SimulationSpec()
     model: ModelSpec = ModelSpec()
     solver: SolverSpec = SolverSpec()
@@ -794,10 +806,11 @@ def _models_in(annotation: Any) -> list[type[BaseModel]]:
 
 def key_suggestion(schema: type[BaseModel], key: str, value: Any = None) -> tuple[str, str] | None:
     """(the key as the user wrote it, the known key it most likely means) for an unknown
-    dotted ``key``: a close name in the same section (difflib ratio 0.75 or more); for an
+    dotted ``key``: a close name in the same section (difflib ratio 0.75 or more), else in
+    one of its sections (``model.gp.lengthscale`` for ``model.lenghtscale``); for an
     unknown section holding one key (``value``), that key looked up as below; else the key
     elsewhere whose last part is the same name, in the same top-level section when there
-    are several (``model.lengthscale`` for ``model.gp.lengthscale`` in a schema without
+    are several (``model.gp.lengthscale`` for ``model.lengthscale`` in a schema with
     ``model.gp``). None when there is no such key."""
     known = schema_keys(schema)
     parent, _, name = key.rpartition(".")
@@ -805,6 +818,14 @@ def key_suggestion(schema: type[BaseModel], key: str, value: Any = None) -> tupl
     close = difflib.get_close_matches(name, siblings, n=1, cutoff=0.75)
     if close and close[0] != name:
         return key, f"{parent}.{close[0]}" if parent else close[0]
+    below = {
+        k.rpartition(".")[2]: k
+        for k in known
+        if k.count(".") == key.count(".") + 1 and k.startswith(f"{parent}.")
+    }
+    close = difflib.get_close_matches(name, list(below), n=1, cutoff=0.75)
+    if close and close[0] != name:
+        return key, below[close[0]]
     if isinstance(value, Mapping) and len(value) == 1:
         inner = f"{key}.{next(iter(value))}"
         found = key_suggestion(schema, inner)
@@ -907,14 +928,20 @@ DOCUMENT_KINDS = ("translational", "imu", "oriented", "recording", "table")
 def document_kind(data: Mapping[str, Any]) -> str:
     """Which casmag document a problem file's top-level mapping is, from its keys:
     ``table`` (``rows``: rows of overrides of a problem file, ``casmag sweep``),
-    ``recording`` (``recording`` or ``sessions``: real data, casmag.experiments.realbench),
-    ``oriented`` (``motion``: a simulated planar or pose recording, casmag.problem.oriented),
-    ``imu`` (``simulation.scenario`` or ``simulation.imu``: casmag.problem.imu), else
-    ``translational`` (casmag.problem.spec). The file's own schema then names any bad key."""
+    ``recording`` (``recording`` or ``sessions``: real data, casmag.experiments.realbench);
+    else the motion model ``motion.kind`` names (:data:`MOTION_KINDS`): ``translational``
+    (casmag.problem.spec), ``imu`` (casmag.problem.imu), ``oriented`` for planar and pose
+    (casmag.problem.oriented, which also names a kind it does not know). A file without
+    ``motion`` is ``imu`` when it has ``simulation.scenario`` or ``simulation.imu`` and
+    ``translational`` otherwise. The file's own schema then names any bad key."""
     if "rows" in data:
         return "table"
     if "recording" in data or "sessions" in data:
         return "recording"
+    motion = data.get("motion")
+    kind = motion.get("kind") if isinstance(motion, Mapping) else None
+    if kind in ("translational", "imu"):
+        return str(kind)
     if "motion" in data:
         return "oriented"
     simulation = data.get("simulation")

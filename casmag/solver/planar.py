@@ -102,7 +102,7 @@ def solve_planar(
     if method == "ekf":
         s = planar_structure(options, n, P_dr, float(ell), options.solver)
         if s.tiled:
-            raise DataError("model.form: the filter baseline needs the box map (reduced_rank)")
+            raise DataError("model.gp.form: the filter baseline needs the box map (reduced_rank)")
         nav = PlanarNav(
             U, dt, np.array([p0[0], p0[1], psi0]), options.sigma_disp, options.sigma_dyaw,
             options.sigma_anchor, options.sigma_psi0, options.bias_prior,
@@ -312,7 +312,7 @@ class PlanarStaged(StagedModel):
         reckoning (as the translational windows': a window whose path leaves it ends the
         smoother)."""
         if self.options.form == "tiled":
-            raise ValueError("sliding windows need model.form reduced_rank, not tiled")
+            raise ValueError("sliding windows need model.gp.form reduced_rank, not tiled")
         s = planar_structure(self.options, k, self.P_dr, self.lengthscale, solver)
         return dataclasses.replace(s, bias="constant", window=True)
 

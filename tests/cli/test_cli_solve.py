@@ -2,6 +2,7 @@
 file's keys (casmag.problem.spec.document_kind)."""
 
 import json
+from pathlib import Path
 
 import pytest
 import yaml
@@ -9,6 +10,7 @@ from click.testing import CliRunner
 from problem_files import ALL, PROBLEMS
 
 from casmag.cli.main import main
+from casmag.errors import ProblemError
 from casmag.experiments.realbench import load_real_problem
 from casmag.experiments.sweep import TableSpec
 from casmag.problem.imu import load_imu_problem
@@ -62,6 +64,32 @@ def test_document_kind_reads_the_keys():
     assert document_kind({"motion": {"kind": "pose"}, "simulation": {}}) == "oriented"
     assert document_kind({"simulation": {"trajectory": {}}}) == "translational"
     assert document_kind({"seed": 1}) == "translational"
+    # motion.kind names the model in every kind of problem file
+    assert document_kind({"motion": {"kind": "imu"}}) == "imu"
+    assert document_kind({"motion": {"kind": "translational"}}) == "translational"
+    assert document_kind({"motion": {"kind": "wheel"}}) == "oriented"  # named there
+
+
+@pytest.mark.parametrize(
+    ("path", "kind"),
+    [("problems/paper/base.yaml", "translational"), ("problems/imu/rectangle.yaml", "imu")],
+)
+def test_motion_kind_is_taken_by_every_model(path, kind):
+    """A translational or IMU file may name its motion model as planar and pose files do;
+    the file loads to the same problem, and another model's kind is refused by its key."""
+    from casmag.problem.imu import load_imu_problem
+
+    load = load_imu_problem if kind == "imu" else load_problem
+    data = read_yaml(Path(path))
+    named = {**data, "motion": {"kind": kind}}
+    assert document_kind(named) == kind
+    assert load(named).spec == load(data).spec
+    other = "translational" if kind == "imu" else "imu"
+    with pytest.raises(ProblemError) as err:
+        load({**data, "motion": {"kind": other}})
+    assert err.value.field == "motion.kind"
+    with pytest.raises(ProblemError, match="the motion model: translational, planar, pose or"):
+        load_oriented_problem({"seed": 1, "motion": {"kind": "wheel"}})
 
 
 def test_solve_a_translational_file_as_run(tmp_path):

@@ -50,7 +50,7 @@ def test_slam_solves_a_planar_recording(tmp_path, planar_recording):
             "--set",
             f"model.sigma_dyaw={np.radians(0.05)}",
             "--set",
-            "model.num_basis=120",
+            "model.gp.num_basis=120",
         ]
     )
     assert res.exit_code == 0, res.output
@@ -84,11 +84,11 @@ def test_slam_solves_a_planar_recording(tmp_path, planar_recording):
                 "--set",
                 "solver.warm_start.strategy=sliding",
                 "--set",
-                "model.form=tiled",
+                "model.gp.form=tiled",
                 "--set",
-                "model.kernel=curl_free",
+                "model.gp.kernel=curl_free",
             ],
-            "solver.warm_start.strategy: sliding windows need model.form: reduced_rank",
+            "solver.warm_start.strategy: sliding windows need model.gp.form: reduced_rank",
         ),
         (["--set", "solver.warm_start.stage_max_iter=0"], "solver.warm_start.stage_max_iter"),
     ],
@@ -105,7 +105,7 @@ def test_slam_planar_bad_settings_exit_2(tmp_path, planar_recording, args, needl
 def test_slam_planar_solver_failure_exit_1(tmp_path, planar_recording):
     path, _ = planar_recording
     out = tmp_path / "out"
-    res = _run(["slam", path, "--out", out, "-q", "--set", "model.num_basis=40", *MAX_ITER_2])
+    res = _run(["slam", path, "--out", out, "-q", "--set", "model.gp.num_basis=40", *MAX_ITER_2])
     assert res.exit_code == 1
     assert "Maximum_Iterations_Exceeded" in res.output
     assert json.loads((out / "result.json").read_text())["success"] is False
@@ -135,8 +135,8 @@ def test_the_library_slam_takes_a_planar_recording(planar_recording):
     assert r.rmse_after <= 0.25 * r.rmse_before
     assert r.info["anchor"]["kind"] == "first true position"
     with pytest.raises(casmag.ProblemError) as err:
-        casmag.slam(path, model={"gp": {"lengthscale": 0.3}})
-    assert "did you mean 'model.lengthscale'" in str(err.value)
+        casmag.slam(path, model={"gp": {"lengthscale": 0.3, "kernal": "se"}})
+    assert "did you mean 'model.gp.kernel'" in str(err.value)
 
 
 def test_growing_prefixes_on_a_planar_recording(tmp_path):
@@ -153,7 +153,7 @@ def test_growing_prefixes_on_a_planar_recording(tmp_path):
     sets = [
         "model.sigma_disp=0.002",
         f"model.sigma_dyaw={np.radians(0.05)}",
-        "model.num_basis=120",
+        "model.gp.num_basis=120",
         "solver.warm_start.strategy=growing",
         "solver.warm_start.first_samples=50",
         "solver.warm_start.growth=2",
@@ -189,7 +189,7 @@ def test_a_worse_local_optimum_is_flagged_by_the_solve_from_the_truth(loops, see
         disp_noise=0.002,
     )  # fmt: skip
     sets = ["model.sigma_disp=0.002", f"model.sigma_dyaw={np.radians(0.05)}"]
-    opts = load_planar_options(None, [*sets, "model.num_basis=120"])
+    opts = load_planar_options(None, [*sets, "model.gp.num_basis=120"])
     r = solve_planar(*d.U.T, d.Y, opts, truth={"P": d.P, "psi": d.psi}, t=d.t)
     assert r.success and r.rmse_after > TRUTH_START_RATIO * r.rmse_before
     assert [f["name"] for f in r.flags] == (["wrong_basin"] if flagged else [])
@@ -211,7 +211,7 @@ def test_slam_method_ekf_on_a_planar_recording(tmp_path, planar_recording):
             "slam", path, "--method", "ekf", "--out", out, "-q",
             "--set", "model.sigma_disp=0.002",
             "--set", f"model.sigma_dyaw={np.radians(0.05)}",
-            "--set", "model.num_basis=120",
+            "--set", "model.gp.num_basis=120",
         ]
     )  # fmt: skip
     assert res.exit_code in (0, 3), res.output

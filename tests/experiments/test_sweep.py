@@ -333,7 +333,7 @@ def test_the_drift_tables_run_every_warm_start_at_tiny_size(tmp_path):
     walk and is saved with its stages (windows, then the batch)."""
     paths = [ROOT / "problems/planar/drift.yaml", ROOT / "problems/pose/drift.yaml"]
     out = tmp_path / "out"
-    tiny = ["--set", "simulation.trajectory.samples=30", "--set", "model.num_basis=60"]
+    tiny = ["--set", "simulation.trajectory.samples=30", "--set", "model.gp.num_basis=60"]
     res = _invoke(["sweep", *paths, "--out", out, "--seeds", 1, "--figures", "none", *tiny])
     assert res.exit_code == 0, res.output
     assert "4 runs: 0 already saved, 4 solved, 0 failed, 0 errors" in res.output

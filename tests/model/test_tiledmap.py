@@ -230,7 +230,7 @@ def test_tiled_map_read_through_a_rotation():
 
 def test_planar_walk_with_the_tiled_map():
     """The planar walk of the tests (three loops of 2 x 1.5 m, heading-rate bias 0.5
-    deg/s, seed 2) with ``model.form: tiled``: converges to the tolerance in a few
+    deg/s, seed 2) with ``model.gp.form: tiled``: converges to the tolerance in a few
     iterations with the hybrid Hessian (13 measured; Gauss-Newton alone stopped at the
     iteration limit) and locates as the box does (0.0111 m against the box's 0.0216 m,
     dead reckoning 0.0966 m; seeds 1 and 4: 0.0121 / 0.0108 m in 18 / 15 iterations
@@ -242,8 +242,8 @@ def test_planar_walk_with_the_tiled_map():
     sets = [
         "model.sigma_disp=0.002",
         f"model.sigma_dyaw={np.radians(0.05)}",
-        "model.kernel=curl_free",
-        "model.form=tiled",
+        "model.gp.kernel=curl_free",
+        "model.gp.form=tiled",
     ]
     opts = load_planar_options(None, sets)
     r = solve_planar(*d.U.T, d.Y, opts, truth={"P": d.P, "psi": d.psi}, t=d.t)
@@ -256,5 +256,6 @@ def test_planar_walk_with_the_tiled_map():
 
 def test_planar_tiled_map_needs_the_curl_free_kernel():
     with pytest.raises(casmag.ProblemError, match="form tiled needs kernel: curl_free"):
-        load_planar_options(None, ["model.form=tiled"])
-    assert load_planar_options(None, ["model.form=tiled", "model.kernel=curl_free"]).form == "tiled"
+        load_planar_options(None, ["model.gp.form=tiled"])
+    sets = ["model.gp.form=tiled", "model.gp.kernel=curl_free"]
+    assert load_planar_options(None, sets).form == "tiled"

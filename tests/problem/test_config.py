@@ -422,13 +422,31 @@ def test_an_unknown_key_with_no_likely_meaning_gets_no_guess():
     assert err.value.reason == "unknown key"
 
 
-def test_a_key_of_another_schema_gets_this_schemas_name_for_it():
+@pytest.mark.parametrize("model", ["planar", "pose"])
+def test_every_model_spells_its_field_keys_in_gp_and_magnetometer(model):
+    """The planar and pose models take model.gp.* and model.magnetometer.sigma_m as the
+    translational and IMU models do; their earlier top-level spelling (model.sigma_f) still
+    loads to the same options, a key given both ways is refused, and a misspelt one gets
+    the key in its section."""
     from casmag.problem.imu import load_planar_options
+    from casmag.problem.pose import load_pose_options
 
+    load = load_planar_options if model == "planar" else load_pose_options
+    nested = load(
+        {"model": {"gp": {"lengthscale": 0.3, "num_basis": 90}, "magnetometer": {"sigma_m": 2}}}
+    )
+    flat = load(None, ["model.lengthscale=0.3", "model.num_basis=90", "model.sigma_m=2"])
+    assert nested == flat
+    assert (nested.lengthscale, nested.num_basis, nested.sigma_m) == (0.3, 90, 2.0)
     with pytest.raises(ProblemError) as err:
-        load_planar_options(None, ["model.gp.lengthscale=0.3"])
-    assert err.value.field == "model.gp.lengthscale"
-    assert err.value.reason == "unknown key (did you mean 'model.lengthscale'?)"
+        load(None, ["model.sigma_f=1", "model.gp.sigma_f=2"])
+    assert (err.value.field, err.value.reason) == (
+        "model",
+        "gp.sigma_f is given twice, also as sigma_f (the earlier spelling); keep gp.sigma_f",
+    )
+    with pytest.raises(ProblemError) as err:
+        load(None, ["model.lenghtscale=0.3"])
+    assert err.value.reason == "unknown key (did you mean 'model.gp.lengthscale'?)"
 
 
 # --------------------------------------------------------------------------- typed and keyword
@@ -503,6 +521,7 @@ def test_null_hyperparameters_of_a_recording_model_say_why(model):
     from casmag.problem.pose import load_pose_options
 
     load = load_planar_options if model == "planar" else load_pose_options
-    with pytest.raises(ProblemError, match=r"model\.sigma_f: null means a simulation's true"):
-        load(None, ["model.sigma_f=null"])
-    assert load(None, ["model.sigma_f=estimate"]).sigma_f == "estimate"
+    for key in ("model.sigma_f", "model.gp.sigma_f"):
+        with pytest.raises(ProblemError, match=r"model\.gp\.sigma_f: null means a simulation's"):
+            load(None, [f"{key}=null"])
+    assert load(None, ["model.gp.sigma_f=estimate"]).sigma_f == "estimate"

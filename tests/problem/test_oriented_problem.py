@@ -31,15 +31,21 @@ def test_the_motion_kind_picks_the_model(kind):
 
 
 @pytest.mark.parametrize("kind", ["planar", "pose"])
-def test_null_is_the_simulations_value_with_its_kernel(kind):
-    model = {"sigma_m": None, "sigma_f": None, "lengthscale": None}
+@pytest.mark.parametrize(
+    "model",
+    [
+        {"magnetometer": {"sigma_m": None}, "gp": {"sigma_f": None, "lengthscale": None}},
+        {"sigma_m": None, "sigma_f": None, "lengthscale": None},  # the earlier spelling
+    ],
+)
+def test_null_is_the_simulations_value_with_its_kernel(kind, model):
     o = load_oriented_problem(_doc(kind, model=model)).options
     assert (o.sigma_m, o.sigma_f, o.lengthscale, o.kernel) == (0.05, 1.0, 1.2, "curl_free")
 
 
 def test_null_with_another_kernel_is_refused():
-    doc = _doc("planar", model={"kernel": "se", "lengthscale": None})
-    with pytest.raises(ProblemError, match=r"model.lengthscale: null is the simulation's value"):
+    doc = _doc("planar", model={"gp": {"kernel": "se", "lengthscale": None}})
+    with pytest.raises(ProblemError, match=r"model.gp.lengthscale: null is the simulation's"):
         load_oriented_problem(doc)
 
 

@@ -133,7 +133,7 @@ def _planar(strategy: str):
     sets = [
         "model.sigma_disp=0.002",
         f"model.sigma_dyaw={np.radians(0.05)}",
-        "model.num_basis=120",
+        "model.gp.num_basis=120",
         f"solver.warm_start.strategy={strategy}",
         "solver.warm_start.first_samples=40",
         "solver.warm_start.stage_max_iter=10",
@@ -150,7 +150,7 @@ def _pose(strategy: str, *more: str):
     rec = simulate_pose(prob.spec.simulation, 2, bias_w=(0.0, 0.0, 0.002))
     # the windows' map: a smaller basis, so that the dense map block of each window's
     # KKT system stays small at this size
-    basis = ["model.num_basis=250"] if strategy == "sliding" else []
+    basis = ["model.gp.num_basis=250"] if strategy == "sliding" else []
     opts = load_pose_options(
         None,
         [
