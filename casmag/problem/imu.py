@@ -310,6 +310,16 @@ class ImuGPSpec(Strict):
     hyper_windows: Annotated[int, Field(ge=1, le=10000)] | Literal["all"] = HYPER_WINDOWS
     drift_ratio: Annotated[float, Field(gt=1.0, le=1.0e6)] | None = None
 
+    @field_validator("sigma_f", "lengthscale", mode="before")
+    @classmethod
+    def _no_true_value(cls, v: Any) -> Any:
+        if v is None:
+            raise ValueError(
+                "null means the simulation's true value, and an IMU simulation's field "
+                "(Earth's and dipoles') has no GP hyperparameters: give a number or estimate"
+            )
+        return v
+
     @field_validator("coarse_to_fine")
     @classmethod
     def _coarse_to_fine_ends_at_one(cls, v: list[float] | None) -> list[float] | None:

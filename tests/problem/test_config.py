@@ -525,3 +525,15 @@ def test_null_hyperparameters_of_a_recording_model_say_why(model):
         with pytest.raises(ProblemError, match=r"model\.gp\.sigma_f: null means a simulation's"):
             load(None, [f"{key}=null"])
     assert load(None, ["model.gp.sigma_f=estimate"]).sigma_f == "estimate"
+
+
+@pytest.mark.parametrize("key", ["sigma_f", "lengthscale"])
+def test_null_gp_hyperparameters_of_an_imu_problem_say_why(key):
+    """null is a simulation's true value; the IMU simulation's field has no GP
+    hyperparameters, so null is refused with the reason and what to give instead."""
+    from casmag.problem.imu import load_imu_problem
+
+    with pytest.raises(ProblemError) as err:
+        load_imu_problem(REPO_ROOT / "problems/imu/rectangle.yaml", [f"model.gp.{key}=null"])
+    assert err.value.field == f"model.gp.{key}"
+    assert "has no GP hyperparameters: give a number or estimate" in err.value.reason
