@@ -578,12 +578,13 @@ def no_truth_on_a_recording(value: Any) -> Any:
 
 
 class RecordingGPSpec(Strict):
-    """The field map of a planar recording (``model.gp``, the section translational and IMU
-    problems spell it in): ``form`` ``reduced_rank`` (one box around the dead reckoning) or
-    ``tiled`` (casmag.gp.tiles; kernel ``curl_free`` only); ``kernel``; ``sigma_f``,
-    ``lengthscale``: a value or ``estimate`` (the windowed marginal likelihood on the
-    dead-reckoned path); ``sigma_lin``: the constant field's prior (None: from the data);
-    ``num_basis``, ``margin``: the reduced-rank basis (None: casmag.model.rrmap's)."""
+    """The field map of a planar recording (a pose recording's is PoseGPSpec, with other
+    defaults) in ``model.gp``, the section translational and IMU problems spell it in:
+    ``form`` ``reduced_rank`` (one box around the dead reckoning) or ``tiled``
+    (casmag.gp.tiles; kernel ``curl_free`` only); ``kernel``; ``sigma_f``, ``lengthscale``:
+    a value or ``estimate`` (the windowed marginal likelihood on the dead-reckoned path);
+    ``sigma_lin``: the constant field's prior (None: from the data); ``num_basis``,
+    ``margin``: the reduced-rank basis (None: casmag.model.rrmap's)."""
 
     form: Literal["reduced_rank", "tiled"] = "reduced_rank"
     kernel: Literal["se", "curl_free"] = "se"

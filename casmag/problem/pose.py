@@ -38,7 +38,8 @@ class PoseGPSpec(RecordingGPSpec):
 
 class PoseModelSpec(StartsSpec):
     """The pose-odometry model: the fields of :class:`PoseOptions` (metres, radians,
-    seconds; field units of the recording)."""
+    seconds; field units of the recording), the map's in ``gp`` (:class:`PoseGPSpec`) and
+    the magnetometer's noise in ``magnetometer``."""
 
     sigma_p: PositiveFloat = 0.01
     sigma_r: PositiveFloat = 0.002
