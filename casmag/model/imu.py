@@ -198,9 +198,9 @@ def imu_nominal_terms(
 #: reached a point where the dual infeasibility stayed at 2.5e-5 (tol 1e-5) and the line
 #: search cut every 1e-10 step by 2^-17 to 2^-28 (the objective unchanged in double
 #: precision); with one BLAS thread it then took 34 iterations, with two 13. Taken whole,
-#: the step ends the solve: 13 iterations with either, the same positions to 1e-13 m. On
-#: the problems/imu scenarios (seeds 1-5) nine runs solved again with IPOPT's own value
-#: gave the same iterations and estimates.
+#: the step ends the solve: 13 iterations with either, the largest position error the same
+#: to 1e-14 m. On the problems/imu scenarios (seeds 1-5) nine runs solved again with
+#: IPOPT's own value gave the same iterations and estimates.
 IMU_TINY_STEP = 1e-9
 
 
