@@ -269,16 +269,16 @@ def slam(
     trajectory.png, cost.png and map.png. A planar recording (dfwd,dleft,dyaw) is solved
     with the planar heading model instead (--set model.KEY=VALUE, casmag.problem.imu).
 
-    Several recordings of the same field (translational, each with its first position in
-    the common frame) are solved together with one shared map, each with its own odometry
-    bias (casmag.solver.multisession); result.json lists each session's errors and sessions.png
-    shows them.
+    Several recordings of the same field (translational or planar, each with its first
+    position, and a planar one's heading, in the common frame: truth columns) are solved
+    together with one shared map, each with its own odometry bias
+    (casmag.solver.multisession; casmag.solver.staged.solve_sessions for planar); result.json
+    lists each session's errors and sessions.png shows them.
 
     Every translational run with a reduced-rank map writes map.npz, the map with its
     posterior; --map MAP locates a later recording (its first position in the map's frame)
     against it, and casmag map MAP draws it.
     """
-    from casmag.data.recording import is_planar_recording
     from casmag.solver.recslam import slam as run_slam
     from casmag.solver.recslam import slam_sessions
 
@@ -309,11 +309,6 @@ def slam(
         else:
             if map_file is not None or method != "map":
                 raise CasmagError("--map, --method: one recording at a time")
-            for r in recordings:
-                if is_planar_recording(r):
-                    raise CasmagError(
-                        f"{r}: planar recordings cannot be solved as several sessions"
-                    )
             if mag_lag or refit_noise:
                 raise CasmagError("--mag-lag, --refit-noise: one recording at a time")
             if anchor != "truth":

@@ -988,16 +988,3 @@ def dataset_to_recording_arrays(dataset: Dataset, dt: float = 1.0) -> dict[str, 
     if dataset.P_true is not None:
         arrays["P_true"] = np.asarray(dataset.P_true, dtype=np.float64)
     return arrays
-
-
-def is_planar_recording(path: str | Path) -> bool:
-    """Whether a recording's header names the planar motion columns ``dfwd,dleft,dyaw``
-    (read from the first line only; :func:`read_recording` checks everything else). False
-    when the file cannot be read, so the reader reports the error."""
-    try:
-        with open(path) as fh:
-            header = fh.readline()
-    except (OSError, UnicodeDecodeError):
-        return False
-    names = {name.strip() for name in header.split(",")}
-    return set(MOTION_COLUMNS["planar"]) <= names

@@ -38,6 +38,7 @@ class PlanarStructure:
     grid: TileGrid | None = None
     home: tuple[int, ...] = ()
     window: bool = False
+    starts: tuple[int, ...] = (0,)
 
     @property
     def tiled(self) -> bool:
@@ -74,17 +75,26 @@ class PlanarMotion(MotionModel):
     """States (x, y, psi) per sample: the odometry residual of the body-frame increments
     (dfwd, dleft, dyaw) turned by the heading, a heading-rate bias (``constant`` or a
     ``random_walk``) with its prior, the known start; the field is read in the body frame
-    y = Rz(psi)^T m(p)."""
+    y = Rz(psi)^T m(p).
+
+    Several sessions (``starts``: the first sample of each) share the map: each has its own
+    known start (row s of the parameter ``anchor``) and its own bias (row s when constant;
+    a random walk's rows are the steps within the sessions, session s's step i at row
+    i - s), and no odometry links one session's last sample to the next one's first (the
+    increment between them, row start - 1 of ``U``, is not read)."""
 
     n: int
     bias: str = "constant"
+    starts: tuple[int, ...] = (0,)
     name = "planar"
 
     def declare(self, b: NLPBuilder) -> Pose:
-        n = self.n
+        n, knots = self.n, Knots(self.n, 1, self.starts)
+        bounds = knots.bounds
+        S = len(bounds)
         P = b.variable("P", (n, 2))
         psi = b.variable("psi", (n, 1))
-        nb = n - 1 if self.bias == "random_walk" else 1
+        nb = n - S if self.bias == "random_walk" else S
         bias = b.variable("bias", (nb, 1))
         U = b.parameter("U", (n - 1, 3))  # dfwd, dleft, dyaw
         dt = b.parameter("dt", (n - 1, 1))
@@ -92,7 +102,7 @@ class PlanarMotion(MotionModel):
             k: b.parameter(k, (1, 1))
             for k in ("sigma_disp", "sigma_dyaw", "sigma_bias0", "sigma_anchor", "sigma_psi0")
         }
-        anchor = b.parameter("anchor", (1, 3))
+        anchor = b.parameter("anchor", (S, 3))
         walk = b.parameter("bias_walk", (1, 1)) if self.bias == "random_walk" else None
         p, p1, ps, ps1 = ca.SX.sym("p", 2), ca.SX.sym("p1", 2), ca.SX.sym("psi"), ca.SX.sym("psi1")
         u, bb, h, sd_, sy = (
@@ -106,34 +116,50 @@ class PlanarMotion(MotionModel):
         step = ca.vertcat(c * u[0] - s_ * u[1], s_ * u[0] + c * u[1])
         r = ca.vertcat((p1 - p - step) / sd_, (ps1 - ps - (u[2] - bb * h)) / sy)
         f = ca.Function("planar_step", [p, p1, ps, ps1, u, bb, h, sd_, sy], [r])
-        B = bias if self.bias == "random_walk" else ca.repmat(bias, n - 1, 1)
-        E = f.map(n - 1, "serial")(
-            P[:-1, :].T,
-            P[1:, :].T,
-            psi[:-1].T,
-            psi[1:].T,
-            U.T,
-            B.T,
-            dt.T,
-            sig["sigma_disp"],
-            sig["sigma_dyaw"],
+        if S == 1:
+            P0, P1, psi0, psi1, Uk, dtk = P[:-1, :], P[1:, :], psi[:-1], psi[1:], U, dt
+            B = bias if self.bias == "random_walk" else ca.repmat(bias, n - 1, 1)
+        else:  # the steps within the sessions
+            steps = [i for a, e in bounds for i in range(a, e - 1)]
+            nxt = [i + 1 for i in steps]
+            P0, P1, psi0, psi1 = P[steps, :], P[nxt, :], psi[steps], psi[nxt]
+            Uk, dtk = U[steps, :], dt[steps]
+            B = (
+                bias
+                if self.bias == "random_walk"
+                else ca.vertcat(
+                    *[ca.repmat(bias[s], e - a - 1, 1) for s, (a, e) in enumerate(bounds)]
+                )
+            )
+        E = f.map(n - S, "serial")(
+            P0.T, P1.T, psi0.T, psi1.T, Uk.T, B.T, dtk.T, sig["sigma_disp"], sig["sigma_dyaw"]
         )
         b.residual("odometry", E)
+        firsts = [a - s for s, (a, _) in enumerate(bounds)]  # each session's first bias row
         if walk is not None:
-            b.cost("bias_walk", 0.5 * ca.sumsqr((bias[1:] - bias[:-1]) / (walk * ca.sqrt(dt[:-1]))))
-        b.cost("bias_prior", 0.5 * (bias[0] / sig["sigma_bias0"]) ** 2)
+            pairs = [j for s, (a, e) in enumerate(bounds) for j in range(a - s, e - 2 - s)]
+            if pairs == list(range(n - 2)):
+                db, hw = bias[1:] - bias[:-1], dt[:-1]
+            else:
+                db = bias[[j + 1 for j in pairs]] - bias[pairs]
+                hw = dtk[pairs]
+            b.cost("bias_walk", 0.5 * ca.sumsqr(db / (walk * ca.sqrt(hw))))
+        first_bias = bias[firsts] if self.bias == "random_walk" else bias
+        b.cost("bias_prior", 0.5 * ca.sumsqr(first_bias / sig["sigma_bias0"]))
+        first = list(self.starts)
+        P_first, psi_first = P[first, :], psi[first]
         b.cost(
             "anchor",
-            0.5 * ca.sumsqr((P[0, :] - anchor[0, :2]) / sig["sigma_anchor"])
-            + 0.5 * ((psi[0] - anchor[0, 2]) / sig["sigma_psi0"]) ** 2,
+            0.5 * ca.sumsqr((P_first - anchor[:, :2]) / sig["sigma_anchor"])
+            + 0.5 * ca.sumsqr((psi_first - anchor[:, 2]) / sig["sigma_psi0"]),
         )
         rotation = Rotation(planar_rotation_function(), psi, "psi")
-        return Pose(P, n, 2, "P", None, Knots(n, 1), rotation)
+        return Pose(P, n, 2, "P", None, knots, rotation)
 
 
 def cached_planar_nlp(s: PlanarStructure) -> NLP:
     """The planar model with the structure's map, built once per process."""
-    return cached_slam(PlanarMotion(s.n, s.bias), s.field(), s.solver)
+    return cached_slam(PlanarMotion(s.n, s.bias, s.starts), s.field(), s.solver)
 
 
 def dead_reckon_planar(U: np.ndarray, p0: np.ndarray, psi0: float, bias_dt: Any = 0.0) -> tuple:
@@ -146,4 +172,17 @@ def dead_reckon_planar(U: np.ndarray, p0: np.ndarray, psi0: float, bias_dt: Any 
     c, s = np.cos(psi[:-1]), np.sin(psi[:-1])
     step = np.column_stack([c * U[:, 0] - s * U[:, 1], s * U[:, 0] + c * U[:, 1]])
     P = np.vstack([p0, p0 + np.cumsum(step, axis=0)])
+    return P, psi
+
+
+def dead_reckon_sessions(
+    U: np.ndarray, anchors: np.ndarray, starts: tuple[int, ...] = (0,)
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) positions and (N,) headings of sessions stacked end to end (``starts``: the
+    first sample of each; the increment before one, row start - 1 of ``U``, not read),
+    each dead-reckoned from its row (x, y, psi) of ``anchors``."""
+    n = U.shape[0] + 1
+    P, psi = np.empty((n, 2)), np.empty(n)
+    for a, e, x0 in zip(starts, [*starts[1:], n], anchors, strict=True):
+        P[a:e], psi[a:e] = dead_reckon_planar(U[a : e - 1], x0[:2], float(x0[2]))
     return P, psi

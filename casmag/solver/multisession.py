@@ -13,13 +13,17 @@ Solving all sessions at once from their dead reckoning can end in a poor local o
 synthetic pair (a spiral with loops and a straight line across it,
 tests/solver/test_multisession.py) the hybrid Hessian stopped at a cost of 20,985 against
 134 at the truth. So sessions are added one at a time (:func:`solve_sessions`): the session
-whose dead reckoning revisits itself most comes first (:func:`revisit_fraction`, computable
+whose dead reckoning revisits itself most comes first (:func:`session_order`, computable
 without truth), and every later stage starts from the previous stage's trajectories plus the
 new session's dead reckoning. On that pair this reached the truth's optimum in 6 iterations
 for the last stage. Long sessions (more than 2 x FIRST_PREFIX samples) are also tried from
 growing prefixes, and the start with the lower MAP cost is kept (:func:`solve_two_starts`,
 :func:`_add_session`): on the real field neither start is right every time, and the cost
 told them apart in every case measured (README, Measured: real field).
+
+The planar model's sessions take the same steps, written for every staged motion model
+(casmag.solver.staged.solve_sessions); the session order and the per-session rows of a
+result are shared (casmag.solver.sessions).
 
 ``casmag slam REC1.csv REC2.csv ... --out DIR`` runs it with the single-recording defaults
 (casmag.solver.recslam.recording_problem on the stacked data) and reports every session's errors in
@@ -37,10 +41,9 @@ from casmag.data.simulate import Dataset
 from casmag.nlp import lowest_cost
 from casmag.problem.spec import Problem
 from casmag.result import Result
-from casmag.result.metrics import rmse_and_max
 from casmag.solver.api import solve
+from casmag.solver.sessions import revisit_order, session_errors
 from casmag.solver.translational import solve_translational
-from casmag.solver.uncertainty import PositionUncertainty
 from casmag.solver.windowing import Stage, solve_growing, stage_lengths
 
 
@@ -72,27 +75,10 @@ def stack(sessions: Sequence[Dataset]) -> Dataset:
     )
 
 
-def revisit_fraction(P: np.ndarray, radius: float, min_gap: int) -> float:
-    """Fraction of samples with another sample within ``radius`` that is more than
-    ``min_gap`` samples away in time: how often a path returns to where it has been."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(P)
-    hits = 0
-    for i, near in enumerate(tree.query_ball_point(P, radius)):
-        hits += any(abs(j - i) > min_gap for j in near)
-    return hits / P.shape[0]
-
-
 def session_order(sessions: Sequence[Dataset], lengthscale: float) -> list[int]:
-    """Sessions by decreasing revisit fraction of their dead reckoning (radius l, more than
-    the samples needed to travel 4 l apart); ties keep the given order."""
-    scores = []
-    for d in sessions:
-        step = float(np.median(np.linalg.norm(d.U, axis=1))) or 1.0
-        gap = int(np.ceil(4.0 * lengthscale / step))
-        scores.append(revisit_fraction(d.dead_reckoning(), lengthscale, gap))
-    return sorted(range(len(sessions)), key=lambda i: -scores[i])
+    """Sessions by decreasing revisit fraction of their dead reckoning
+    (casmag.solver.windowing.revisit_order)."""
+    return revisit_order([d.dead_reckoning() for d in sessions], lengthscale)
 
 
 def solve_sessions(
@@ -246,36 +232,15 @@ def split(data: Dataset, array: np.ndarray | None) -> list[np.ndarray | None]:
 
 
 def session_rows(data: Dataset, result: Result, names: Sequence[str]) -> list[dict[str, Any]]:
-    """Per-session errors of a stacked solve: RMSE and max error before and after, the
-    estimated and true odometry bias."""
-    P_odo = split(data, result.arrays.get("P_odometry"))
-    P_est = split(data, result.arrays.get("P_estimate"))
-    P_true = split(data, data.P_true)
-    bias = (
-        None
-        if result.odometry_bias is None
-        else np.reshape(result.odometry_bias, (data.n_sessions, -1))
+    """Per-session errors of a stacked solve (casmag.solver.sessions.session_errors), each
+    session's odometry bias one row of ``result.odometry_bias``."""
+    bias = result.odometry_bias
+    bias_true = data.bias_true
+    return session_errors(
+        data.session_bounds,
+        result,
+        names,
+        data.P_true,
+        None if bias is None else list(np.reshape(bias, (data.n_sessions, -1))),
+        None if bias_true is None else list(np.reshape(bias_true, (data.n_sessions, -1))),
     )
-    bias_true = (
-        None if data.bias_true is None else np.reshape(data.bias_true, (data.n_sessions, -1))
-    )
-    rows = []
-    for s, (i, j) in enumerate(data.session_bounds):
-        row: dict[str, Any] = {"name": names[s], "first_sample": i, "n_samples": j - i}
-        if P_true[s] is not None:
-            before = rmse_and_max(P_odo[s], P_true[s])
-            row["rmse_before"], row["max_before"] = before
-            if result.success:
-                row["rmse_after"], row["max_after"] = rmse_and_max(P_est[s], P_true[s])
-        cov = result.arrays.get("P_cov")
-        if cov is not None:
-            row["uncertainty"] = PositionUncertainty(cov[i:j]).summary(P_est[s], P_true[s])
-            plain = result.arrays.get("P_cov_uninflated")
-            if plain is not None:  # the Laplace covariance before the inflation
-                row["uncertainty_uninflated"] = PositionUncertainty(plain[i:j]).summary(
-                    P_est[s], P_true[s]
-                )
-        row["odometry_bias"] = None if bias is None else [float(v) for v in bias[s]]
-        row["odometry_bias_true"] = None if bias_true is None else [float(v) for v in bias_true[s]]
-        rows.append(row)
-    return rows

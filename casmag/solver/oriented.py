@@ -28,7 +28,7 @@ from casmag.problem.pose import load_pose_options
 from casmag.problem.spec import as_overrides
 from casmag.result import Result
 from casmag.result.metrics import heading_rms_deg
-from casmag.solver.planar import solve_planar_recording
+from casmag.solver.planar import solve_planar_recording, solve_planar_sessions
 from casmag.solver.pose import solve_pose_recording
 from casmag.strapdown import dead_reckon_pose, rotate
 from casmag.versions import __version__, versions
@@ -255,4 +255,53 @@ def solve_oriented(
     else:
         result.odometry_bias_true = [float(v) for v in sim.bias_p]
         result.details["bias_w_true"] = [float(v) for v in sim.bias_w]
+    return result
+
+
+def slam_oriented_sessions(
+    recs: Sequence[Recording],
+    problem: str | Path | Mapping[str, Any] | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+    on_warning: Callable[[str], None] | None = None,
+) -> Result:
+    """Several planar recordings of one field with one map
+    (casmag.solver.planar.solve_planar_sessions), with :func:`slam_oriented`'s settings
+    and each recording's plausibility warnings (``recording`` in each). A pose recording
+    is refused: the pose model solves one session at a time. A constant magnetometer is
+    refused too: such a recording has no field to share a map of (solved alone, its
+    result is the odometry)."""
+    for rec in recs:
+        if rec.motion != recs[0].motion:
+            raise DataError(
+                f"{rec.path}: motion input {rec.motion!r} beside {recs[0].motion!r} in "
+                f"{recs[0].path}: the sessions of one map share one motion model"
+            )
+        if rec.motion != "planar":
+            raise DataError(
+                f"{rec.path}: several sessions with one map take translational or planar "
+                f"recordings; the {rec.motion} model solves one recording at a time"
+            )
+    overrides = as_overrides(overrides)
+    refuse_unused_solver_keys(overrides, "casmag slam on planar recordings", STAGED_SOLVER_KEYS)
+    options = load_planar_options(problem, overrides)
+    found: list[dict[str, Any]] = []
+    for rec in recs:
+        if constant_magnetometer(rec.Y):
+            raise DataError(
+                f"{rec.path}: mx, my, mz: the magnetometer is constant (every row the same), "
+                "so it has no field to share a map of; solve it alone (its result is the "
+                "odometry) or leave it out"
+            )
+        own = [
+            *rec.notes,
+            *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
+            *lag_warning(_planar_lag(rec)),
+        ]
+        for line in warning_lines(rec.path, own):
+            if on_warning is not None:
+                on_warning(line)
+        found.extend({**w, "recording": str(rec.path)} for w in own)
+    result = solve_planar_sessions(list(recs), options, progress)
+    result.warnings = found
     return result

@@ -23,6 +23,7 @@ from casmag.model.planar import (
     PlanarStructure,
     cached_planar_nlp,
     dead_reckon_planar,
+    dead_reckon_sessions,
 )
 from casmag.model.rotated import ridge_weights, rotated_design, whiten
 from casmag.model.rrmap import make_basis
@@ -33,11 +34,13 @@ from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import heading_rms_deg, rmse_and_max
 from casmag.solver.ekf import FilterMap, PlanarNav, filter_result, run_safely
+from casmag.solver.sessions import revisit_order, session_errors
 from casmag.solver.staged import (
     Solved,
     StagedModel,
     WindowPrior,
     heading_bias_starts,
+    solve_sessions,
     solve_starts,
     truth_check,
     uncertainty,
@@ -62,6 +65,8 @@ def solve_planar(
     progress: Progress | None = None,
     name: str = "planar",
     method: str = "map",
+    starts: tuple[int, ...] = (0,),
+    session_names: list[str] | None = None,
 ) -> Result:
     """Planar odometry with heading plus magnetometer GP-SLAM from arrays.
 
@@ -82,20 +87,42 @@ def solve_planar(
     prefixes or coarse-to-fine).
 
     method: ``map`` (default) the MAP estimate; ``ekf`` the filter baseline with the same
-    map box, hyperparameters and noise (casmag.solver.ekf; the box map only)."""
+    map box, hyperparameters and noise (casmag.solver.ekf; the box map only).
+
+    starts: several sessions of one field stacked end to end, one map (the first sample of
+    each; the increments before a session's first sample, and its time step, are not
+    read): each has its own known start (rows of p0 (S, 2) and psi0 (S,), by default the
+    truth's at its first sample) and heading-rate bias, and they are added one at a time
+    in the given order (casmag.solver.staged.solve_sessions; solve_planar_sessions orders
+    recordings first). ``info["sessions"]`` has each session's errors, named
+    ``session_names``."""
     options = options or PlanarOptions()
     U = np.column_stack([dfwd, dleft, dyaw]).astype(float)
     Y = np.asarray(mag, dtype=float)
     n = Y.shape[0]
     if U.shape != (n - 1, 3):
         raise ValueError(f"increments must have N-1 = {n - 1} rows, got {U.shape[0]}")
+    starts = tuple(int(a) for a in starts)
+    S = len(starts)
+    ends = [*starts[1:], n]
+    if starts[0] != 0 or any(e - a < 2 for a, e in zip(starts, ends, strict=True)):
+        raise ValueError(f"starts: sessions start at 0 and hold >= 2 samples each, got {starts}")
+    if S > 1 and method != "map":
+        raise DataError(f"method {method}: one session at a time (several sessions: map)")
     dt = np.ones(n - 1) if t is None else np.diff(np.asarray(t, dtype=float))
+    if S > 1:  # the step into a session is not read; a positive value keeps the NLP finite
+        dt[[a - 1 for a in starts[1:]]] = 1.0
     anchor_kind = "given"
+    first = list(starts)
     if p0 is None:
-        p0 = truth["P"][0] if truth is not None else np.zeros(2)
-        psi0 = float(truth["psi"][0]) if truth is not None and "psi" in truth else psi0
+        p0 = truth["P"][first] if truth is not None else np.zeros((S, 2))
+        psi0 = truth["psi"][first] if truth is not None and "psi" in truth else psi0
         anchor_kind = "first true position" if truth is not None else "origin (no truth)"
-    P_dr, psi_dr = dead_reckon_planar(U, np.asarray(p0, float), psi0)
+    anchors = np.column_stack(
+        [np.reshape(np.asarray(p0, float), (S, 2)), np.broadcast_to(np.ravel(psi0), (S,))]
+    )
+    p0, psi0 = anchors[0, :2], float(anchors[0, 2])
+    P_dr, psi_dr = dead_reckon_sessions(U, anchors, starts)
     Y_local = sd.rotate(sd.quat_from_euler(0.0 * psi_dr, 0.0 * psi_dr, psi_dr), Y)
     sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_local)
 
@@ -133,15 +160,19 @@ def solve_planar(
                 result.details["heading_rms_deg_after"] = heading_rms_deg(psi, heading)
         return result
     model = PlanarStaged(
-        options, U, dt, Y, np.asarray(p0, float), float(psi0), P_dr, Y_local.mean(axis=0),
-        sigma_m, float(sigma_f), float(ell), sigma_lin, progress,
+        options, U, dt, Y, p0, psi0, P_dr, Y_local.mean(axis=0), sigma_m, float(sigma_f),
+        float(ell), sigma_lin, progress, starts, anchors,
     )  # fmt: skip
     ws = options.solver.warm_start
-    biases = heading_bias_starts(options.starts, options.start_heading_deg, float(dt.sum()))
-    staged = solve_starts(model, ws, biases)
+    duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
+    biases = heading_bias_starts(options.starts, options.start_heading_deg, duration)
+    staged = solve_sessions(model, ws, biases) if S > 1 else solve_starts(model, ws, biases)
     final = staged.final
     sol, nlp, s = final.sol, final.nlp, final.structure
-    stages_grown = len(staged.runs[staged.kept]) > 1
+    if S > 1:
+        strategy = "sessions"
+    else:
+        strategy = ws.strategy if len(staged.runs[staged.kept]) > 1 else "none"
     hyper = {"sigma_f": float(sigma_f), "lengthscale": float(ell), "sigma_m": sigma_m}
     flags: list[dict[str, Any]] = []
     if truth is not None and "psi" in truth:
@@ -169,7 +200,7 @@ def solve_planar(
             after = rmse_and_max(sol.x["P"], truth["P"])
         if sol.success and "psi" in truth:
             ha_deg = heading_rms_deg(sol.x["psi"], truth["psi"])
-    return Result(
+    result = Result(
         motion="planar",
         flags=flags,
         status=sol.status,
@@ -199,11 +230,12 @@ def solve_planar(
                 "position": [float(v) for v in p0],
                 "heading_rad": float(psi0),
                 "sigma": options.sigma_anchor,
+                **({"sessions": [[float(v) for v in row] for row in anchors]} if S > 1 else {}),
             },
             "bias_model": options.bias,
             "kernel": options.kernel,
             **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
-            "warm_start": ws.strategy if stages_grown else "none",
+            "warm_start": strategy,
         },
         convergence=[sol.trace("GP-SLAM")],
         arrays={
@@ -221,6 +253,17 @@ def solve_planar(
             else np.asarray(truth["psi"], dtype=float),
         },
     )
+    if S > 1:
+        bounds = list(zip(starts, ends, strict=True))
+        names = session_names or [f"session {i + 1}" for i in range(S)]
+        biases = (
+            [model.session_bias(sol.x["bias"], i, a, e) for i, (a, e) in enumerate(bounds)]
+            if sol.success
+            else None
+        )
+        P_true = None if truth is None else np.asarray(truth["P"], float)
+        result.info["sessions"] = session_errors(bounds, result, names, P_true, biases)
+    return result
 
 
 def _anchor_state(anchor: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
@@ -228,13 +271,19 @@ def _anchor_state(anchor: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
 
 
 def planar_structure(
-    options: PlanarOptions, k: int, around: np.ndarray, ell: float, solver: Any
+    options: PlanarOptions,
+    k: int,
+    around: np.ndarray,
+    ell: float,
+    solver: Any,
+    starts: tuple[int, ...] = (0,),
 ) -> PlanarStructure:
     """The first k samples' problem with the IPOPT settings ``solver``, its map (box or
-    tiles, for the lengthscale ``ell``) around the positions ``around``."""
+    tiles, for the lengthscale ``ell``) around the positions ``around``; ``starts``: the
+    first sample of each session."""
     common = {
         "n": k, "bias": options.bias, "kernel": options.kernel,
-        "solver": solver.model_dump_json(),
+        "solver": solver.model_dump_json(), "starts": tuple(a for a in starts if a < k),
     }  # fmt: skip
     if options.form == "tiled":
         grid = tile_grid(around, ell, reach=options.margin)
@@ -258,19 +307,28 @@ class PlanarStaged(StagedModel):
         self, options: PlanarOptions, U: np.ndarray, dt: np.ndarray, Y: np.ndarray,
         p0: np.ndarray, psi0: float, P_dr: np.ndarray, c0: np.ndarray, sigma_m: float,
         sigma_f: float, ell: float, sigma_lin: float, progress: Progress | None = None,
+        starts: tuple[int, ...] = (0,), anchors: np.ndarray | None = None,
     ) -> None:  # fmt: skip
+        """``starts``, ``anchors`` (S, 3: x, y, psi): several sessions, each from its own
+        known start (``U`` row start - 1 not read); one session from ``p0``, ``psi0``."""
         self.progress = progress
         self.options, self.U, self.dt, self.Y = options, U, dt, Y
         self.p0, self.psi0, self.P_dr, self.c0 = p0, psi0, P_dr, c0
         self.n, self.solver, self.lengthscale = Y.shape[0], options.solver, ell
         self.sigma_m, self.sigma_f = sigma_m, sigma_f
+        self.session_starts = tuple(int(a) for a in starts)
+        self.anchors = (
+            np.array([[p0[0], p0[1], psi0]]) if anchors is None else np.asarray(anchors, float)
+        )
+        if self.anchors.shape != (len(self.session_starts), 3):
+            raise ValueError(f"anchors: one row (x, y, psi) per session, got {self.anchors.shape}")
         self.params: dict[str, Any] = {
             "sigma_disp": options.sigma_disp,
             "sigma_dyaw": options.sigma_dyaw,
             "sigma_bias0": options.bias_prior,
             "sigma_anchor": options.sigma_anchor,
             "sigma_psi0": options.sigma_psi0,
-            "anchor": np.array([[p0[0], p0[1], psi0]]),
+            "anchor": self.anchors,
             "sigma_m": sigma_m,
             "sigma_f": sigma_f,
             "sigma_lin": sigma_lin,
@@ -278,13 +336,26 @@ class PlanarStaged(StagedModel):
         if options.bias == "random_walk":
             self.params["bias_walk"] = options.bias_walk
 
+    def _sessions(self, k: int) -> list[tuple[int, int]]:
+        """(first, end) of each session the first k samples reach, cut at k."""
+        ends = [*self.session_starts[1:], self.n]
+        return [(a, min(e, k)) for a, e in zip(self.session_starts, ends, strict=True) if a < k]
+
     def _bias_rows(self, k: int) -> int:
-        return k - 1 if self.options.bias == "random_walk" else 1
+        S = len(self._sessions(k))
+        return k - S if self.options.bias == "random_walk" else S
+
+    def session_bias(self, bias: np.ndarray, s: int, a: int, e: int) -> np.ndarray:
+        """Session s's bias rows (its samples [a, e)) of the states' ``bias``."""
+        if self.options.bias == "random_walk":
+            return bias[a - s : e - 1 - s]
+        return bias[s : s + 1]
 
     def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
         U0 = self.U[: k - 1].copy()
         U0[:, 2] -= bias * self.dt[: k - 1]
-        P0, psi_0 = dead_reckon_planar(U0, self.p0, self.psi0)
+        S = len(self._sessions(k))
+        P0, psi_0 = dead_reckon_sessions(U0, self.anchors[:S], self.session_starts[:S])
         return {"P": P0, "psi": psi_0, "bias": np.full((self._bias_rows(k), 1), bias)}
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
@@ -292,14 +363,35 @@ class PlanarStaged(StagedModel):
         return {"P": x["P"], "psi": x["psi"].ravel(), "bias": x["bias"]}
 
     def extend(self, states: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
-        P, psi, bias, dt = states["P"], states["psi"], states["bias"], self.dt
+        """The states continued by the odometry with each session's last bias removed; a
+        session the first m samples do not reach starts at its known start, bias 0."""
+        P, psi, bias, dt = states["P"], np.ravel(states["psi"]), states["bias"], self.dt
         m = P.shape[0]
-        rest = self.U[m - 1 : k - 1].copy()
-        rest[:, 2] -= float(bias[-1, 0]) * dt[m - 1 : k - 1]
-        Pr, psr = dead_reckon_planar(rest, P[-1], float(psi[-1]))
-        if self.options.bias == "random_walk":
-            bias = np.vstack([bias, np.repeat(bias[-1:], k - m, axis=0)])
-        return {"P": np.vstack([P, Pr[1:]]), "psi": np.concatenate([psi, psr[1:]]), "bias": bias}
+        Ps, psis, biases = [P], [psi], []
+        for s, (a, e) in enumerate(self._sessions(k)):
+            if e <= m:  # solved whole
+                biases.append(self.session_bias(bias, s, a, e))
+                continue
+            if a < m:  # continued from its last solved sample
+                own = self.session_bias(bias, s, a, m)
+                b = float(own[-1, 0]) if own.size else 0.0
+                p_a, psi_a, first = P[m - 1], float(psi[m - 1]), m - 1
+            else:  # new: from its known start
+                own = np.zeros((0, 1))
+                b, p_a, psi_a, first = 0.0, self.anchors[s, :2], float(self.anchors[s, 2]), a
+            rest = self.U[first : e - 1].copy()
+            rest[:, 2] -= b * dt[first : e - 1]
+            Pr, psr = dead_reckon_planar(rest, p_a, psi_a)
+            skip = 1 if a < m else 0
+            Ps.append(Pr[skip:])
+            psis.append(psr[skip:])
+            extra = (
+                (e - 1 - s) - (a - s) - own.shape[0]
+                if self.options.bias == "random_walk"
+                else 1 - own.shape[0]
+            )
+            biases.append(np.vstack([own, np.full((extra, 1), b)]))
+        return {"P": np.vstack(Ps), "psi": np.concatenate(psis), "bias": np.vstack(biases)}
 
     # ------------------------------------------------------------ sliding windows
     sample_states = ("P", "psi")
@@ -313,6 +405,8 @@ class PlanarStaged(StagedModel):
         smoother)."""
         if self.options.form == "tiled":
             raise ValueError("sliding windows need model.gp.form reduced_rank, not tiled")
+        if len(self.session_starts) > 1:
+            raise ValueError("sliding windows: one session at a time, not several")
         s = planar_structure(self.options, k, self.P_dr, self.lengthscale, solver)
         return dataclasses.replace(s, bias="constant", window=True)
 
@@ -426,9 +520,12 @@ class PlanarStaged(StagedModel):
             "Y": self.Y[:k],
             "lengthscale": lengthscale,
         }
+        params_k["anchor"] = self.anchors[: len(self._sessions(k))]
         tiled = self.options.form == "tiled"
         around = self.P_dr if k == self.n and not tiled else start["P"]
-        s_k = planar_structure(self.options, k, around, self.lengthscale, solver)
+        s_k = planar_structure(
+            self.options, k, around, self.lengthscale, solver, self.session_starts
+        )
         nlp_k = cached_planar_nlp(s_k)
         psi_0 = np.asarray(start["psi"], float).ravel()
         Y0 = sd.rotate(sd.quat_from_euler(0.0 * psi_0, 0.0 * psi_0, psi_0), self.Y[:k])
@@ -559,4 +656,62 @@ def solve_planar_recording(
     if anchor == "origin":
         result.info["anchor"]["kind"] = "origin"
     result.info["recording"] = str(path)
+    return result
+
+
+def solve_planar_sessions(
+    recordings: list[Any],
+    options: PlanarOptions | None = None,
+    progress: Progress | None = None,
+    name: str | None = None,
+) -> Result:
+    """Several planar recordings of one field (paths, or Recordings already read), one
+    map: each session keeps its own trajectory and heading-rate bias and starts at its
+    first true pose, so every recording needs truth columns with a heading (``yaw``) in
+    the common frame. They are added one at a time (casmag.solver.staged.solve_sessions),
+    the one whose dead reckoning revisits itself most first
+    (casmag.solver.sessions.revisit_order, with the lengthscale of ``options`` or the one
+    the data's marginal likelihood gives for the sessions in the order given). The
+    result's arrays are the sessions stacked in that order; ``info["sessions"]`` has each
+    session's errors and bias, ``info["session_order"]`` the order (indices into
+    ``recordings``)."""
+    options = options or PlanarOptions()
+    recs = [r if isinstance(r, Recording) else read_recording(r) for r in recordings]
+    for rec in recs:
+        if rec.motion != "planar":
+            raise DataError(
+                f"{rec.path}: motion input is {rec.motion!r}, the planar model needs "
+                "dfwd,dleft,dyaw"
+            )
+        if rec.P_true is None or rec.yaw_true is None:
+            raise DataError(
+                f"{rec.path}: several sessions need each one's first position and heading in "
+                "the common frame: truth columns (x, y and yaw) are missing"
+            )
+    paths, fields = [], []
+    for rec in recs:
+        P, psi = dead_reckon_planar(rec.increments, rec.P_true[0, :2], float(rec.yaw_true[0]))
+        paths.append(P)
+        fields.append(sd.rotate(sd.quat_from_euler(0.0 * psi, 0.0 * psi, psi), rec.Y))
+    ell = hyperparameters_from_data(options, np.vstack(paths), np.vstack(fields))[1]
+    order = revisit_order(paths, ell)
+    ordered = [recs[i] for i in order]
+    gap = np.zeros((1, 3))  # the step into the next session: not read
+    U = np.vstack([u for r in ordered for u in (r.increments, gap)][:-1])
+    starts = tuple(int(a) for a in np.cumsum([0] + [r.n_samples for r in ordered[:-1]]))
+    times, offset = [], 0.0
+    for r in ordered:  # one time axis, the sessions end to end
+        times.append(r.t - r.t[0] + offset)
+        offset = times[-1][-1] + float(np.median(np.diff(r.t)))
+    names = [Path(r.path).stem for r in ordered]
+    result = solve_planar(
+        U[:, 0], U[:, 1], U[:, 2], np.vstack([r.Y for r in ordered]), options,
+        truth={"P": np.vstack([r.P_true[:, :2] for r in ordered]),
+               "psi": np.concatenate([r.yaw_true for r in ordered])},
+        t=np.concatenate(times), progress=progress,
+        name=name or "+".join(Path(r.path).stem for r in recs), starts=starts,
+        session_names=names,
+    )  # fmt: skip
+    result.info["session_order"] = order
+    result.info["recordings"] = [str(r.path) for r in ordered]
     return result

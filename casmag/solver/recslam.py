@@ -49,6 +49,7 @@ from casmag.solver.oriented import (
     lag_record,
     refuse_constant_field,
     slam_oriented,
+    slam_oriented_sessions,
 )
 from casmag.solver.uncertainty import PositionUncertainty
 from casmag.versions import __version__, versions
@@ -583,11 +584,15 @@ def slam_sessions(
     (:func:`slam`'s defaults, computed on all sessions together). The stacked
     result's RMSE is over all samples; ``info["sessions"]`` has each session's. The
     plausibility checks of :func:`slam` run on every recording (``recording`` in each
-    warning)."""
+    warning). Planar recordings are solved with the planar model's sessions
+    (casmag.solver.oriented.slam_oriented_sessions); recordings of different motion kinds
+    together are refused."""
     overrides = as_overrides(overrides)
     check_recording_overrides(overrides)
 
     recs = [read_recording(r) for r in recordings]
+    if any(r.motion != "translation" for r in recs):
+        return slam_oriented_sessions(recs, problem, overrides, progress, on_warning)
     datasets = [r.to_dataset() for r in recs]
     data = stack(datasets)
     label = name or "+".join(Path(r).stem for r in recordings)

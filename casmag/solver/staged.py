@@ -22,9 +22,11 @@ again at the new lengthscale) and ``sliding`` (:func:`solve_sliding`: a fixed-la
 whose windows carry the map as a Gaussian prior, through the window methods of
 :class:`StagedModel`: the model's window NLP is its own motion model with a
 casmag.model.field.WindowField read through its rotation); and several starts kept by MAP
-cost run the strategy from each start (:func:`solve_starts`). Every stage before the last
-stops after ``stage_max_iter`` iterations. With truth, :func:`truth_check` solves a poor estimate's
-problem again from the true states and flags ``wrong_basin`` when that costs less.
+cost run the strategy from each start (:func:`solve_starts`); several sessions of one field
+(``session_starts``) share one map, added one at a time (:func:`solve_sessions`). Every
+stage before the last stops after ``stage_max_iter`` iterations. With truth,
+:func:`truth_check` solves a poor estimate's problem again from the true states and flags
+``wrong_basin`` when that costs less.
 """
 
 from __future__ import annotations
@@ -83,6 +85,10 @@ class StagedModel(ABC):
     n: int
     solver: SolverSpec
     lengthscale: float
+    #: The first sample of each session (several recordings of one field, one map:
+    #: :func:`solve_sessions`); a model with more than one continues a session it has not
+    #: reached from that session's known start (:meth:`extend`).
+    session_starts: tuple[int, ...] = (0,)
 
     @abstractmethod
     def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
@@ -222,11 +228,14 @@ class Stage:
     first: int = 0
 
 
-def solve_strategy(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> list[Stage]:
+def solve_strategy(
+    model: StagedModel, ws: WarmStartSpec, bias: float = 0.0, n: int | None = None
+) -> list[Stage]:
     """The strategy ``ws.strategy`` from the dead reckoning with ``bias`` removed; the
-    stages solved, the last being the full problem with the full settings unless a stage
-    ended the strategy (:func:`casmag.solver.windowing.continues`)."""
-    n, ell = model.n, model.lengthscale
+    stages solved, the last being the full problem (or the first ``n`` samples) with the
+    full settings unless a stage ended the strategy
+    (:func:`casmag.solver.windowing.continues`)."""
+    n, ell = model.n if n is None else n, model.lengthscale
     stage_solver = model.solver.model_copy(update={"max_iter": ws.stage_max_iter})
     if ws.strategy == "growing":
         sizes = stage_lengths(n, ws.first_samples, ws.growth)
@@ -250,6 +259,8 @@ def solve_strategy(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> 
             start = model.continue_from(solved, n)
         return stages
     if ws.strategy == "sliding":
+        if n != model.n:
+            raise ValueError("sliding windows solve a whole recording, not its first samples")
         return solve_sliding(model, ws, bias)
     if ws.strategy != "none":
         raise ValueError(f"warm start {ws.strategy!r}: staged models take {STAGED_STRATEGIES}")
@@ -356,6 +367,20 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
     return [*stages, Stage("batch", n, ell, final)]
 
 
+def _record(st: Stage) -> dict[str, Any]:
+    """What a result's ``stages`` record of every solve: samples, lengthscale, MAP cost,
+    IPOPT's status, iterations and seconds."""
+    so = st.solved.sol
+    return {
+        "samples": st.samples,
+        "lengthscale": st.lengthscale,
+        "cost": so.objective,
+        "status": so.status,
+        "iterations": so.iterations,
+        "solve_seconds": so.solve_seconds,
+    }
+
+
 @dataclass
 class StagedRun:
     """The strategy run from each start: ``runs[i]`` the stages from ``biases[i]``;
@@ -380,17 +405,11 @@ class StagedRun:
         out = []
         for i, (bias, run) in enumerate(zip(self.biases, self.runs, strict=True)):
             for j, st in enumerate(run):
-                so = st.solved.sol
                 out.append(
                     {
                         "name": "start" if len(run) == 1 else st.kind,
                         "bias": float(bias),
-                        "samples": st.samples,
-                        "lengthscale": st.lengthscale,
-                        "cost": so.objective,
-                        "status": so.status,
-                        "iterations": so.iterations,
-                        "solve_seconds": so.solve_seconds,
+                        **_record(st),
                         "kept": i == self.kept and j == len(run) - 1,
                         **({"first": st.first} if st.kind == "window" else {}),
                     }
@@ -406,18 +425,122 @@ def heading_bias_starts(starts: int, heading_deg: float, duration: float) -> lis
     return [0.0, *(float(v) for v in np.ravel(np.column_stack([k * delta, -k * delta])))]
 
 
-def solve_starts(model: StagedModel, ws: WarmStartSpec, biases: list[float]) -> StagedRun:
+def solve_starts(
+    model: StagedModel, ws: WarmStartSpec, biases: list[float], n: int | None = None
+) -> StagedRun:
     """The strategy from each start (the dead reckoning with each heading-rate bias
     removed), the lowest MAP cost of the full problem kept (casmag.nlp.lowest_cost over
-    the starts whose last stage is the full problem)."""
-    runs = [solve_strategy(model, ws, b) for b in biases]
+    the starts whose last stage is the full problem); ``n``: of the first n samples."""
+    n = model.n if n is None else n
+    runs = [solve_strategy(model, ws, b, n) for b in biases]
+    return StagedRun(list(biases), runs, _kept(runs, n))
+
+
+def _kept(runs: list[list[Stage]], n: int) -> int:
+    """The run whose last stage solved n samples at the lowest MAP cost (the first when
+    none did)."""
     finals = [run[-1].solved.sol for run in runs]
     costs = [
-        so.objective if run[-1].samples == model.n else np.inf
+        so.objective if run[-1].samples == n else np.inf
         for so, run in zip(finals, runs, strict=True)
     ]
     best = lowest_cost(finals, costs)
-    return StagedRun(list(biases), runs, 0 if best is None else best)
+    return 0 if best is None else best
+
+
+@dataclass
+class SessionsRun:
+    """Sessions added one at a time (:func:`solve_sessions`): ``first`` the first session's
+    run from each start; ``added[j]`` the starts tried when session j + 1 joined, each a
+    name and its stages; ``kept[j]`` the one whose estimate went on."""
+
+    first: StagedRun
+    added: list[list[tuple[str, list[Stage]]]]
+    kept: list[int]
+
+    @property
+    def final(self) -> Solved:
+        if not self.added:
+            return self.first.final
+        return self.added[-1][self.kept[-1]][1][-1].solved
+
+    @property
+    def solves(self) -> list[Solved]:
+        more = [st.solved for tried in self.added for _, run in tried for st in run]
+        return self.first.solves + more
+
+    def records(self) -> list[dict[str, Any]]:
+        """:meth:`StagedRun.records` of the first session (``session`` 0), then every
+        solve of each session added, with its start and whether it was kept; only the
+        last session's kept solve is the result's (``kept``)."""
+        out = [{**r, "session": 0} for r in self.first.records()]
+        last = len(self.added) - 1
+        if self.added:
+            for r in out:
+                r["kept"] = False
+        for j, (tried, kept) in enumerate(zip(self.added, self.kept, strict=True)):
+            for i, (start, run) in enumerate(tried):
+                for k, st in enumerate(run):
+                    out.append(
+                        {
+                            "name": st.kind,
+                            "session": j + 1,
+                            "start": start,
+                            **_record(st),
+                            "chosen": i == kept and k == len(run) - 1,
+                            "kept": j == last and i == kept and k == len(run) - 1,
+                        }
+                    )
+        return out
+
+
+def solve_sessions(model: StagedModel, ws: WarmStartSpec, biases: list[float]) -> SessionsRun:
+    """Several sessions of one field with one map (``model.session_starts``), added one at
+    a time as casmag.solver.multisession does for the translational model: a joint solve
+    from every session's dead reckoning can stop in a poor optimum, and each later stage
+    starting from the earlier sessions' estimate brings their map to the new one. The
+    first session alone runs the strategy of ``ws`` from each start (:func:`solve_starts`);
+    each later session is tried from two starts beside the estimate so far, the lower MAP
+    cost kept: its dead reckoning from its known start, and (when it is longer than twice
+    ``ws.first_samples``) its growing prefixes of ``ws.first_samples``, x ``ws.growth``,
+    ... samples, each continued by the odometry with the bias estimated so far removed and
+    stopped after ``ws.stage_max_iter`` iterations before the last."""
+    starts = model.session_starts
+    bounds = list(zip(starts, [*starts[1:], model.n], strict=True))
+    ell = model.lengthscale
+    if ws.strategy == "sliding" and len(bounds) > 1:
+        raise ValueError("sliding windows: one session at a time, not several")
+    first = solve_starts(model, ws, biases, n=bounds[0][1])
+    capped = model.solver.model_copy(update={"max_iter": ws.stage_max_iter})
+    prev = first.final
+    added: list[list[tuple[str, list[Stage]]]] = []
+    kept: list[int] = []
+    for a, e in bounds[1:]:
+        base = prev
+        tried = [
+            (
+                "dead reckoning",
+                [Stage("session", e, ell, model.solve(e, model.continue_from(base, e),
+                                                      model.solver, ell))],
+            )
+        ]  # fmt: skip
+        if e - a > 2 * ws.first_samples:
+            sizes = [a + k for k in stage_lengths(e - a, ws.first_samples, ws.growth)]
+
+            def prefix(
+                k: int, p: Solved | None, last: bool, base: Solved = base
+            ) -> tuple[Solution, Solved]:
+                start = model.continue_from(base if p is None else p, k)
+                solved = model.solve(k, start, model.solver if last else capped, ell)
+                return solved.sol, solved
+
+            grown = [Stage("prefix", k, ell, sv) for k, _, sv in grow(sizes, prefix)]
+            tried.append(("growing prefixes", grown))
+        best = _kept([run for _, run in tried], e)
+        added.append(tried)
+        kept.append(best)
+        prev = tried[best][1][-1].solved
+    return SessionsRun(first, added, kept)
 
 
 def wrong_basin_flag(

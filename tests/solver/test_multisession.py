@@ -18,7 +18,8 @@ from casmag.gp.kernels import field_covariance, get_kernel
 from casmag.model.knots import Knots
 from casmag.problem.spec import load_problem
 from casmag.result.metrics import rmse_and_max
-from casmag.solver.multisession import revisit_fraction, session_order, solve_sessions, split, stack
+from casmag.solver.multisession import session_order, solve_sessions, split, stack
+from casmag.solver.sessions import revisit_fraction
 
 ROOT = Path(__file__).resolve().parents[2]
 
