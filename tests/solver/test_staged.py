@@ -24,6 +24,7 @@ from casmag.solver.staged import (
     Solved,
     StagedModel,
     heading_bias_starts,
+    solve_sessions,
     solve_starts,
     solve_strategy,
 )
@@ -201,6 +202,56 @@ def test_pose_starts_are_turned_dead_reckonings_and_the_lowest_cost_is_kept() ->
     kept = [s for s in starts if s["kept"]]
     assert len(kept) == 1 and kept[0]["cost"] == min(s["cost"] for s in starts)
     assert r.rmse_after < 0.5 * r.rmse_before
+
+
+class Sessions(StandIn):
+    """Two sessions, samples [0, 100) and [100, 300); a solve's cost depends on where its
+    start came from (``cost_from``: the sample count of the state it was continued from),
+    and solves of (k, from) in ``fail`` end with an IPOPT error."""
+
+    session_starts = (0, 100)
+
+    def __init__(self, cost_from: dict[int, float], fail: tuple = ()) -> None:
+        super().__init__(300, lambda k, b, ell: 1.0)
+        self.cost_from, self.fail_from = cost_from, fail
+
+    def solve(self, k: int, start: dict, solver: SolverSpec, lengthscale: float) -> Solved:
+        out = super().solve(k, start, solver, lengthscale)
+        origin = int(start["from"])
+        out.sol.objective = self.cost_from.get(origin, 1.0)
+        if (k, origin) in self.fail_from:
+            out.sol.success, out.sol.status = False, "Restoration_Failed"
+        return out
+
+
+def test_sessions_are_added_one_at_a_time_from_two_starts_kept_by_cost() -> None:
+    """The first session alone runs the strategy (one batch of its 100 samples); the second
+    (200 samples > 2 x first_samples) is solved from the first session's estimate continued
+    (its dead reckoning) and in growing prefixes of 20, 40, 80 samples beside it, those
+    before the last capped at stage_max_iter; the lower cost of the full solves is kept."""
+    ws = _ws("none", first_samples=20, growth=2.0)
+    m = Sessions({100: 20.0, 180: 10.0})  # the growing start's full solve costs less
+    run = solve_sessions(m, ws, [0.0])
+    assert m.calls == [
+        (100, -1, 80, 0.5),  # the first session
+        (300, 100, 80, 0.5),  # the second's dead reckoning beside it
+        (120, 100, 7, 0.5), (140, 120, 7, 0.5), (180, 140, 7, 0.5), (300, 180, 80, 0.5),
+    ]  # fmt: skip
+    assert run.kept == [1] and run.final.sol.objective == 10.0
+    records = run.records()
+    assert [(r["session"], r.get("start"), r["samples"]) for r in records] == [
+        (0, None, 100), (1, "dead reckoning", 300), (1, "growing prefixes", 120),
+        (1, "growing prefixes", 140), (1, "growing prefixes", 180),
+        (1, "growing prefixes", 300),
+    ]  # fmt: skip
+    assert [r["kept"] for r in records] == [False] * 5 + [True]
+    # A failed full solve is never kept, however low its cost.
+    m = Sessions({100: 20.0, 180: 10.0}, fail=((300, 180),))
+    run = solve_sessions(m, ws, [0.0])
+    assert run.kept == [0] and run.final.sol.objective == 20.0
+    assert [r["kept"] for r in run.records()] == [False, True, False, False, False, False]
+    with pytest.raises(ValueError, match="one session at a time"):
+        solve_sessions(m, _ws("sliding"), [0.0])
 
 
 @pytest.mark.parametrize(("model", "strategy"), PAIRS)
