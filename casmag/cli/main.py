@@ -269,11 +269,11 @@ def slam(
     trajectory.png, cost.png and map.png. A planar recording (dfwd,dleft,dyaw) is solved
     with the planar heading model instead (--set model.KEY=VALUE, casmag.problem.imu).
 
-    Several recordings of the same field (translational or planar, each with its first
-    position, and a planar one's heading, in the common frame: truth columns) are solved
-    together with one shared map, each with its own odometry bias
-    (casmag.solver.multisession; casmag.solver.staged.solve_sessions for planar); result.json
-    lists each session's errors and sessions.png shows them.
+    Several recordings of the same field (translational, planar or pose, one kind, each with
+    its first position, and a planar or pose one's heading or orientation, in the common
+    frame: truth columns) are solved together with one shared map, each with its own
+    odometry bias (casmag.solver.multisession; casmag.solver.staged.solve_sessions for planar
+    and pose); result.json lists each session's errors and sessions.png shows them.
 
     Every translational run with a reduced-rank map writes map.npz, the map with its
     posterior; --map MAP locates a later recording (its first position in the map's frame)

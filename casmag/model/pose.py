@@ -76,19 +76,27 @@ class PoseMotion(MotionModel):
     """N samples of 6-DoF pose odometry: positions P, orientation corrections D about a
     nominal (``RNOM`` rotation matrices, ``QREL`` nominal relative rotations), the biases
     ``bias_p`` (1, 3) and ``bias_w`` (1, 3), the blocks ``odometry``, ``bias_prior`` and
-    ``anchor`` (and ``height``); the field is read in the body frame at P[:, :map_dim]."""
+    ``anchor`` (and ``height``); the field is read in the body frame at P[:, :map_dim].
+
+    Several sessions (``starts``: the first sample of each) share the map: each has its own
+    known first pose (rows of ``anchor_p``, ``anchor_q``, ``QNOM0``), its own biases (rows of
+    ``bias_p``, ``bias_w``) and height, and no odometry links one session to the next (row
+    start - 1 of ``U`` and ``QREL`` is not read)."""
 
     n: int
     map_dim: int = 3
     height: bool = False
+    starts: tuple[int, ...] = (0,)
     name = "pose"
 
     def declare(self, b: NLPBuilder) -> Pose:
-        n = self.n
+        n, knots = self.n, Knots(self.n, 1, self.starts)
+        bounds = knots.bounds
+        S = len(bounds)
         P = b.variable("P", (n, 3))
         D = b.variable("D", (n, 3))
-        bp = b.variable("bias_p", (1, 3))
-        bw = b.variable("bias_w", (1, 3))
+        bp = b.variable("bias_p", (S, 3))
+        bw = b.variable("bias_w", (S, 3))
         U = b.parameter("U", (n - 1, 7))  # dpx, dpy, dpz, dqw, dqx, dqy, dqz
         dt = b.parameter("dt", (n - 1, 1))
         RNOM = b.parameter("RNOM", (n, 9))
@@ -97,36 +105,54 @@ class PoseMotion(MotionModel):
             k: b.parameter(k, (1, 1))
             for k in ("sigma_p", "sigma_r", "sigma_bp", "sigma_bw", "sigma_anchor", "sigma_att0")
         }
-        anchor_p = b.parameter("anchor_p", (1, 3))
-        anchor_q = b.parameter("anchor_q", (1, 4))  # the known first orientation
-        QNOM0 = b.parameter("QNOM0", (1, 4))
-        step = pose_step_function().map(n - 1, "serial")
-        E = step(
-            P[:-1, :].T, P[1:, :].T, D[:-1, :].T, D[1:, :].T, RNOM[:-1, :].T, QREL.T,
-            U[:, 0:3].T, U[:, 3:7].T, ca.repmat(bp.T, 1, n - 1), ca.repmat(bw.T, 1, n - 1),
-            dt.T, sig["sigma_p"], sig["sigma_r"],
-        )  # fmt: skip
+        anchor_p = b.parameter("anchor_p", (S, 3))
+        anchor_q = b.parameter("anchor_q", (S, 4))  # the known first orientations
+        QNOM0 = b.parameter("QNOM0", (S, 4))
+        step = pose_step_function().map(n - S, "serial")
+        if S == 1:
+            E = step(
+                P[:-1, :].T, P[1:, :].T, D[:-1, :].T, D[1:, :].T, RNOM[:-1, :].T, QREL.T,
+                U[:, 0:3].T, U[:, 3:7].T, ca.repmat(bp.T, 1, n - 1), ca.repmat(bw.T, 1, n - 1),
+                dt.T, sig["sigma_p"], sig["sigma_r"],
+            )  # fmt: skip
+        else:  # the steps within the sessions
+            steps = [i for a, e in bounds for i in range(a, e - 1)]
+            nxt = [i + 1 for i in steps]
+
+            def per_step(v: ca.MX) -> ca.MX:
+                return ca.horzcat(*[ca.repmat(v[s, :].T, 1, e - a - 1)
+                                    for s, (a, e) in enumerate(bounds)])  # fmt: skip
+
+            E = step(
+                P[steps, :].T, P[nxt, :].T, D[steps, :].T, D[nxt, :].T, RNOM[steps, :].T,
+                QREL[steps, :].T, U[steps, 0:3].T, U[steps, 3:7].T, per_step(bp),
+                per_step(bw), dt[steps].T, sig["sigma_p"], sig["sigma_r"],
+            )  # fmt: skip
         b.residual("odometry", E)
         b.cost(
             "bias_prior",
             0.5 * ca.sumsqr(bp / sig["sigma_bp"]) + 0.5 * ca.sumsqr(bw / sig["sigma_bw"]),
         )
-        eps = sd.ca_rotation_residual(
-            sd.ca_quat_mul(
-                sd.ca_quat_mul(QNOM0.T, sd.ca_gibbs(D[0, :].T)), sd.ca_quat_conj(anchor_q.T)
+        anchor = 0
+        for s, (a, _) in enumerate(bounds):
+            eps = sd.ca_rotation_residual(
+                sd.ca_quat_mul(
+                    sd.ca_quat_mul(QNOM0[s, :].T, sd.ca_gibbs(D[a, :].T)),
+                    sd.ca_quat_conj(anchor_q[s, :].T),
+                )
             )
-        )
-        b.cost(
-            "anchor",
-            0.5 * ca.sumsqr((P[0, :] - anchor_p) / sig["sigma_anchor"])
-            + 0.5 * ca.sumsqr(eps / sig["sigma_att0"]),
-        )
+            anchor += 0.5 * ca.sumsqr((P[a, :] - anchor_p[s, :]) / sig["sigma_anchor"])
+            anchor += 0.5 * ca.sumsqr(eps / sig["sigma_att0"])
+        b.cost("anchor", anchor)
         if self.height:
             sh = b.parameter("sigma_height", (1, 1))
-            b.cost("height", 0.5 * ca.sumsqr((P[:, 2] - anchor_p[0, 2]) / sh))
+            height = 0
+            for s, (a, e) in enumerate(bounds):
+                height += 0.5 * ca.sumsqr((P[a:e, 2] - anchor_p[s, 2]) / sh)
+            b.cost("height", height)
         rotation = Rotation(imu_rotation_function(), D, "D", RNOM, "RNOM")
         positions = P if self.map_dim == 3 else P[:, : self.map_dim]
-        return Pose(positions, n, self.map_dim, "P", None, Knots(n, 1), rotation)
+        return Pose(positions, n, self.map_dim, "P", None, knots, rotation)
 
 
 @dataclass(frozen=True)
@@ -144,6 +170,7 @@ class PoseStructure:
     curvature: str = "hybrid"
     height: bool = False
     window: bool = False
+    starts: tuple[int, ...] = (0,)
 
     def hilbert_basis(self) -> HilbertBasis:
         return cached_basis(self.basis)
@@ -162,19 +189,20 @@ class PoseStructure:
 
 def cached_pose_nlp(s: PoseStructure) -> NLP:
     """The pose model with the structure's map, built once per process."""
-    return cached_slam(PoseMotion(s.n, s.map_dim, s.height), s.field(), s.solver)
+    return cached_slam(PoseMotion(s.n, s.map_dim, s.height, s.starts), s.field(), s.solver)
 
 
 # --------------------------------------------------------------------------- numpy
-def nominal_parameters(Q: np.ndarray) -> dict[str, np.ndarray]:
+def nominal_parameters(Q: np.ndarray, starts: tuple[int, ...] = (0,)) -> dict[str, np.ndarray]:
     """The NLP parameters of a nominal orientation (N, 4): ``RNOM`` (N, 9, column-major
-    rotation matrices), ``QREL`` (N-1, 4) qnom_k^-1 qnom_{k+1}, ``QNOM0`` (1, 4)."""
+    rotation matrices), ``QREL`` (N-1, 4) qnom_k^-1 qnom_{k+1}, ``QNOM0`` (S, 4) at the
+    first sample of each session (``starts``)."""
     Q = sd.quat_normalize(np.asarray(Q, dtype=float))
     R = sd.quat_to_rotmat(Q)  # (N, 3, 3)
     return {
         "RNOM": R.transpose(0, 2, 1).reshape(-1, 9),  # column-major per row
         "QREL": sd.quat_mul(sd.quat_conj(Q[:-1]), Q[1:]),
-        "QNOM0": Q[:1],
+        "QNOM0": Q[list(starts)],
     }
 
 

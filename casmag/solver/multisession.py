@@ -21,9 +21,9 @@ growing prefixes, and the start with the lower MAP cost is kept (:func:`solve_tw
 :func:`_add_session`): on the real field neither start is right every time, and the cost
 told them apart in every case measured (README, Measured: real field).
 
-The planar model's sessions take the same steps, written for every staged motion model
-(casmag.solver.staged.solve_sessions); the session order and the per-session rows of a
-result are shared (casmag.solver.sessions).
+The planar and pose models' sessions take the same steps, written for every staged motion
+model (casmag.solver.staged.solve_sessions); the session order and the per-session rows of
+a result are shared (casmag.solver.sessions).
 
 ``casmag slam REC1.csv REC2.csv ... --out DIR`` runs it with the single-recording defaults
 (casmag.solver.recslam.recording_problem on the stacked data) and reports every session's errors in

@@ -29,7 +29,7 @@ from casmag.problem.spec import as_overrides
 from casmag.result import Result
 from casmag.result.metrics import heading_rms_deg
 from casmag.solver.planar import solve_planar_recording, solve_planar_sessions
-from casmag.solver.pose import solve_pose_recording
+from casmag.solver.pose import solve_pose_recording, solve_pose_sessions
 from casmag.strapdown import dead_reckon_pose, rotate
 from casmag.versions import __version__, versions
 
@@ -265,26 +265,28 @@ def slam_oriented_sessions(
     progress: Callable[[int, float, float, float], None] | None = None,
     on_warning: Callable[[str], None] | None = None,
 ) -> Result:
-    """Several planar recordings of one field with one map
-    (casmag.solver.planar.solve_planar_sessions), with :func:`slam_oriented`'s settings
-    and each recording's plausibility warnings (``recording`` in each). A pose recording
-    is refused: the pose model solves one session at a time. A constant magnetometer is
-    refused too: such a recording has no field to share a map of (solved alone, its
-    result is the odometry)."""
+    """Several planar or pose recordings of one field with one map
+    (casmag.solver.planar.solve_planar_sessions, casmag.solver.pose.solve_pose_sessions),
+    with :func:`slam_oriented`'s settings and each recording's plausibility warnings
+    (``recording`` in each). Recordings of different motion inputs, IMU recordings and a
+    constant magnetometer are refused (such a recording has no field to share a map of;
+    solved alone, its result is the odometry)."""
+    motion = recs[0].motion
     for rec in recs:
-        if rec.motion != recs[0].motion:
+        if rec.motion != motion:
             raise DataError(
-                f"{rec.path}: motion input {rec.motion!r} beside {recs[0].motion!r} in "
+                f"{rec.path}: motion input {rec.motion!r} beside {motion!r} in "
                 f"{recs[0].path}: the sessions of one map share one motion model"
             )
-        if rec.motion != "planar":
-            raise DataError(
-                f"{rec.path}: several sessions with one map take translational or planar "
-                f"recordings; the {rec.motion} model solves one recording at a time"
-            )
+    if motion not in _ORIENTED:
+        raise DataError(
+            f"{recs[0].path}: several sessions with one map take translational, planar or "
+            f"pose recordings; the {motion} model solves one recording at a time"
+        )
+    load, lag_of, _, _ = _ORIENTED[motion]
     overrides = as_overrides(overrides)
-    refuse_unused_solver_keys(overrides, "casmag slam on planar recordings", STAGED_SOLVER_KEYS)
-    options = load_planar_options(problem, overrides)
+    refuse_unused_solver_keys(overrides, f"casmag slam on {motion} recordings", STAGED_SOLVER_KEYS)
+    options = load(problem, overrides)
     found: list[dict[str, Any]] = []
     for rec in recs:
         if constant_magnetometer(rec.Y):
@@ -296,12 +298,13 @@ def slam_oriented_sessions(
         own = [
             *rec.notes,
             *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
-            *lag_warning(_planar_lag(rec)),
+            *lag_warning(lag_of(rec)),
         ]
         for line in warning_lines(rec.path, own):
             if on_warning is not None:
                 on_warning(line)
         found.extend({**w, "recording": str(rec.path)} for w in own)
-    result = solve_planar_sessions(list(recs), options, progress)
+    solve_sessions = solve_planar_sessions if motion == "planar" else solve_pose_sessions
+    result = solve_sessions(list(recs), options, progress)
     result.warnings = found
     return result

@@ -34,7 +34,13 @@ from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import heading_rms_deg, rmse_and_max
 from casmag.solver.ekf import FilterMap, PlanarNav, filter_result, run_safely
-from casmag.solver.sessions import revisit_order, session_errors
+from casmag.solver.sessions import (
+    Stacked,
+    check_starts,
+    require_first_poses,
+    revisit_order,
+    session_errors,
+)
 from casmag.solver.staged import (
     Solved,
     StagedModel,
@@ -102,11 +108,9 @@ def solve_planar(
     n = Y.shape[0]
     if U.shape != (n - 1, 3):
         raise ValueError(f"increments must have N-1 = {n - 1} rows, got {U.shape[0]}")
-    starts = tuple(int(a) for a in starts)
+    starts = check_starts(starts, n)
     S = len(starts)
     ends = [*starts[1:], n]
-    if starts[0] != 0 or any(e - a < 2 for a, e in zip(starts, ends, strict=True)):
-        raise ValueError(f"starts: sessions start at 0 and hold >= 2 samples each, got {starts}")
     if S > 1 and method != "map":
         raise DataError(f"method {method}: one session at a time (several sessions: map)")
     dt = np.ones(n - 1) if t is None else np.diff(np.asarray(t, dtype=float))
@@ -677,17 +681,7 @@ def solve_planar_sessions(
     ``recordings``)."""
     options = options or PlanarOptions()
     recs = [r if isinstance(r, Recording) else read_recording(r) for r in recordings]
-    for rec in recs:
-        if rec.motion != "planar":
-            raise DataError(
-                f"{rec.path}: motion input is {rec.motion!r}, the planar model needs "
-                "dfwd,dleft,dyaw"
-            )
-        if rec.P_true is None or rec.yaw_true is None:
-            raise DataError(
-                f"{rec.path}: several sessions need each one's first position and heading in "
-                "the common frame: truth columns (x, y and yaw) are missing"
-            )
+    require_first_poses(recs, "planar", "x, y and yaw")
     paths, fields = [], []
     for rec in recs:
         P, psi = dead_reckon_planar(rec.increments, rec.P_true[0, :2], float(rec.yaw_true[0]))
@@ -696,21 +690,13 @@ def solve_planar_sessions(
     ell = hyperparameters_from_data(options, np.vstack(paths), np.vstack(fields))[1]
     order = revisit_order(paths, ell)
     ordered = [recs[i] for i in order]
-    gap = np.zeros((1, 3))  # the step into the next session: not read
-    U = np.vstack([u for r in ordered for u in (r.increments, gap)][:-1])
-    starts = tuple(int(a) for a in np.cumsum([0] + [r.n_samples for r in ordered[:-1]]))
-    times, offset = [], 0.0
-    for r in ordered:  # one time axis, the sessions end to end
-        times.append(r.t - r.t[0] + offset)
-        offset = times[-1][-1] + float(np.median(np.diff(r.t)))
-    names = [Path(r.path).stem for r in ordered]
+    st = Stacked.of(ordered, np.zeros(3))
     result = solve_planar(
-        U[:, 0], U[:, 1], U[:, 2], np.vstack([r.Y for r in ordered]), options,
+        st.U[:, 0], st.U[:, 1], st.U[:, 2], st.Y, options,
         truth={"P": np.vstack([r.P_true[:, :2] for r in ordered]),
                "psi": np.concatenate([r.yaw_true for r in ordered])},
-        t=np.concatenate(times), progress=progress,
-        name=name or "+".join(Path(r.path).stem for r in recs), starts=starts,
-        session_names=names,
+        t=st.t, progress=progress, name=name or "+".join(Path(r.path).stem for r in recs),
+        starts=st.starts, session_names=st.names,
     )  # fmt: skip
     result.info["session_order"] = order
     result.info["recordings"] = [str(r.path) for r in ordered]

@@ -31,11 +31,19 @@ from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
 from casmag.solver.planar import hyperparameter_info, hyperparameters_from_data
+from casmag.solver.sessions import (
+    Stacked,
+    check_starts,
+    require_first_poses,
+    revisit_order,
+    session_errors,
+)
 from casmag.solver.staged import (
     Solved,
     StagedModel,
     WindowPrior,
     heading_bias_starts,
+    solve_sessions,
     solve_starts,
     truth_check,
     uncertainty,
@@ -83,6 +91,8 @@ def solve_pose(
     progress: Progress | None = None,
     name: str = "pose",
     method: str = "map",
+    starts: tuple[int, ...] = (0,),
+    session_names: list[str] | None = None,
 ) -> Result:
     """Pose odometry plus magnetometer GP-SLAM from arrays.
 
@@ -98,22 +108,39 @@ def solve_pose(
     biases removed.
 
     method: ``map`` (default) the MAP estimate; ``ekf`` the filter baseline
-    (casmag.solver.ekf.PoseNav) with the batch's map box, hyperparameters and noise."""
+    (casmag.solver.ekf.PoseNav) with the batch's map box, hyperparameters and noise.
+
+    starts: several sessions of one field stacked end to end, one map, as for
+    casmag.solver.planar.solve_planar (p0 (S, 3) and q0 (S, 4): each session's first pose,
+    by default the truth's; its own biases; added one at a time in the given order)."""
     options = options or PoseOptions()
     U = np.asarray(U, dtype=float)
     Y = np.asarray(mag, dtype=float)
     n = Y.shape[0]
     if U.shape != (n - 1, 7):
         raise ValueError(f"increments must be (N-1, 7) = ({n - 1}, 7), got {U.shape}")
+    starts = check_starts(starts, n)
+    S = len(starts)
+    if S > 1 and method != "map":
+        raise DataError(f"method {method}: one session at a time (several sessions: map)")
     dt = np.ones(n - 1) if t is None else np.diff(np.asarray(t, dtype=float))
+    if S > 1:  # the step into a session is not read; a positive value keeps the NLP finite
+        dt[[a - 1 for a in starts[1:]]] = 1.0
     anchor_kind = "given"
+    first = list(starts)
     if p0 is None:
-        p0 = truth["P"][0] if truth is not None else np.zeros(3)
+        p0 = truth["P"][first] if truth is not None else np.zeros((S, 3))
         anchor_kind = "first true position" if truth is not None else "origin (no truth)"
     if q0 is None:
-        q0 = truth["q"][0] if truth is not None and "q" in truth else np.array([1.0, 0, 0, 0])
-    p0, q0 = np.asarray(p0, dtype=float), sd.quat_normalize(np.asarray(q0, dtype=float))
-    P_dr, Q_dr = sd.dead_reckon_pose(U, p0, q0)
+        identity = np.tile([1.0, 0, 0, 0], (S, 1))
+        q0 = truth["q"][first] if truth is not None and "q" in truth else identity
+    p0s = np.reshape(np.asarray(p0, dtype=float), (S, 3))
+    q0s = sd.quat_normalize(np.reshape(np.asarray(q0, dtype=float), (S, 4)))
+    p0, q0 = p0s[0], q0s[0]
+    ends = [*starts[1:], n]
+    P_dr, Q_dr = np.empty((n, 3)), np.empty((n, 4))
+    for a, e, pa, qa in zip(starts, ends, p0s, q0s, strict=True):
+        P_dr[a:e], Q_dr[a:e] = sd.dead_reckon_pose(U[a : e - 1], pa, qa)
     Y_map = sd.rotate(Q_dr, Y)
     sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_map)
     dim = choose_map_dim(options, P_dr, ell)
@@ -124,7 +151,7 @@ def solve_pose(
         "sigma_p": options.sigma_p, "sigma_r": options.sigma_r,
         "sigma_bp": options.bias_p_prior, "sigma_bw": options.bias_w_prior,
         "sigma_anchor": options.sigma_anchor, "sigma_att0": options.sigma_att0,
-        "anchor_p": p0.reshape(1, 3), "anchor_q": q0.reshape(1, 4),
+        "anchor_p": p0s, "anchor_q": q0s,
         "sigma_m": sigma_m, "sigma_f": sigma_f, "lengthscale": ell, "sigma_lin": sigma_lin,
         **({"sigma_height": options.height_sigma} if height else {}),
     }  # fmt: skip
@@ -164,10 +191,17 @@ def solve_pose(
         if run is not None:
             result.details["bias_w"] = [float(v) for v in run.states[-1, 6:9]]
         return result
-    model = PoseStaged(options, U, dt, Y, p0, q0, P_dr, Q_dr, c0, params, dim, height, progress)
-    biases = heading_bias_starts(options.starts, options.start_heading_deg, float(dt.sum()))
-    staged = solve_starts(model, options.solver.warm_start, biases)
-    grown = staged.runs[staged.kept]
+    model = PoseStaged(
+        options, U, dt, Y, p0, q0, P_dr, Q_dr, c0, params, dim, height, progress, starts
+    )
+    duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
+    biases = heading_bias_starts(options.starts, options.start_heading_deg, duration)
+    ws = options.solver.warm_start
+    staged = solve_sessions(model, ws, biases) if S > 1 else solve_starts(model, ws, biases)
+    if S > 1:
+        strategy = "sessions"
+    else:
+        strategy = ws.strategy if len(staged.runs[staged.kept]) > 1 else "none"
     final = staged.final
     sol, nlp, s, Q_nom = final.sol, final.nlp, final.structure, final.nominal
     Q_est = orientations(Q_nom, sol.x["D"])
@@ -210,7 +244,7 @@ def solve_pose(
         P_true=None if truth is None else np.asarray(truth["P"], dtype=float),
         Q_true=None if truth is None or "q" not in truth else np.asarray(truth["q"], float),
     )  # fmt: skip
-    return Result(
+    result = Result(
         motion="pose",
         flags=flags,
         status=sol.status,
@@ -250,24 +284,34 @@ def solve_pose(
             "kernel": options.kernel,
             "biases_estimated": [b for b in _BIASES if b not in fixed],
             **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
-            "warm_start": options.solver.warm_start.strategy if len(grown) > 1 else "none",
+            "warm_start": strategy,
         },
         convergence=[sol.trace("GP-SLAM")],
         arrays=arrays,
     )
+    if S > 1:
+        bounds = list(zip(starts, ends, strict=True))
+        names = session_names or [f"session {i + 1}" for i in range(S)]
+        biases_p = list(sol.x["bias_p"].reshape(-1, 3)) if sol.success else None
+        P_true = None if truth is None else np.asarray(truth["P"], float)
+        result.info["sessions"] = session_errors(bounds, result, names, P_true, biases_p)
+        anchor_info["sessions"] = np.hstack([p0s, q0s]).tolist()  # x, y, z, qw, qx, qy, qz
+    return result
 
 
 def pose_structure(
     options: PoseOptions, k: int, around: np.ndarray, ell: float, dim: int, height: bool,
-    solver: Any,
+    solver: Any, starts: tuple[int, ...] = (0,),
 ) -> PoseStructure:  # fmt: skip
     """The first k samples' problem with the IPOPT settings ``solver``, its map box (for the
-    lengthscale ``ell``, in ``dim`` dimensions) around the positions ``around``."""
+    lengthscale ``ell``, in ``dim`` dimensions) around the positions ``around``; ``starts``:
+    the first sample of each session."""
     hb = make_basis(options.kernel, around[:, :dim], ell, options.num_basis, options.margin)
     return PoseStructure(
         n=k, map_dim=dim, kernel=options.kernel,
         basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
         solver=solver.model_dump_json(), curvature=options.curvature, height=height,
+        starts=tuple(a for a in starts if a < k),
     )  # fmt: skip
 
 
@@ -283,54 +327,80 @@ class PoseStaged(StagedModel):
         self, options: PoseOptions, U: np.ndarray, dt: np.ndarray, Y: np.ndarray,
         p0: np.ndarray, q0: np.ndarray, P_dr: np.ndarray, Q_dr: np.ndarray, c0: np.ndarray,
         params: dict[str, Any], dim: int, height: bool, progress: Progress | None = None,
+        starts: tuple[int, ...] = (0,),
     ) -> None:  # fmt: skip
+        """``starts``: several sessions, each from its known first pose (rows of
+        ``params["anchor_p"]`` and ``params["anchor_q"]``; ``U`` row start - 1 not read)."""
         self.options, self.U, self.dt, self.Y = options, U, dt, Y
         self.p0, self.q0, self.P_dr, self.Q_dr, self.c0 = p0, q0, P_dr, Q_dr, c0
         self.params, self.dim, self.height, self.progress = params, dim, height, progress
         self.n, self.solver = Y.shape[0], options.solver
         self.lengthscale = float(params["lengthscale"])
         self.fixed = [b for b in _BIASES if not getattr(options, f"estimate_{b}")]
+        self.session_starts = tuple(int(a) for a in starts)
+
+    def _sessions(self, k: int) -> list[tuple[int, int]]:
+        """(first, end) of each session the first k samples reach, cut at k."""
+        ends = [*self.session_starts[1:], self.n]
+        return [(a, min(e, k)) for a, e in zip(self.session_starts, ends, strict=True) if a < k]
 
     def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
         P, Q = self.P_dr[:k], self.Q_dr[:k]
         if bias != 0.0:  # about the vertical: a body-frame rate is one only for a level body
             t = np.concatenate([[0.0], np.cumsum(self.dt[: k - 1])])
             P, Q, _ = sd.turn_heading(P, Q, t, bias)
-        return {
-            "P": P,
-            "Q": Q,
-            "bias_p": np.zeros(3),
-            "bias_w": np.zeros(3),
-        }
+        S = len(self._sessions(k))
+        return {"P": P, "Q": Q, "bias_p": np.zeros((S, 3)), "bias_w": np.zeros((S, 3))}
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
         x = solved.sol.x
         return {
             "P": x["P"], "Q": orientations(solved.nominal, x["D"]),
-            "bias_p": x["bias_p"].ravel(), "bias_w": x["bias_w"].ravel(),
+            "bias_p": x["bias_p"].reshape(-1, 3), "bias_w": x["bias_w"].reshape(-1, 3),
         }  # fmt: skip
 
     def extend(self, states: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
-        P, Q, b_p, b_w = states["P"], states["Q"], states["bias_p"], states["bias_w"]
+        """The states continued by the odometry with each session's biases removed; a
+        session the first m samples do not reach starts at its known first pose (its dead
+        reckoning), biases 0."""
+        P, Q = states["P"], states["Q"]
+        b_p, b_w = np.reshape(states["bias_p"], (-1, 3)), np.reshape(states["bias_w"], (-1, 3))
         m = P.shape[0]
         if k == m:
             return dict(states)
-        Pr, Qr = sd.dead_reckon_pose(
-            self.U[m - 1 : k - 1], P[-1], Q[-1], b_p, b_w, self.dt[m - 1 : k - 1]
-        )
-        return {"P": np.vstack([P, Pr[1:]]), "Q": np.vstack([Q, Qr[1:]]), "bias_p": b_p,
-                "bias_w": b_w}  # fmt: skip
+        Ps, Qs, bps, bws = [P], [Q], [b_p], [b_w]
+        for s, (a, e) in enumerate(self._sessions(k)):
+            if e <= m:
+                continue
+            if a < m:  # continued from its last solved sample
+                Pr, Qr = sd.dead_reckon_pose(
+                    self.U[m - 1 : e - 1], P[-1], Q[-1], b_p[s], b_w[s], self.dt[m - 1 : e - 1]
+                )
+                Ps.append(Pr[1:])
+                Qs.append(Qr[1:])
+            else:  # new: its dead reckoning from its known first pose
+                Ps.append(self.P_dr[a:e])
+                Qs.append(self.Q_dr[a:e])
+                bps.append(np.zeros((1, 3)))
+                bws.append(np.zeros((1, 3)))
+        return {"P": np.vstack(Ps), "Q": np.vstack(Qs), "bias_p": np.vstack(bps),
+                "bias_w": np.vstack(bws)}  # fmt: skip
 
     def solve(
         self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float
     ) -> Solved:
         P0, Q0, dim, kernel = start["P"], start["Q"], self.dim, self.options.kernel
         around = self.P_dr if k == self.n else P0
-        s_k = pose_structure(self.options, k, around, self.lengthscale, dim, self.height, solver)
+        starts = self.session_starts[: len(self._sessions(k))]
+        s_k = pose_structure(
+            self.options, k, around, self.lengthscale, dim, self.height, solver, starts
+        )
         nlp_k = cached_pose_nlp(s_k)
         params_k = {
             **self.params, "U": self.U[: k - 1], "dt": self.dt[: k - 1].reshape(-1, 1),
-            "Y": self.Y[:k], "lengthscale": lengthscale, **nominal_parameters(Q0),
+            "Y": self.Y[:k], "lengthscale": lengthscale, **nominal_parameters(Q0, starts),
+            "anchor_p": self.params["anchor_p"][: len(starts)],
+            "anchor_q": self.params["anchor_q"][: len(starts)],
         }  # fmt: skip
         basis = s_k.hilbert_basis()
         sigma_m, sigma_f = self.params["sigma_m"], self.params["sigma_f"]
@@ -338,7 +408,8 @@ class PoseStaged(StagedModel):
         w = ridge_weights(basis, kernel, P0[:, :dim], Yk, self.c0, sigma_m, sigma_f, lengthscale)
         x0 = {
             "P": P0, "D": np.zeros((k, 3)),
-            "bias_p": start["bias_p"].reshape(1, 3), "bias_w": start["bias_w"].reshape(1, 3),
+            "bias_p": np.reshape(start["bias_p"], (-1, 3)),
+            "bias_w": np.reshape(start["bias_w"], (-1, 3)),
             "W": whiten(basis, kernel, sigma_f, lengthscale, w), "c": self.c0.reshape(3, 1),
         }  # fmt: skip
         sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=self.fixed)
@@ -353,6 +424,8 @@ class PoseStaged(StagedModel):
     def _window_structure(self, k: int, solver: SolverSpec) -> PoseStructure:
         """A window of k samples, its box around the whole dead reckoning (as the planar
         windows')."""
+        if len(self.session_starts) > 1:
+            raise ValueError("sliding windows: one session at a time, not several")
         s = pose_structure(
             self.options, k, self.P_dr, self.lengthscale, self.dim, self.height, solver
         )
@@ -466,10 +539,7 @@ def solve_pose_recording(
         )
     truth = None
     if rec.P_true is not None:
-        P = rec.P_true
-        if P.shape[1] == 2:
-            P = np.column_stack([P, np.zeros(P.shape[0])])
-        truth = {"P": P}
+        truth = {"P": _truth_3d(rec.P_true)}
         if rec.q_true is not None:
             truth["q"] = rec.q_true
     start = {"p0": np.zeros(3), "q0": np.array([1.0, 0, 0, 0])} if anchor == "origin" else {}
@@ -481,3 +551,42 @@ def solve_pose_recording(
         result.info["anchor"]["kind"] = "origin"
     result.info["recording"] = str(rec.path)
     return result
+
+
+def solve_pose_sessions(
+    recordings: list[Any],
+    options: PoseOptions | None = None,
+    progress: Progress | None = None,
+    name: str | None = None,
+) -> Result:
+    """Several pose recordings of one field (paths, or Recordings already read), one map,
+    as casmag.solver.planar.solve_planar_sessions: each session starts at its first true
+    pose (truth columns with the quaternion), keeps its own biases, and the sessions are
+    added one at a time, the most self-revisiting dead reckoning first."""
+    options = options or PoseOptions()
+    recs = [r if isinstance(r, Recording) else read_recording(r) for r in recordings]
+    require_first_poses(recs, "pose", "x, y[, z] and qw, qx, qy, qz")
+    truths = [_truth_3d(r.P_true) for r in recs]
+    paths, fields = [], []
+    for rec, P_true in zip(recs, truths, strict=True):
+        P, Q = sd.dead_reckon_pose(rec.increments, P_true[0], sd.quat_normalize(rec.q_true[0]))
+        paths.append(P)
+        fields.append(sd.rotate(Q, rec.Y))
+    ell = hyperparameters_from_data(options, np.vstack(paths), np.vstack(fields))[1]
+    order = revisit_order(paths, ell)
+    st = Stacked.of([recs[i] for i in order], [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    result = solve_pose(
+        st.U, st.Y, options,
+        truth={"P": np.vstack([truths[i] for i in order]),
+               "q": np.vstack([recs[i].q_true for i in order])},
+        t=st.t, progress=progress, name=name or "+".join(Path(r.path).stem for r in recs),
+        starts=st.starts, session_names=st.names,
+    )  # fmt: skip
+    result.info["session_order"] = order
+    result.info["recordings"] = [str(recs[i].path) for i in order]
+    return result
+
+
+def _truth_3d(P: np.ndarray) -> np.ndarray:
+    """True positions as (N, 3): a 2-D truth at height 0."""
+    return P if P.shape[1] == 3 else np.column_stack([P, np.zeros(P.shape[0])])

@@ -6,13 +6,26 @@ casmag.solver.multisession, the staged models' (planar) by casmag.solver.staged.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from casmag.errors import DataError
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.uncertainty import PositionUncertainty
+
+
+def check_starts(starts: Sequence[int], n: int) -> tuple[int, ...]:
+    """The first sample of each session of n stacked samples, checked: the first at 0,
+    each session at least 2 samples (ValueError)."""
+    out = tuple(int(a) for a in starts)
+    ends = [*out[1:], n]
+    if not out or out[0] != 0 or any(e - a < 2 for a, e in zip(out, ends, strict=True)):
+        raise ValueError(f"starts: sessions start at 0 and hold >= 2 samples each, got {out}")
+    return out
 
 
 def revisit_fraction(P: np.ndarray, radius: float, min_gap: int) -> float:
@@ -76,3 +89,44 @@ def session_errors(
         )
         rows.append(row)
     return rows
+
+
+@dataclass
+class Stacked:
+    """Recordings of one motion input stacked end to end in a given order: increments ``U``
+    (N-1, k) with a no-motion row ``gap`` before each later session (not read by the
+    models), magnetometer ``Y``, one time axis ``t`` (each session shifted to start one
+    median sample period after the previous one ended), ``starts`` and ``names``."""
+
+    U: np.ndarray
+    Y: np.ndarray
+    t: np.ndarray
+    starts: tuple[int, ...]
+    names: list[str]
+
+    @classmethod
+    def of(cls, recs: Sequence[Any], gap: Sequence[float]) -> Stacked:
+        row = np.asarray(gap, dtype=float).reshape(1, -1)
+        U = np.vstack([u for r in recs for u in (r.increments, row)][:-1])
+        starts = tuple(int(a) for a in np.cumsum([0] + [r.n_samples for r in recs[:-1]]))
+        times, offset = [], 0.0
+        for r in recs:
+            times.append(r.t - r.t[0] + offset)
+            offset = times[-1][-1] + float(np.median(np.diff(r.t)))
+        names = [Path(r.path).stem for r in recs]
+        return cls(U, np.vstack([r.Y for r in recs]), np.concatenate(times), starts, names)
+
+
+def require_first_poses(recs: Sequence[Any], motion: str, needs: str) -> None:
+    """Every recording of several sessions of one map is of ``motion`` and has the truth
+    columns its known first pose is read from (``needs``: which, for the message;
+    DataError naming the recording)."""
+    for rec in recs:
+        if rec.motion != motion:
+            raise DataError(f"{rec.path}: motion input is {rec.motion!r}, expected {motion!r}")
+        heading = rec.yaw_true if motion == "planar" else rec.q_true
+        if rec.P_true is None or heading is None:
+            raise DataError(
+                f"{rec.path}: several sessions need each one's first position and heading in "
+                f"the common frame: truth columns ({needs}) are missing"
+            )
