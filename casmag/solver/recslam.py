@@ -584,7 +584,7 @@ def slam_sessions(
     (:func:`slam`'s defaults, computed on all sessions together). The stacked
     result's RMSE is over all samples; ``info["sessions"]`` has each session's. The
     plausibility checks of :func:`slam` run on every recording (``recording`` in each
-    warning). Planar recordings are solved with the planar model's sessions
+    warning). Planar and pose recordings are solved with their models' sessions
     (casmag.solver.oriented.slam_oriented_sessions); recordings of different motion kinds
     together are refused."""
     overrides = as_overrides(overrides)
