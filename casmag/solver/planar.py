@@ -46,8 +46,7 @@ from casmag.solver.staged import (
     StagedModel,
     WindowPrior,
     heading_bias_starts,
-    solve_sessions,
-    solve_starts,
+    solve_staged,
     truth_check,
     uncertainty,
 )
@@ -170,13 +169,9 @@ def solve_planar(
     ws = options.solver.warm_start
     duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
     biases = heading_bias_starts(options.starts, options.start_heading_deg, duration)
-    staged = solve_sessions(model, ws, biases) if S > 1 else solve_starts(model, ws, biases)
+    staged, strategy = solve_staged(model, ws, biases)
     final = staged.final
     sol, nlp, s = final.sol, final.nlp, final.structure
-    if S > 1:
-        strategy = "sessions"
-    else:
-        strategy = ws.strategy if len(staged.runs[staged.kept]) > 1 else "none"
     hyper = {"sigma_f": float(sigma_f), "lengthscale": float(ell), "sigma_m": sigma_m}
     flags: list[dict[str, Any]] = []
     if truth is not None and "psi" in truth:
@@ -340,13 +335,8 @@ class PlanarStaged(StagedModel):
         if options.bias == "random_walk":
             self.params["bias_walk"] = options.bias_walk
 
-    def _sessions(self, k: int) -> list[tuple[int, int]]:
-        """(first, end) of each session the first k samples reach, cut at k."""
-        ends = [*self.session_starts[1:], self.n]
-        return [(a, min(e, k)) for a, e in zip(self.session_starts, ends, strict=True) if a < k]
-
     def _bias_rows(self, k: int) -> int:
-        S = len(self._sessions(k))
+        S = len(self.sessions(k))
         return k - S if self.options.bias == "random_walk" else S
 
     def session_bias(self, bias: np.ndarray, s: int, a: int, e: int) -> np.ndarray:
@@ -358,7 +348,7 @@ class PlanarStaged(StagedModel):
     def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
         U0 = self.U[: k - 1].copy()
         U0[:, 2] -= bias * self.dt[: k - 1]
-        S = len(self._sessions(k))
+        S = len(self.sessions(k))
         P0, psi_0 = dead_reckon_sessions(U0, self.anchors[:S], self.session_starts[:S])
         return {"P": P0, "psi": psi_0, "bias": np.full((self._bias_rows(k), 1), bias)}
 
@@ -372,7 +362,7 @@ class PlanarStaged(StagedModel):
         P, psi, bias, dt = states["P"], np.ravel(states["psi"]), states["bias"], self.dt
         m = P.shape[0]
         Ps, psis, biases = [P], [psi], []
-        for s, (a, e) in enumerate(self._sessions(k)):
+        for s, (a, e) in enumerate(self.sessions(k)):
             if e <= m:  # solved whole
                 biases.append(self.session_bias(bias, s, a, e))
                 continue
@@ -524,7 +514,7 @@ class PlanarStaged(StagedModel):
             "Y": self.Y[:k],
             "lengthscale": lengthscale,
         }
-        params_k["anchor"] = self.anchors[: len(self._sessions(k))]
+        params_k["anchor"] = self.anchors[: len(self.sessions(k))]
         tiled = self.options.form == "tiled"
         around = self.P_dr if k == self.n and not tiled else start["P"]
         s_k = planar_structure(

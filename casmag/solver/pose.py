@@ -43,8 +43,7 @@ from casmag.solver.staged import (
     StagedModel,
     WindowPrior,
     heading_bias_starts,
-    solve_sessions,
-    solve_starts,
+    solve_staged,
     truth_check,
     uncertainty,
 )
@@ -197,11 +196,7 @@ def solve_pose(
     duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
     biases = heading_bias_starts(options.starts, options.start_heading_deg, duration)
     ws = options.solver.warm_start
-    staged = solve_sessions(model, ws, biases) if S > 1 else solve_starts(model, ws, biases)
-    if S > 1:
-        strategy = "sessions"
-    else:
-        strategy = ws.strategy if len(staged.runs[staged.kept]) > 1 else "none"
+    staged, strategy = solve_staged(model, ws, biases)
     final = staged.final
     sol, nlp, s, Q_nom = final.sol, final.nlp, final.structure, final.nominal
     Q_est = orientations(Q_nom, sol.x["D"])
@@ -339,17 +334,12 @@ class PoseStaged(StagedModel):
         self.fixed = [b for b in _BIASES if not getattr(options, f"estimate_{b}")]
         self.session_starts = tuple(int(a) for a in starts)
 
-    def _sessions(self, k: int) -> list[tuple[int, int]]:
-        """(first, end) of each session the first k samples reach, cut at k."""
-        ends = [*self.session_starts[1:], self.n]
-        return [(a, min(e, k)) for a, e in zip(self.session_starts, ends, strict=True) if a < k]
-
     def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
         P, Q = self.P_dr[:k], self.Q_dr[:k]
         if bias != 0.0:  # about the vertical: a body-frame rate is one only for a level body
             t = np.concatenate([[0.0], np.cumsum(self.dt[: k - 1])])
             P, Q, _ = sd.turn_heading(P, Q, t, bias)
-        S = len(self._sessions(k))
+        S = len(self.sessions(k))
         return {"P": P, "Q": Q, "bias_p": np.zeros((S, 3)), "bias_w": np.zeros((S, 3))}
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
@@ -369,7 +359,7 @@ class PoseStaged(StagedModel):
         if k == m:
             return dict(states)
         Ps, Qs, bps, bws = [P], [Q], [b_p], [b_w]
-        for s, (a, e) in enumerate(self._sessions(k)):
+        for s, (a, e) in enumerate(self.sessions(k)):
             if e <= m:
                 continue
             if a < m:  # continued from its last solved sample
@@ -391,7 +381,7 @@ class PoseStaged(StagedModel):
     ) -> Solved:
         P0, Q0, dim, kernel = start["P"], start["Q"], self.dim, self.options.kernel
         around = self.P_dr if k == self.n else P0
-        starts = self.session_starts[: len(self._sessions(k))]
+        starts = self.session_starts[: len(self.sessions(k))]
         s_k = pose_structure(
             self.options, k, around, self.lengthscale, dim, self.height, solver, starts
         )

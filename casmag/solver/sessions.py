@@ -1,7 +1,8 @@
 """What several sessions of one field share, whatever their motion model: the order they
-are added in (:func:`revisit_order`) and each session's errors in a result
-(:func:`session_errors`). The translational sessions are solved by
-casmag.solver.multisession, the staged models' (planar) by casmag.solver.staged.solve_sessions."""
+are added in (:func:`revisit_order`), recordings stacked end to end (:class:`Stacked`,
+:func:`require_first_poses`) and each session's errors in a result (:func:`session_errors`).
+The translational sessions are solved by casmag.solver.multisession, the staged models'
+(planar, pose) by casmag.solver.staged.solve_sessions."""
 
 from __future__ import annotations
 

@@ -104,6 +104,11 @@ class StagedModel(ABC):
         """States of the first m samples continued to k >= m samples by the odometry with
         their biases removed."""
 
+    def sessions(self, k: int) -> list[tuple[int, int]]:
+        """(first, end) of each session the first k samples reach, cut at k."""
+        ends = [*self.session_starts[1:], self.n]
+        return [(a, min(e, k)) for a, e in zip(self.session_starts, ends, strict=True) if a < k]
+
     def continue_from(self, previous: Solved, k: int) -> dict[str, np.ndarray]:
         """The previous solve's states, continued to k samples by the odometry with the
         biases it estimated removed."""
@@ -505,18 +510,16 @@ def solve_sessions(model: StagedModel, ws: WarmStartSpec, biases: list[float]) -
     ``ws.first_samples``) its growing prefixes of ``ws.first_samples``, x ``ws.growth``,
     ... samples, each continued by the odometry with the bias estimated so far removed and
     stopped after ``ws.stage_max_iter`` iterations before the last."""
-    starts = model.session_starts
-    bounds = list(zip(starts, [*starts[1:], model.n], strict=True))
+    bounds = model.sessions(model.n)
     ell = model.lengthscale
     if ws.strategy == "sliding" and len(bounds) > 1:
         raise ValueError("sliding windows: one session at a time, not several")
     first = solve_starts(model, ws, biases, n=bounds[0][1])
     capped = model.solver.model_copy(update={"max_iter": ws.stage_max_iter})
-    prev = first.final
+    base = first.final  # the estimate so far
     added: list[list[tuple[str, list[Stage]]]] = []
     kept: list[int] = []
     for a, e in bounds[1:]:
-        base = prev
         tried = [
             (
                 "dead reckoning",
@@ -539,8 +542,20 @@ def solve_sessions(model: StagedModel, ws: WarmStartSpec, biases: list[float]) -
         best = _kept([run for _, run in tried], e)
         added.append(tried)
         kept.append(best)
-        prev = tried[best][1][-1].solved
+        base = tried[best][1][-1].solved
     return SessionsRun(first, added, kept)
+
+
+def solve_staged(
+    model: StagedModel, ws: WarmStartSpec, biases: list[float]
+) -> tuple[StagedRun | SessionsRun, str]:
+    """A staged model's solve and what ``info["warm_start"]`` records of it: its sessions
+    (:func:`solve_sessions`, ``sessions``) when it has several, else the strategy from each
+    start (:func:`solve_starts`; ``none`` when the kept start ran one batch)."""
+    if len(model.session_starts) > 1:
+        return solve_sessions(model, ws, biases), "sessions"
+    run = solve_starts(model, ws, biases)
+    return run, ws.strategy if len(run.runs[run.kept]) > 1 else "none"
 
 
 def wrong_basin_flag(
