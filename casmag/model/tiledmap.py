@@ -150,6 +150,46 @@ class TiledMapModel(MapModel):
             out[lay.c : lay.c + FIELD_DIM] = g_c
         return out / sigma**2
 
+    def residual_jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, Any]:
+        """The whitened residuals e = (y - m - c) / sigma_m (N, 3) at x and their Jacobian
+        (3N, n_x) with respect to x, a scipy CSR matrix whose rows are the residuals sample
+        by sample: in the knot corrections through P = Q + A C, the corner tiles' weights
+        and the constant field (casmag.solver.uncertainty's correction for correlated
+        residuals; J^T J is the block's Gauss-Newton Hessian)."""
+        kn, d, lay = self.knots, self.dim, self.lay
+        P, w, c, Y, sigma = self.unpack(x, p)
+        W = self.weights(w)
+        m = W.shape[1]
+        N, inv = kn.n, 1.0 / sigma
+        e = np.empty((N, FIELD_DIM))
+        D = np.empty((N, FIELD_DIM, d))
+        rows, cols, vals = [], [], []
+        for r in self.chunks():
+            field, ids, J, D[r] = self.tiles.evaluate(P[r], W)
+            e[r] = (Y[r] - field - c) * inv
+            k, o = np.nonzero(ids >= 0)
+            row = 3 * (r.start + k)[:, None, None] + np.arange(FIELD_DIM)[None, :, None]
+            col = lay.W + ids[k, o][:, None, None] * m + np.arange(m)[None, None, :]
+            rows.append(np.broadcast_to(row, (k.size, FIELD_DIM, m)).ravel())
+            cols.append(np.broadcast_to(col, (k.size, FIELD_DIM, m)).ravel())
+            vals.append(-inv * J[k, o].ravel())
+        shape = (FIELD_DIM * N, lay.n_x)
+        out = sps.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=shape
+        )
+        # positions: rows 3k + b, columns a N + k of P (column-major), then dP/dC = I_d (x) A
+        k_b = np.arange(FIELD_DIM * N)
+        at = (k_b, k_b // FIELD_DIM)
+        JP = sps.hstack(
+            [sps.csr_matrix((-inv * D[:, :, a].ravel(), at), shape=(shape[0], N)) for a in range(d)]
+        )
+        JC = (JP @ sps.block_diag([kn.matrix] * d)).tocoo()
+        out = out + sps.csr_matrix((JC.data, (JC.row, lay.C + JC.col)), shape=shape)
+        if lay.c is not None:
+            const = (k_b, lay.c + k_b % FIELD_DIM)
+            out = out + sps.csr_matrix((np.full(k_b.size, -inv), const), shape=shape)
+        return e, out.tocsr()
+
 
 @dataclass(frozen=True)
 class _Border:
@@ -201,6 +241,10 @@ class TiledGaussNewton(HessianCallback):
     def reset(self) -> None:
         super().reset()
         self.dropped = []
+
+    def residual_jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, Any]:
+        """:meth:`TiledMapModel.residual_jacobian` (casmag.solver.uncertainty)."""
+        return self.model.residual_jacobian(x, p)
 
     def _border_pairs(self, home: np.ndarray) -> _Border:
         tiles, kn = self.tiles, self.knots
@@ -496,6 +540,44 @@ class RotatedTiledModel:
             out[lay.c : lay.c + FIELD_DIM] = g_c
         return out / sigma**2
 
+    def residual_jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, Any]:
+        """The whitened residuals e = (y - R^T (m + c)) / sigma_m (n, 3) at x and their
+        Jacobian (3n, n_x) with respect to x, a scipy CSR matrix whose rows are the
+        residuals sample by sample: in each sample's position and orientation unknowns, its
+        corner tiles' whitened weights and the constant field (as
+        casmag.model.rotated.RotatedFieldGaussNewton.residual_jacobian for the global map)."""
+        lay, n = self.lay, self.n
+        P, o, aux, W, c, Y, sigma = self.unpack(x, p)
+        inv, scale, m = 1.0 / sigma, self.scale(p), W.shape[1]
+        local = np.hstack([lay.pos, lay.rot])  # (n, nl)
+        e = np.empty((n, FIELD_DIM))
+        rows, cols, vals = [], [], []
+
+        def add(row: np.ndarray, col: np.ndarray, val: np.ndarray) -> None:
+            rows.append(np.broadcast_to(row, val.shape).ravel())
+            cols.append(np.broadcast_to(col, val.shape).ravel())
+            vals.append(val.ravel())
+
+        comp = np.arange(FIELD_DIM)
+        for r in self.chunks():
+            ids, _, _, minus_Re, R, D, Jo, J = self.sample_gradients(P[r], o[r], aux[r], W, c, Y[r])
+            Rt = np.transpose(R, (0, 2, 1))  # Rt[k, a, b] = R_k[b, a]
+            e[r] = -np.einsum("kab,kb->ka", Rt, minus_Re) * inv
+            row = 3 * np.arange(r.start, r.stop)[:, None] + comp  # (k, 3)
+            loc = -inv * np.concatenate([np.einsum("kab,kbj->kaj", Rt, D), Jo], axis=2)
+            add(row[:, :, None], local[r][:, None, :], loc)
+            k, c_ = np.nonzero(ids >= 0)
+            Jw = -inv * np.einsum("kab,kbi->kai", Rt[k], J[k, c_]) * scale
+            weight = lay.W + ids[k, c_][:, None] * m + np.arange(m)  # (k, m)
+            add(row[k][:, :, None], weight[:, None, :], Jw)
+            if lay.c is not None:
+                add(row[:, :, None], (lay.c + comp)[None, None, :], -inv * Rt)
+        out = sps.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(FIELD_DIM * n, lay.n_x),
+        )
+        return e, out
+
 
 class RotatedTiledGaussNewton(HessianCallback):
     """Hessian (upper triangle, not scaled by lam_f) of :class:`RotatedTiledModel`: per
@@ -550,6 +632,10 @@ class RotatedTiledGaussNewton(HessianCallback):
     def reset(self) -> None:
         super().reset()
         self.dropped = []
+
+    def residual_jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, Any]:
+        """:meth:`RotatedTiledModel.residual_jacobian` (casmag.solver.uncertainty)."""
+        return self.model.residual_jacobian(x, p)
 
     def _pattern(self) -> None:
         lay, local = self.lay, self.local

@@ -40,6 +40,7 @@ from casmag.solver.uncertainty import (
     laplace_positions,
     magnetometer_correction,
     position_uncertainty,
+    whitened_correction,
 )
 from casmag.solver.windowing import Stage, continued, solve_growing
 from casmag.versions import __version__, versions
@@ -290,23 +291,26 @@ def _uncertainty(
     if solved.n_samples != P_est.shape[0]:
         return None, None, None
 
-    if structure.form == "tiled":
-        return (
-            {"error": "not computed: the tiled map's Laplace covariance is not implemented"},
-            None,
-            None,
-        )
     if nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
         reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
         return {"error": f"not computed: {reason}"}, None, None
     params, _ = parameters_and_guess(problem, solved, structure)
     sigma_o, sigma_m = problem.assumed_sigma_odometry, problem.assumed_sigma_m
     knots, dim = structure.knots, structure.dim
+
+    def correction(factors: np.ndarray) -> np.ndarray:
+        if structure.form != "tiled":
+            return magnetometer_correction(nlp, sol, structure, factors, sigma_m)
+        # the tiled block gives its residuals' Jacobian (casmag.model.tiledmap)
+        x = nlp.x_layout.pack({k: v for k, v in sol.x.items() if k in nlp.x_layout.entries})
+        _, J = nlp.keep[1].residual_jacobian(x, nlp.p_layout.pack(params))
+        return whitened_correction(J, factors)
+
     try:
         return laplace_positions(
             lambda meat: position_uncertainty(nlp, sol, params, knots, dim, sigma_o, meat=meat),
             lambda: solved.Y - field_estimate(structure, sol, P_est),
-            lambda factors: magnetometer_correction(nlp, sol, structure, factors, sigma_m),
+            correction,
             knots.bounds,
             sigma_m,
             problem.spec.solver.uncertainty_inflation,

@@ -616,12 +616,9 @@ def uncertainty(
     """The Laplace position covariance of a staged model's final solve
     (casmag.solver.uncertainty.sample_state_uncertainty, with ``solver.uncertainty_inflation``):
     (summary, covariance, plain covariance); None for each when ``solver.uncertainty`` is off
-    or the solve failed. A tiled map's is not implemented (the summary says so)."""
+    or the solve failed."""
     if not (final.sol.success and solver.uncertainty):
         return None, None, None
-    if getattr(final.structure, "tiled", False):
-        error = "not computed: the tiled map's Laplace covariance is not implemented"
-        return {"error": error}, None, None
     return sample_state_uncertainty(
         final.nlp, final.sol, final.sol.x["P"], P_true, sigma_m, solver.uncertainty_inflation
     )
