@@ -200,7 +200,8 @@ class ReducedRankField(FieldModel):
     (casmag.model.rrmap); hyperparameters in ``estimate`` are unknowns, with ``gp_logdet``.
     Through a rotation the unknowns are whitened weights and the residual is symbolic per
     sample (casmag.model.rotated); ``curvature`` sets its Hessian callback's mode
-    (``hybrid``, ``exact`` or ``gauss-newton``; the map-frame block takes it from
+    (``hybrid``, ``exact`` or ``gauss-newton``) unless ``solver.hessian`` is
+    ``gauss-newton`` (:meth:`mode`; the map-frame block takes its mode from
     ``solver.hessian``). ``metis``: MUMPS with METIS ordering unless the problem chose one."""
 
     kernel: str
@@ -227,7 +228,7 @@ class ReducedRankField(FieldModel):
             add_rotated_map(b, basis, self.kernel, pose)
             if solver.hessian not in ("auto", "gauss-newton"):
                 return None
-            return rotated_gauss_newton(b, basis, self.kernel, pose, self.curvature)
+            return rotated_gauss_newton(b, basis, self.kernel, pose, self.mode(solver))
         sigma_f, ell, _ = (hyperparameter(b, h, h in self.estimate) for h in HYPERPARAMETERS)
         W, c = self._weights(b, basis)
         sigma_lin = b.parameter("sigma_lin", (1, 1)) if c is not None else None
@@ -240,6 +241,12 @@ class ReducedRankField(FieldModel):
         if c is not None:
             b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
         return self._hessian(solver, model, "mag_hessian")
+
+    def mode(self, solver: SolverSpec) -> str:
+        """The rotated block's Hessian mode: ``gauss-newton`` when ``solver.hessian`` says
+        so, else the model's ``curvature`` (``auto``; ``exact`` and ``limited-memory`` take
+        CasADi's Hessian or none)."""
+        return "gauss-newton" if solver.hessian == "gauss-newton" else self.curvature
 
     def _weights(self, b: NLPBuilder, basis: HilbertBasis) -> tuple[ca.MX, ca.MX | None]:
         M = basis.num_basis
@@ -285,7 +292,7 @@ class WindowField(ReducedRankField):
             add_rotated_map(b, basis, self.kernel, pose, window=True)
             if solver.hessian not in ("auto", "gauss-newton"):
                 return None
-            return rotated_gauss_newton(b, basis, self.kernel, pose, self.curvature)
+            return rotated_gauss_newton(b, basis, self.kernel, pose, self.mode(solver))
         W, c = self._weights(b, basis)
         b.parameter("sigma_m", (1, 1))
         n_r, n_c = self.prior_shape
@@ -307,7 +314,8 @@ class TiledField(FieldModel):
     IMU; casmag.model.tiledmap.RotatedTiledModel); the magnetometer block's Hessian is
     sparse in the tiles (``home``: each sample's nearest grid point when the NLP was built,
     which fixes the pose-weight pattern), Gauss-Newton and then exact in each sample's pose
-    (``hybrid``, casmag.model.tiledmap). Hyperparameters are parameters."""
+    (``hybrid``, casmag.model.tiledmap; ``solver.hessian`` ``gauss-newton`` or ``exact``
+    keeps one of them throughout). Hyperparameters are parameters."""
 
     grid: TileGrid
     home: tuple[int, ...]
@@ -323,6 +331,8 @@ class TiledField(FieldModel):
 
     def declare(self, b: NLPBuilder, pose: Pose, solver: SolverSpec) -> HessianPart | None:
         tiles = self.tiles()
+        # The tiled blocks' Hessians are numpy callbacks in every mode (no CasADi one).
+        mode = {"auto": "hybrid"}.get(solver.hessian, solver.hessian)
         sigma_f, ell, _ = (hyperparameter(b, h, False) for h in HYPERPARAMETERS)
         W = b.variable("W", (tiles.per_tile, tiles.num_tiles))
         c = b.variable("c", (FIELD_DIM, 1)) if self.constant_field else None
@@ -333,7 +343,9 @@ class TiledField(FieldModel):
                 b, pose, self.constant_field, "magnetometer",
                 lambda layout: TiledMapModel(tiles, pose.knots, pose.dim, layout),
             )  # fmt: skip
-            hessian: Any = lambda: TiledGaussNewton("tiled_mag_hessian", model, self.home)  # noqa: E731
+            hessian: Any = lambda: TiledGaussNewton(  # noqa: E731
+                "tiled_mag_hessian", model, self.home, mode=mode
+            )
         else:
             # Read through the body's rotation (planar with heading, IMU): y = R^T (m + c).
             b.parameter("Y", (pose.n, FIELD_DIM))
@@ -344,7 +356,7 @@ class TiledField(FieldModel):
             )
             b.cost("magnetometer", mag(b.x_vector(), b.p_vector()))
             hessian = lambda: RotatedTiledGaussNewton(  # noqa: E731
-                "rotated_tiled_hessian", model, self.home
+                "rotated_tiled_hessian", model, self.home, mode=mode
             )
         if pose.rotation is None:
             b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2) / S))
