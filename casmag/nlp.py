@@ -415,9 +415,15 @@ class NLP:
 
     def hessian_nonzeros(self) -> int:
         """Non-zeros of the upper-triangular Hessian IPOPT factorises (its pattern is fixed
-        when the NLP is built)."""
+        when the NLP is built); with ``solver.hessian: limited-memory`` (no Hessian) those
+        of the constraint Jacobian plus the diagonal that stands in for it."""
         if self._nonzeros is None:
-            self._nonzeros = int(self.solver.get_function("nlp_hess_l").sparsity_out(0).nnz())
+            if self.solver.has_function("nlp_hess_l"):
+                pattern = self.solver.get_function("nlp_hess_l").sparsity_out(0)
+                self._nonzeros = int(pattern.nnz())
+            else:
+                jac = self.solver.get_function("nlp_jac_g").sparsity_out("jac_g_x")
+                self._nonzeros = int(jac.nnz()) + self.x_layout.size
         return self._nonzeros
 
     def _refused(

@@ -84,3 +84,24 @@ def test_a_quadratic_block_gives_its_precision_as_its_hessian():
     np.testing.assert_allclose(
         np.concatenate([sol.x["u"].ravel(), sol.x["v"].ravel()]), mv, atol=1e-8
     )
+
+
+def test_a_limited_memory_nlp_solves_under_a_memory_budget_and_has_no_covariance():
+    """``solver.hessian: limited-memory`` builds no Hessian: the memory estimate before a
+    solve counts the constraint Jacobian and a diagonal instead (it used to ask for the
+    Hessian and raise), the solve runs, and the Laplace covariance says why it is not
+    computed instead of raising."""
+    from casmag import memory
+    from casmag.solver.uncertainty import without_hessian
+
+    b = NLPBuilder()
+    x = b.variable("x", (3, 1))
+    b.cost("quadratic", ca.sumsqr(x - 1.0))
+    nlp = b.build(SolverSpec(hessian="limited-memory", max_iter=50))
+    assert nlp.progress.budget == memory.budget_bytes(None)  # checked before every solve
+    assert nlp.hessian_nonzeros() >= 3
+    sol = nlp.solve({}, {"x": np.zeros(3)})
+    assert sol.success, sol.status
+    np.testing.assert_allclose(np.ravel(sol.x["x"]), 1.0, atol=1e-6)
+    assert "limited-memory" in without_hessian(nlp)["error"]
+    assert without_hessian(_tiny_nlp(1e-8)) is None

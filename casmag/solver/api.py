@@ -41,6 +41,7 @@ from casmag.solver.uncertainty import (
     magnetometer_correction,
     position_uncertainty,
     whitened_correction,
+    without_hessian,
 )
 from casmag.solver.windowing import Stage, continued, solve_growing
 from casmag.versions import __version__, versions
@@ -294,6 +295,8 @@ def _uncertainty(
     if nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
         reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
         return {"error": f"not computed: {reason}"}, None, None
+    if (missing := without_hessian(nlp)) is not None:
+        return missing, None, None
     params, _ = parameters_and_guess(problem, solved, structure)
     sigma_o, sigma_m = problem.assumed_sigma_odometry, problem.assumed_sigma_m
     knots, dim = structure.knots, structure.dim

@@ -212,6 +212,14 @@ def _row_quadratic(A, B: np.ndarray) -> np.ndarray:
 UNCERTAINTY_MAX_UNKNOWNS = 12_000
 
 
+def without_hessian(nlp: NLP) -> dict[str, Any] | None:
+    """The summary ``{"error": reason}`` when the NLP builds no Hessian to take the Laplace
+    covariance from (``solver.hessian: limited-memory``), else None."""
+    if nlp.solver.has_function("nlp_hess_l"):
+        return None
+    return {"error": "not computed: solver.hessian limited-memory builds no Hessian"}
+
+
 def laplace_positions(
     covariance: Callable[[np.ndarray | None], PositionUncertainty],
     residuals: Callable[[], np.ndarray],
@@ -265,6 +273,8 @@ def sample_state_uncertainty(
     if nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
         reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
         return {"error": f"not computed: {reason}"}, None, None
+    if (missing := without_hessian(nlp)) is not None:
+        return missing, None, None
     n, d = P_est.shape
     knots = Knots(n, 1)
     block = nlp.keep[1] if nlp.keep is not None else None
