@@ -77,7 +77,7 @@ def stack(sessions: Sequence[Dataset]) -> Dataset:
 
 def session_order(sessions: Sequence[Dataset], lengthscale: float) -> list[int]:
     """Sessions by decreasing revisit fraction of their dead reckoning
-    (casmag.solver.windowing.revisit_order)."""
+    (casmag.solver.sessions.revisit_order)."""
     return revisit_order([d.dead_reckoning() for d in sessions], lengthscale)
 
 
