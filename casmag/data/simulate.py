@@ -74,29 +74,49 @@ class Dataset:
         return np.vstack(parts)
 
     def prefix(self, n: int) -> Dataset:
-        """The first n samples (and their n - 1 odometry steps)."""
+        """The first n samples (and their n - 1 odometry steps); of stacked sessions, the
+        sessions the first n samples reach (the last one cut at n), each its anchor and
+        true bias."""
         if not 2 <= n <= self.n_samples:
             raise ValueError(f"prefix length {n} outside [2, {self.n_samples}]")
-        if self.n_sessions > 1:
-            raise ValueError("a prefix of several stacked sessions is not defined")
+        reached = sum(1 for a in self.starts if a < n)
+        rows = slice(0, reached)
+        several = self.n_sessions > 1
         return replace(
             self,
             U=self.U[: n - 1],
             Y=self.Y[:n],
             P_true=None if self.P_true is None else self.P_true[:n],
             M_true=None if self.M_true is None else self.M_true[:n],
+            anchor=np.asarray(self.anchor)[rows] if several else self.anchor,
+            bias_true=np.asarray(self.bias_true)[rows]
+            if several and self.bias_true is not None
+            else self.bias_true,
+            starts=self.starts[:reached],
         )
 
     def debiased(self, bias: np.ndarray) -> Dataset:
         """The same data with a per-step bias subtracted from every odometry increment (the
-        true bias, when known, is reduced by the same amount)."""
-        bias = np.asarray(bias, dtype=float).ravel()
-        if self.n_sessions > 1:
-            raise ValueError("debiasing several stacked sessions needs one bias per session")
+        true bias, when known, is reduced by the same amount); of stacked sessions, one bias
+        row per session ((S, d)), each subtracted from its own session's steps."""
+        bias = np.asarray(bias, dtype=float)
+        if self.n_sessions == 1:
+            bias = bias.ravel()
+            return replace(
+                self,
+                U=self.U - bias,
+                bias_true=None if self.bias_true is None else self.bias_true - bias,
+            )
+        bias = bias.reshape(self.n_sessions, self.dim)
+        U = self.U.copy()
+        for b, (i, j) in zip(bias, self.session_bounds, strict=True):
+            U[i : j - 1] -= b
         return replace(
             self,
-            U=self.U - bias,
-            bias_true=None if self.bias_true is None else self.bias_true - bias,
+            U=U,
+            bias_true=None
+            if self.bias_true is None
+            else np.reshape(self.bias_true, bias.shape) - bias,
         )
 
 

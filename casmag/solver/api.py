@@ -32,8 +32,8 @@ from casmag.result.evaluation import anchor_info
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.imu import solve_imu
 from casmag.solver.oriented import solve_oriented
-from casmag.solver.sliding import solve_coarse_to_fine, solve_sliding
-from casmag.solver.translational import solve_translational
+from casmag.solver.sliding import solve_sliding
+from casmag.solver.translational import solve_translational, solve_translational_strategy
 from casmag.solver.uncertainty import (
     UNCERTAINTY_MAX_UNKNOWNS,
     NotPositiveDefinite,
@@ -43,7 +43,7 @@ from casmag.solver.uncertainty import (
     whitened_correction,
     without_hessian,
 )
-from casmag.solver.windowing import Stage, continued, solve_growing
+from casmag.solver.windowing import continued
 from casmag.versions import __version__, versions
 
 
@@ -98,12 +98,17 @@ def solve(
     else:
         refuse_simulation_truths(problem, data)
     ws = problem.spec.solver.warm_start
-    stages: list[Stage] = []
-    if ws.strategy == "growing" and data.n_samples > ws.first_samples:
-        sol, nlp, hyper, field, structure, solved, stages = solve_growing(problem, data, progress)
-    elif ws.strategy in ("sliding", "coarse-to-fine"):
-        staged = solve_sliding if ws.strategy == "sliding" else solve_coarse_to_fine
-        sol, nlp, hyper, field, structure, solved, stages = staged(problem, data, progress)
+    stages: list[dict[str, Any]] = []
+    if initial_positions is None and (
+        ws.strategy == "coarse-to-fine"
+        or (ws.strategy == "growing" and data.n_samples > ws.first_samples)
+    ):
+        sol, nlp, hyper, field, structure, solved, stages = solve_translational_strategy(
+            problem, data, progress
+        )
+    elif ws.strategy == "sliding" and initial_positions is None:
+        sol, nlp, hyper, field, structure, solved, windows = solve_sliding(problem, data, progress)
+        stages = [st.to_dict() for st in windows]
     else:
         sol, nlp, hyper, field, structure = solve_translational(
             problem, data, progress, initial_positions
@@ -197,7 +202,7 @@ def solve(
         if data.bias_true is None
         else [float(v) for v in np.ravel(data.bias_true)],
         cost_blocks=sol.cost_blocks(),
-        stages=[st.to_dict() for st in stages],
+        stages=stages,
         cost_per_iteration=sol.cost_per_iteration,
         constraint_violation_per_iteration=sol.inf_pr_per_iteration,
         uncertainty=uncertainty,

@@ -17,13 +17,14 @@ whose dead reckoning revisits itself most comes first (:func:`session_order`, co
 without truth), and every later stage starts from the previous stage's trajectories plus the
 new session's dead reckoning. On that pair this reached the truth's optimum in 6 iterations
 for the last stage. Long sessions (more than 2 x FIRST_PREFIX samples) are also tried from
-growing prefixes, and the start with the lower MAP cost is kept (:func:`solve_two_starts`,
-:func:`_add_session`): on the real field neither start is right every time, and the cost
-told them apart in every case measured (README, Measured: real field).
+growing prefixes, and the start with the lower MAP cost is kept (:func:`starts`): on the
+real field neither start is right every time, and the cost told them apart in every case
+measured (README, Measured: real field).
 
-The planar and pose models' sessions take the same steps, written for every staged motion
-model (casmag.solver.staged.solve_sessions); the session order and the per-session rows of
-a result are shared (casmag.solver.sessions).
+These steps are casmag.solver.staged.solve_sessions, written once for every motion model;
+here it runs on the translational model (casmag.solver.translational.TranslationalStaged),
+and the session order and the per-session rows of a result are shared
+(casmag.solver.sessions).
 
 ``casmag slam REC1.csv REC2.csv ... --out DIR`` runs it with the single-recording defaults
 (casmag.solver.recslam.recording_problem on the stacked data) and reports every session's errors in
@@ -38,13 +39,14 @@ from typing import Any
 import numpy as np
 
 from casmag.data.simulate import Dataset
-from casmag.nlp import lowest_cost
-from casmag.problem.spec import Problem
+from casmag.problem.spec import Problem, WarmStartSpec
 from casmag.result import Result
 from casmag.solver.api import solve
 from casmag.solver.sessions import revisit_order, session_errors
-from casmag.solver.translational import solve_translational
-from casmag.solver.windowing import Stage, solve_growing, stage_lengths
+from casmag.solver.staged import SessionsRun, StagedRun, solve_starts
+from casmag.solver.staged import Stage as StagedStage
+from casmag.solver.staged import solve_sessions as staged_sessions
+from casmag.solver.translational import TranslationalStaged
 
 
 def stack(sessions: Sequence[Dataset]) -> Dataset:
@@ -88,27 +90,30 @@ def solve_sessions(
     order: Sequence[int] | None = None,
 ) -> tuple[Result, Dataset, list[int]]:
     """Solve sessions with one shared map, adding them one at a time in ``order`` (default
-    :func:`session_order`). Returns the final result, the stacked data in that order and
-    the order; the first records of ``result.stages`` (name ``start``) are every stage."""
+    :func:`session_order`) by casmag.solver.staged.solve_sessions on the translational
+    model: the first session from :func:`starts`, each later one from its dead reckoning
+    and from its growing prefixes (FIRST_PREFIX, x ``growth``, ... samples), the lower MAP
+    cost kept. The final solve starts from the kept positions. Returns the final result,
+    the stacked data in that order and the order; the first records of ``result.stages``
+    (name ``start``, with ``session``, ``start``, ``cost`` and ``kept``) are every solve
+    before it."""
     order = (
         list(order) if order is not None else session_order(sessions, problem.assumed_lengthscale)
     )
     ordered = [sessions[i] for i in order]
-    stages: list[dict[str, Any]] = []
-    P_prev: np.ndarray | None = None
-    for k in range(1, len(ordered)):
-        if k == 1:
-            P_prev, first = solve_two_starts(problem, ordered[0])
-            stages.extend(first)
-            continue
-        P_prev, added = _add_session(problem, ordered[: k - 1], P_prev, ordered[k - 1])
-        stages.extend(added)
     data = stack(ordered)
-    P0 = None
-    if P_prev is not None:  # the last session is added by the final solve
-        P0, added = _add_session(problem, ordered[:-1], P_prev, ordered[-1], final=True)
-        stages.extend(added)
-    result = solve(problem, data, progress, initial_positions=P0)
+    if len(ordered) == 1:
+        result = solve(problem, data, progress)
+        result.info["session_order"] = order
+        return result, data, order
+    model = TranslationalStaged(problem, data)
+    strategies, _ = starts(problem, ordered[0].n_samples)
+    run = staged_sessions(model, strategies[-1], [0.0] * len(strategies), strategies)
+    stages = _records(model, run)
+    final = run.final
+    P0 = model.states(final)["P"] if final.sol.success else data.dead_reckoning()
+    batch = problem.with_overrides(["solver.warm_start.strategy=none"])
+    result = solve(batch, data, progress, initial_positions=P0)
     result.info["session_order"] = order
     result.stages = stages + result.stages
     result.iterations += sum(st["iterations"] for st in stages)
@@ -119,109 +124,75 @@ FIRST_PREFIX = 400
 """First prefix [samples] of the growing start tried for the first session."""
 
 
-def _stage(data: Dataset, sol: Any, nlp: Any, start: str) -> dict[str, Any]:
-    bias = sol.x.get("bias")
+def starts(problem: Problem, n: int) -> tuple[list[WarmStartSpec], list[str]]:
+    """The starts of a translational solve of n samples and their names: the batch from
+    the dead reckoning, and (above 2 x FIRST_PREFIX samples) growing prefixes from
+    FIRST_PREFIX samples."""
+    ws = problem.spec.solver.warm_start
+    batch = ws.model_copy(update={"strategy": "none"})
+    if n <= 2 * FIRST_PREFIX:
+        return [batch], ["dead reckoning"]
+    grow = ws.model_copy(update={"strategy": "growing", "first_samples": FIRST_PREFIX})
+    return [batch, grow], ["dead reckoning", "growing prefixes"]
+
+
+def _record(model: TranslationalStaged, st: StagedStage, name: str, **more: Any) -> dict:
+    so, nlp = st.solved.sol, st.solved.nlp
+    bias = model.states(st.solved)["bias"] if "bias" in so.x else None
     return {
-        **Stage(
-            samples=data.n_samples,
-            status=sol.status,
-            success=sol.success,
-            iterations=sol.iterations,
-            solve_seconds=sol.solve_seconds,
-            build_seconds=nlp.build_seconds,
-            bias=None if bias is None else [float(v) for v in np.ravel(bias)],
-            name="start",
-        ).to_dict(),
-        "start": start,
-        "cost": float(sum(sol.blocks_after.values())) if sol.success else None,
+        "name": "start",
+        "samples": st.samples,
+        "status": so.status,
+        "success": so.success,
+        "iterations": so.iterations,
+        "solve_seconds": so.solve_seconds,
+        "build_seconds": nlp.build_seconds,
+        "bias": None if bias is None else [float(v) for v in np.ravel(bias)],
+        "start": name,
+        "cost": so.objective if so.success else None,
+        **more,
     }
 
 
-def _add_session(
-    problem: Problem,
-    previous: Sequence[Dataset],
-    P_prev: np.ndarray,
-    new: Dataset,
-    final: bool = False,
-) -> tuple[np.ndarray, list[dict[str, Any]]]:
-    """Positions of the earlier sessions plus a new one, from two starts, keeping the lower
-    MAP cost: the new session's dead reckoning, and the new session grown in prefixes of
-    FIRST_PREFIX, x4, ... samples beside the full earlier sessions (each prefix continued
-    by the odometry with the bias estimated so far removed). Measured on the real field at
-    1.5 m of drift: from the dead reckoning alone, sequence 2 added to sequence 5 stopped at
-    cost 2,519 and pulled the shared map away, so that every session ended at 0.14-1.0 m.
-    With ``final`` the full problem from the better start is left to the caller (its
-    result is the answer); the returned stages then hold the starts' partial solves only."""
-    both = stack([*previous, new])
-    dr_start = np.vstack([P_prev, new.dead_reckoning()])
-    tried: list[tuple[float, np.ndarray, dict[str, Any]]] = []
-    stages: list[dict[str, Any]] = []
-    if not final or new.n_samples > 2 * FIRST_PREFIX:
-        sol, nlp, _, _, _ = solve_translational(problem, both, None, dr_start)
-        stages.append(_stage(both, sol, nlp, "dead reckoning"))
-        if sol.success:
-            tried.append((stages[-1]["cost"], sol.x["P"], stages[-1]))
-    if new.n_samples > 2 * FIRST_PREFIX:
-        ws = problem.spec.solver.warm_start
-        capped = problem.with_overrides([f"solver.max_iter={ws.stage_max_iter}"])
-        lengths = stage_lengths(new.n_samples, FIRST_PREFIX, ws.growth)
-        P_new, P_old = new.dead_reckoning()[: lengths[0]], P_prev
-        bias = np.zeros(new.dim)
-        for i, m in enumerate(lengths):
-            part = new.prefix(m)
-            DR = part.dead_reckoning()
-            done = P_new.shape[0]
-            steps = np.arange(1, m - done + 1)[:, None]
-            start = np.vstack([P_new, P_new[-1] + DR[done:] - DR[done - 1] - steps * bias])
-            sub = stack([*previous, part])
-            last = i == len(lengths) - 1
-            sol, nlp, _, _, _ = solve_translational(
-                problem if last else capped, sub, None, np.vstack([P_old, start])
-            )
-            st = _stage(sub, sol, nlp, "growing prefixes")
-            stages.append(st)
-            P_all = sol.x["P"]
-            P_old, P_new = P_all[: P_prev.shape[0]], P_all[P_prev.shape[0] :]
-            if sol.x.get("bias") is not None:
-                bias = np.ravel(sol.x["bias"])[-new.dim :]
-            if last and sol.success:
-                tried.append((st["cost"], P_all, st))
-    if not tried:
-        return dr_start, stages
-    best = min(tried, key=lambda t: t[0])
-    for _, _, st in tried:
-        st["kept"] = st is best[2]
-    return best[1], stages
+def start_records(model: TranslationalStaged, run: StagedRun, names: list[str]) -> list[dict]:
+    """One ``start`` record of each start of a run (its last solve: ``start``, ``cost``,
+    ``kept``)."""
+    return [
+        _record(model, stages[-1], name, kept=i == run.kept)
+        for i, (name, stages) in enumerate(zip(names, run.runs, strict=True))
+    ]
+
+
+def _records(model: TranslationalStaged, run: SessionsRun) -> list[dict[str, Any]]:
+    """The ``start`` records of a sessions run: the first session's starts, then every
+    solve of each session added (``session``, ``start``, ``kept`` on the kept one's last)."""
+    _, names = starts(model.problem, model.sessions(model.n)[0][1])
+    out = [{**r, "session": 0} for r in start_records(model, run.first, names)]
+    for j, (tried, kept) in enumerate(zip(run.added, run.kept, strict=True)):
+        for i, (name, stages) in enumerate(tried):
+            for k, st in enumerate(stages):
+                last = k == len(stages) - 1
+                out.append(_record(model, st, name, session=j + 1, kept=i == kept and last))
+    return out
 
 
 def solve_two_starts(problem: Problem, data: Dataset) -> tuple[np.ndarray, list[dict[str, Any]]]:
-    """One session (the first of several, or a single recording: casmag.solver.recslam.slam)
-    from two starts, keeping the lower MAP cost: the batch from the dead reckoning, and
-    growing prefixes from FIRST_PREFIX samples (casmag.solver.windowing); the second only
-    for more than 2 x FIRST_PREFIX samples. Returns the kept positions (the dead reckoning
-    when both failed) and a stage record of each start (``start``, ``cost``, ``kept``).
-    Neither is right every time on the real field: on sequence 5 at 0.5 m drift the batch
-    reached 0.012 m at cost 661 and growing 0.418 m at cost 1,552; at 1.5 m drift the batch
-    stopped at 0.944 m (cost 1,116) and growing reached 0.011 m."""
-    sol, nlp, _, _, _ = solve_translational(problem, data)
-    tried = [(sol, _stage(data, sol, nlp, "dead reckoning"))]
-    if data.n_samples > 2 * FIRST_PREFIX:
-        grow = problem.with_overrides(
-            [
-                "solver.warm_start.strategy=growing",
-                f"solver.warm_start.first_samples={FIRST_PREFIX}",
-            ]
-        )
-        sol_g, nlp_g, _, _, _, solved, _ = solve_growing(grow, data)
-        if solved.n_samples == data.n_samples:
-            tried.append((sol_g, _stage(data, sol_g, nlp_g, "growing prefixes")))
-    i = lowest_cost([t[0] for t in tried], [t[1]["cost"] for t in tried])
-    if i is None:
-        return data.dead_reckoning(), [t[1] for t in tried]
-    best = tried[i]
-    for _, st in tried:
-        st["kept"] = st is best[1]
-    return best[0].x["P"], [t[1] for t in tried]
+    """One recording from :func:`starts`, keeping the lower MAP cost
+    (casmag.solver.staged.solve_starts). Returns the kept positions (the dead reckoning
+    when every start failed) and a ``start`` record of each start (``start``, ``cost``,
+    ``kept``). Neither is right every time on the real field: on sequence 5 at 0.5 m drift
+    the batch reached 0.012 m at cost 661 and growing 0.418 m at cost 1,552; at 1.5 m drift
+    the batch stopped at 0.944 m (cost 1,116) and growing reached 0.011 m."""
+    model = TranslationalStaged(problem, data)
+    strategies, names = starts(problem, data.n_samples)
+    run = solve_starts(model, strategies[0], [0.0] * len(strategies), strategies=strategies)
+    records = start_records(model, run, names)
+    final = run.final
+    if not final.sol.success:
+        for r in records:
+            r["kept"] = False
+        return data.dead_reckoning(), records
+    return model.states(final)["P"], records
 
 
 def split(data: Dataset, array: np.ndarray | None) -> list[np.ndarray | None]:

@@ -289,8 +289,8 @@ def solve_from_two_starts(
     one batch (at most ``solver.warm_start.first_samples`` samples): the batch from the dead
     reckoning and growing prefixes from casmag.solver.multisession.FIRST_PREFIX samples are both
     solved and the start with the lower MAP cost is kept
-    (:func:`casmag.solver.multisession.solve_two_starts`); the final solve starts from its
-    positions.
+    (:func:`casmag.solver.multisession.solve_two_starts`, casmag.solver.staged.solve_starts);
+    the final solve starts from its positions.
     Neither start is right every time on the real field (sequence 5: the batch reached
     0.012 m at 0.5 m drift where growing stopped at 0.418 m, growing 0.011 m at 1.5 m drift
     where the batch stopped at 0.944 m), and the lower cost picked the right one in both.

@@ -1,9 +1,11 @@
-"""Sliding windows and a coarse-to-fine lengthscale schedule: warm starts for the batch of
-the translational model (the planar and pose models' windows are the same scheme written
-over their window methods: casmag.solver.staged.solve_sliding).
+"""Sliding windows: a warm start for the batch of the translational model (the planar,
+pose and IMU models' windows are the same scheme written over their window methods:
+casmag.solver.staged.solve_sliding; the translational model's growing prefixes and
+coarse-to-fine schedule are casmag.solver.staged's too, through
+casmag.solver.translational.TranslationalStaged).
 
 GP-SLAM from the dead reckoning converges only when the drift is within about a lengthscale
-of the truth (paper Table 5). Two ways to start the batch closer:
+of the truth (paper Table 5).
 
 Sliding windows (:func:`fixed_lag_smoother`, :func:`solve_sliding`). Windows of ``n``
 samples, consecutive ones overlapping by ``o``, are solved in time order. The map is a
@@ -54,12 +56,6 @@ has no bounds or constraints), so the warm start is the primal point only.
 The smoother alone gives a trajectory for recordings too long for one batch (the map is
 carried, the memory is one window plus an M x M prior); :func:`solve_sliding` starts the
 full batch (the problem's own model: exact GP or reduced rank) from it.
-
-Coarse-to-fine (:func:`solve_coarse_to_fine`): the batch solved with a lengthscale
-``lengthscale_start`` times the assumed one, then shrunk geometrically to it over
-``lengthscale_stages`` solves of the same NLP (the lengthscale is a parameter), each
-started from the previous solution. A longer lengthscale smooths the field, which widens
-the basin of the position unknowns.
 """
 
 from __future__ import annotations
@@ -74,17 +70,12 @@ from casmag.errors import ProblemError
 from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
 from casmag.model.builder import cached_slam
-from casmag.model.field import HYPERPARAMETERS, ReducedRankField, WindowField
+from casmag.model.field import ReducedRankField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rrmap import field_and_jacobians, make_basis
 from casmag.model.translational import (
     Structure,
     TranslationalMotion,
-    cached_nlp,
-    field_estimate,
-    initial_weights,
-    parameters_and_guess,
-    positions,
 )
 from casmag.nlp import NLP, Solution
 from casmag.problem.spec import Problem
@@ -93,7 +84,6 @@ from casmag.solver.windowing import (
     ACCEPTED,
     bias_covariance,
     continued,
-    lengthscale_schedule,
     window_size,
     window_starts,
 )
@@ -502,7 +492,8 @@ def solve_sliding(
 ) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure, Dataset, list[WindowStage]]:
     """Sliding windows, then the full batch from their trajectory (with the bias they
     estimated removed from the odometry; ``sol.x["bias"]`` is the total). Returns what
-    :func:`casmag.solver.windowing.solve_growing` returns; the stages end with the batch."""
+    :func:`casmag.solver.translational.solve_translational_strategy` returns; the stages
+    end with the batch."""
     sm = fixed_lag_smoother(problem, data)
     solved = data.debiased(sm.bias)
     sol, nlp, hyper, field, structure = solve_translational(problem, solved, progress, sm.positions)
@@ -510,55 +501,3 @@ def solve_sliding(
         sol.x["bias"] = sol.x["bias"] + sm.bias.reshape(1, -1)
     stage = batch_stage(sol, nlp, data.n_samples, hyper["lengthscale"], sol.x.get("bias"))
     return sol, nlp, hyper, field, structure, solved, [*sm.windows, stage]
-
-
-def solve_coarse_to_fine(
-    problem: Problem, data: Dataset, progress: Any = None
-) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure, Dataset, list[WindowStage]]:
-    """The batch over a shrinking lengthscale (module docstring). The NLP is the problem's
-    own (the lengthscale is one of its parameters); the stages before the last run at most
-    ``stage_max_iter`` iterations. Returns what :func:`solve_sliding` returns."""
-    if "lengthscale" in problem.spec.model.estimate:
-        raise ProblemError(
-            problem.source,
-            "solver.warm_start.strategy",
-            "coarse-to-fine fixes the lengthscale at each stage; it cannot be estimated",
-        )
-    ws = problem.spec.solver.warm_start
-    schedule = lengthscale_schedule(
-        problem.assumed_lengthscale, ws.lengthscale_start, ws.lengthscale_stages
-    )
-    stage_problem = problem.with_overrides([f"solver.max_iter={ws.stage_max_iter}"])
-    s = Structure.of(problem, data)
-    params, x0 = parameters_and_guess(problem, data, s)
-    stages: list[WindowStage] = []
-    for i, ell in enumerate(schedule):
-        last = i == len(schedule) - 1
-        nlp = cached_nlp(s if last else Structure.of(stage_problem, data))
-        params = {**params, "lengthscale": ell}
-        if i == 0 and s.form == "reduced_rank":
-            c0 = x0["c"].ravel() if "c" in x0 else np.zeros(FIELD_DIM)
-            x0["W"] = initial_weights(
-                s,
-                params["Q"],
-                data.Y,
-                problem.assumed_sigma_m,
-                problem.assumed_sigma_f,
-                ell,
-                c0,
-            )
-        sol = nlp.solve(params, x0, progress=progress if last else None)
-        stages.append(
-            batch_stage(
-                sol, nlp, data.n_samples, ell, sol.x.get("bias"), "batch" if last else "lengthscale"
-            )
-        )
-        if not last and sol.status not in ACCEPTED:
-            break
-        x0 = dict(sol.x)
-    hyper = {
-        h: float(np.exp(sol.x[f"log_{h}"][0, 0])) if h in s.estimate else float(params[h])
-        for h in HYPERPARAMETERS
-    }
-    sol.x["P"] = positions(s, sol, params["Q"])
-    return sol, nlp, hyper, field_estimate(s, sol, sol.x["P"]), s, data, stages

@@ -1,8 +1,9 @@
-"""Warm-start strategies written once for the motion models solved from a start state.
+"""Warm-start strategies written once for every motion model.
 
-A motion model whose solve starts from its own states (positions, heading or orientation,
-biases: the planar, pose and IMU models) is seen by the strategies as a
-:class:`StagedModel`:
+A motion model is seen by the strategies as a :class:`StagedModel` (the translational
+model: casmag.solver.translational.TranslationalStaged; planar, pose and IMU:
+casmag.solver.planar, pose and imu) whose solve starts from its own states (positions,
+heading or orientation, biases):
 
 - :meth:`StagedModel.start`: the dead reckoning of the first k samples, with a heading-rate
   bias removed (a start of its own, :func:`solve_starts`);
@@ -431,13 +432,21 @@ def heading_bias_starts(starts: int, heading_deg: float, duration: float) -> lis
 
 
 def solve_starts(
-    model: StagedModel, ws: WarmStartSpec, biases: list[float], n: int | None = None
+    model: StagedModel,
+    ws: WarmStartSpec,
+    biases: list[float],
+    n: int | None = None,
+    strategies: list[WarmStartSpec] | None = None,
 ) -> StagedRun:
     """The strategy from each start (the dead reckoning with each heading-rate bias
     removed), the lowest MAP cost of the full problem kept (casmag.nlp.lowest_cost over
-    the starts whose last stage is the full problem); ``n``: of the first n samples."""
+    the starts whose last stage is the full problem); ``n``: of the first n samples;
+    ``strategies``: a strategy of each start's own (default ``ws`` for every one)."""
     n = model.n if n is None else n
-    runs = [solve_strategy(model, ws, b, n) for b in biases]
+    strategies = [ws] * len(biases) if strategies is None else strategies
+    if len(strategies) != len(biases):
+        raise ValueError(f"{len(strategies)} strategies for {len(biases)} starts")
+    runs = [solve_strategy(model, w, b, n) for w, b in zip(strategies, biases, strict=True)]
     return StagedRun(list(biases), runs, _kept(runs, n))
 
 
@@ -499,9 +508,14 @@ class SessionsRun:
         return out
 
 
-def solve_sessions(model: StagedModel, ws: WarmStartSpec, biases: list[float]) -> SessionsRun:
+def solve_sessions(
+    model: StagedModel,
+    ws: WarmStartSpec,
+    biases: list[float],
+    strategies: list[WarmStartSpec] | None = None,
+) -> SessionsRun:
     """Several sessions of one field with one map (``model.session_starts``), added one at
-    a time as casmag.solver.multisession does for the translational model: a joint solve
+    a time (casmag.solver.multisession runs it on the translational model): a joint solve
     from every session's dead reckoning can stop in a poor optimum, and each later stage
     starting from the earlier sessions' estimate brings their map to the new one. The
     first session alone runs the strategy of ``ws`` from each start (:func:`solve_starts`);
@@ -509,12 +523,13 @@ def solve_sessions(model: StagedModel, ws: WarmStartSpec, biases: list[float]) -
     cost kept: its dead reckoning from its known start, and (when it is longer than twice
     ``ws.first_samples``) its growing prefixes of ``ws.first_samples``, x ``ws.growth``,
     ... samples, each continued by the odometry with the bias estimated so far removed and
-    stopped after ``ws.stage_max_iter`` iterations before the last."""
+    stopped after ``ws.stage_max_iter`` iterations before the last. ``strategies``: the
+    first session's strategy of each start (:func:`solve_starts`)."""
     bounds = model.sessions(model.n)
     ell = model.lengthscale
     if ws.strategy == "sliding" and len(bounds) > 1:
         raise ValueError("sliding windows: one session at a time, not several")
-    first = solve_starts(model, ws, biases, n=bounds[0][1])
+    first = solve_starts(model, ws, biases, n=bounds[0][1], strategies=strategies)
     capped = model.solver.model_copy(update={"max_iter": ws.stage_max_iter})
     base = first.final  # the estimate so far
     added: list[list[tuple[str, list[Stage]]]] = []

@@ -1,28 +1,35 @@
 """Solving a translational problem: the batch MAP from the dead reckoning (or given
 initial positions), with the estimated hyperparameters started from the windowed marginal
 likelihood, the assumed values, or both kept by cost (``model.estimate_start``). The NLP
-and its initial guess come from casmag.model.translational; the warm starts that call this
-are casmag.solver.windowing, sliding and multisession.
+and its initial guess come from casmag.model.translational. The model as the warm-start
+strategies of casmag.solver.staged see it (:class:`TranslationalStaged`: growing prefixes,
+coarse-to-fine, several starts and sessions, :func:`solve_translational_strategy`); its
+sliding windows are casmag.solver.sliding.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from casmag.data.simulate import Dataset
+from casmag.errors import ProblemError
 from casmag.gp.hyper import estimate_conditional
+from casmag.gp.kernels import FIELD_DIM
 from casmag.model.field import HYPERPARAMETERS
 from casmag.model.translational import (
     Structure,
     cached_nlp,
     field_estimate,
+    initial_weights,
     parameters_and_guess,
     positions,
 )
 from casmag.nlp import NLP, Solution, lowest_cost
-from casmag.problem.spec import Problem
+from casmag.problem.spec import Problem, SolverSpec
+from casmag.solver.staged import Solved, Stage, StagedModel, solve_strategy
 
 
 def estimate_start(
@@ -112,24 +119,220 @@ def solve_translational(
     data: Dataset,
     progress: Any = None,
     initial_positions: np.ndarray | None = None,
+    lengthscale: float | None = None,
 ) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure]:
     """Solve the problem on a data set. Returns the solution (``sol.x["P"]`` holds the
     estimated positions), the NLP, the final hyperparameters (estimated or fixed), the
-    (N, 3) field estimate at the samples and the problem's structure."""
+    (N, 3) field estimate at the samples and the problem's structure. ``lengthscale``: a
+    fixed lengthscale other than the assumed one (a coarse-to-fine stage: the map's basis
+    stays the assumed lengthscale's, its weights are fitted at this one)."""
     s = Structure.of(problem, data, initial_positions)
     nlp = cached_nlp(s)
     start = estimate_start(problem, data, s, initial_positions)
     params, x0 = parameters_and_guess(
         problem, data, s, initial_positions, None if start is None else start["values"]
     )
+    if lengthscale is not None and lengthscale != problem.assumed_lengthscale:
+        _with_lengthscale(problem, data, s, params, x0, lengthscale, initial_positions)
     sol = nlp.solve(params, x0, progress=progress)
     if start is not None and start["method"] == "both":
         sol = _better_of_two_starts(nlp, sol, params, x0, start, progress)
     if start is not None:
         sol.stats["estimate_start"] = start
+    return _finish(s, nlp, sol, params)
+
+
+def _with_lengthscale(
+    problem: Problem,
+    data: Dataset,
+    s: Structure,
+    params: dict[str, Any],
+    x0: dict[str, Any],
+    lengthscale: float,
+    initial_positions: np.ndarray | None,
+) -> None:
+    """Set a fixed lengthscale in ``params`` and fit the map's weights in ``x0`` at it."""
+    if "lengthscale" in s.estimate:
+        raise ProblemError(
+            problem.source,
+            "solver.warm_start.strategy",
+            "coarse-to-fine fixes the lengthscale at each stage; it cannot be estimated",
+        )
+    params["lengthscale"] = lengthscale
+    if "W" in x0:
+        P0 = params["Q"] if initial_positions is None else s.knots.positions(params["Q"], x0["C"])
+        c0 = x0["c"].ravel() if "c" in x0 else np.zeros(FIELD_DIM)
+        x0["W"] = initial_weights(
+            s, P0, data.Y, problem.assumed_sigma_m, problem.assumed_sigma_f, lengthscale, c0
+        )
+
+
+def _finish(
+    s: Structure, nlp: NLP, sol: Solution, params: dict[str, Any]
+) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure]:
     hyper = {
         h: float(np.exp(sol.x[f"log_{h}"][0, 0])) if h in s.estimate else float(params[h])
         for h in HYPERPARAMETERS
     }
     sol.x["P"] = positions(s, sol, params["Q"])
     return sol, nlp, hyper, field_estimate(s, sol, sol.x["P"]), s
+
+
+def _solve_from(
+    problem: Problem, data: Dataset, x: dict[str, Any], lengthscale: float, progress: Any
+) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure]:
+    """The problem on ``data`` (its box around the dead reckoning) from a whole earlier
+    solution ``x`` of the same structure, at a fixed ``lengthscale``."""
+    s = Structure.of(problem, data)
+    nlp = cached_nlp(s)
+    params, _ = parameters_and_guess(problem, data, s)
+    if "lengthscale" in params:  # fixed (coarse-to-fine refuses an estimated one)
+        params["lengthscale"] = lengthscale
+    x0 = {k: v for k, v in x.items() if k in nlp.x_layout.entries}
+    return _finish(s, nlp, nlp.solve(params, x0, progress=progress), params)
+
+
+@dataclass
+class TranslationalSolve:
+    """What a translational solve leaves beside IPOPT's solution: the hyperparameters, the
+    field at the samples, the data it solved (the increments with ``debias`` removed,
+    one row per session) and that bias."""
+
+    hyper: dict[str, float]
+    field: np.ndarray
+    data: Dataset
+    debias: np.ndarray
+
+
+class TranslationalStaged(StagedModel):
+    """The translational model as the warm-start strategies see it (casmag.solver.staged):
+    growing prefixes, coarse-to-fine, several starts kept by cost and several sessions
+    run by the same code as the planar, pose and IMU models'. States: positions ``P`` and
+    ``bias``, the total per-step odometry bias of each session reached (S, d). A solve
+    removes its start's ``bias`` from the increments and estimates what is left
+    (casmag.data.simulate.Dataset.debiased), from its start's positions (the dead
+    reckoning: the plain batch, its box around the dead reckoning); a start that carries a
+    solve's whole solution (``x``: a coarse-to-fine stage, the same samples again) starts
+    the NLP there, the map's weights included. No heading-rate bias: the model has no
+    heading."""
+
+    def __init__(self, problem: Problem, data: Dataset, progress: Any = None) -> None:
+        self.problem, self.data, self.progress = problem, data, progress
+        self.n, self.solver = data.n_samples, problem.spec.solver
+        self.lengthscale = problem.assumed_lengthscale
+        self.session_starts = tuple(int(i) for i in data.starts)
+
+    def _part(self, k: int, bias: np.ndarray) -> Dataset:
+        part = self.data if k == self.n else self.data.prefix(k)
+        return part.debiased(bias) if np.any(bias) else part
+
+    def _bias(self, bias: np.ndarray | None, k: int) -> np.ndarray:
+        """The per-session bias rows of the sessions the first k samples reach (zero for
+        those not estimated yet)."""
+        out = np.zeros((len(self.sessions(k)), self.data.dim))
+        if bias is not None:
+            b = np.reshape(bias, (-1, self.data.dim))[: out.shape[0]]
+            out[: b.shape[0]] = b
+        return out
+
+    def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
+        if bias != 0.0:
+            raise ValueError("the translational model has no heading to turn")
+        return {
+            "P": self._part(k, self._bias(None, k)).dead_reckoning(),
+            "bias": self._bias(None, k),
+        }
+
+    def states(self, solved: Solved) -> dict[str, np.ndarray]:
+        own: TranslationalSolve = solved.nominal
+        bias = solved.sol.x.get("bias")
+        total = own.debias if bias is None else own.debias + np.reshape(bias, own.debias.shape)
+        return {"P": solved.sol.x["P"], "bias": total}
+
+    def extend(self, states: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
+        """The positions continued by the dead reckoning with each session's bias removed:
+        joined to the last position in the session it reached, from its anchor in a
+        session not reached."""
+        bias = self._bias(states["bias"], k)
+        P, m = np.asarray(states["P"]), states["P"].shape[0]
+        DR = self._part(k, bias).dead_reckoning()
+        out = [P[: min(m, k)]]
+        for a, e in self.sessions(k):
+            if e <= m:
+                continue
+            if a < m:  # the session m reached: joined to its last position
+                out.append(DR[m:e] - DR[m - 1] + P[m - 1])
+            else:
+                out.append(DR[a:e])
+        return {"P": np.vstack(out), "bias": bias}
+
+    def continue_from(self, previous: Solved, k: int) -> dict[str, np.ndarray]:
+        if k == previous.sol.x["P"].shape[0]:  # the same samples again: the whole solution
+            own: TranslationalSolve = previous.nominal
+            return {"P": previous.sol.x["P"], "bias": own.debias, "x": previous.sol.x}
+        return super().continue_from(previous, k)
+
+    def solve(
+        self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float
+    ) -> Solved:
+        problem = self.problem
+        if solver != problem.spec.solver:
+            problem = Problem(spec=problem.spec.model_copy(update={"solver": solver}),
+                              source=problem.source)  # fmt: skip
+        debias = self._bias(start.get("bias"), k)
+        part = self._part(k, debias)
+        P0 = np.asarray(start["P"])
+        if "x" in start:
+            sol, nlp, hyper, field, s = _solve_from(
+                problem, part, start["x"], lengthscale, self.progress
+            )
+        else:
+            initial = None if np.array_equal(P0, part.dead_reckoning()) else P0
+            sol, nlp, hyper, field, s = solve_translational(
+                problem, part, self.progress, initial, lengthscale
+            )
+        return Solved(
+            sol, nlp, s, lengthscale, nominal=TranslationalSolve(hyper, field, part, debias)
+        )
+
+
+def _stage_record(model: TranslationalStaged, st: Stage) -> dict[str, Any]:
+    """A result's ``stages`` record of one solve of a strategy (``prefix``, ``lengthscale``
+    or ``batch``): samples, IPOPT's outcome, seconds, the total bias it left (None when the
+    bias is not estimated); a coarse-to-fine stage's also its lengthscale."""
+    so, nlp = st.solved.sol, st.solved.nlp
+    estimated = model.problem.spec.model.odometry.estimate_bias
+    record: dict[str, Any] = {
+        "name": st.kind,
+        "samples": st.samples,
+        "status": so.status,
+        "success": so.success,
+        "iterations": so.iterations,
+        "solve_seconds": so.solve_seconds,
+        "build_seconds": nlp.build_seconds,
+        "bias": [float(v) for v in np.ravel(model.states(st.solved)["bias"])]
+        if estimated
+        else None,
+    }
+    if st.kind != "prefix":
+        record |= {"start": 0, "lengthscale": st.lengthscale}
+    return record
+
+
+def solve_translational_strategy(
+    problem: Problem, data: Dataset, progress: Any = None
+) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure, Dataset, list[dict[str, Any]]]:
+    """The warm start ``solver.warm_start`` (growing or coarse-to-fine) of
+    casmag.solver.staged on the translational model. Returns the last stage's solution
+    (``sol.x["bias"]``: the total per-step bias), NLP, hyperparameters, field, structure,
+    the data it solved (the increments with the earlier stages' bias removed) and every
+    stage's record."""
+    model = TranslationalStaged(problem, data, progress)
+    stages = solve_strategy(model, problem.spec.solver.warm_start)
+    last = stages[-1].solved
+    own: TranslationalSolve = last.nominal
+    sol = last.sol
+    records = [_stage_record(model, st) for st in stages]
+    if problem.spec.model.odometry.estimate_bias and "bias" in sol.x:
+        sol.x["bias"] = model.states(last)["bias"]
+    return sol, last.nlp, own.hyper, own.field, last.structure, own.data, records

@@ -1,10 +1,14 @@
-"""Warm starts from partial solves: the growing-prefix strategy.
+"""The pieces of the warm starts shared by every motion model (the strategies themselves are
+casmag.solver.staged's, and the translational sliding windows casmag.solver.sliding):
+prefix lengths and the growing loop (:func:`grow`), window lengths and starts, the
+lengthscale schedule, and the Laplace block of a window's unknowns.
 
-A long recording's dead reckoning drifts by many lengthscales, and GP-SLAM converges only
-from starts within about a lengthscale of the truth (paper Table 5; measured on a 6 m x 6 m
-walk: 4,000 samples with 0.8 m of final drift converge, 16,000 with 3.5 m would need a map
-box three times the room). The growing strategy solves the first ``first_samples`` samples,
-then prefixes ``growth`` times longer, up to the whole recording. Each stage
+Growing prefixes: a long recording's dead reckoning drifts by many lengthscales, and
+GP-SLAM converges only from starts within about a lengthscale of the truth (paper Table 5;
+measured on a 6 m x 6 m walk: 4,000 samples with 0.8 m of final drift converge, 16,000
+with 3.5 m would need a map box three times the room). The growing strategy solves the
+first ``first_samples`` samples, then prefixes ``growth`` times longer, up to the whole
+recording. Each stage
 
 - removes the odometry bias estimated so far from the increments, so the remaining drift of
   the new samples is what the bias estimate left, not the raw bias;
@@ -15,7 +19,7 @@ then prefixes ``growth`` times longer, up to the whole recording. Each stage
 
 The final stage is the full MAP problem on all samples; earlier stages only supply its
 initial guess, so each stops after ``stage_max_iter`` iterations at most. A stage that fails
-otherwise is reported with IPOPT's status and ends the solve.
+otherwise is reported with IPOPT's status and ends the solve (:func:`continues`).
 """
 
 from __future__ import annotations
@@ -26,11 +30,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from casmag.data.simulate import Dataset
-from casmag.model.translational import Structure
 from casmag.nlp import NLP, Solution
-from casmag.problem.spec import Problem
-from casmag.solver.translational import solve_translational
 
 ACCEPTED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded")
 """IPOPT outcomes after which a window or stage hands its point on (an early stage need not
@@ -188,44 +188,3 @@ def continued(previous: np.ndarray, dead_reckoning: np.ndarray) -> np.ndarray:
     m = previous.shape[0]
     shift = previous[-1] - dead_reckoning[m - 1]
     return np.vstack([previous, dead_reckoning[m:] + shift])
-
-
-def solve_growing(
-    problem: Problem, data: Dataset, progress: Any = None
-) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure, Dataset, list[Stage]]:
-    """Solve with growing prefixes. Returns the final stage's solution, NLP,
-    hyperparameters, field and structure as
-    :func:`casmag.solver.translational.solve_translational` does (``sol.x["bias"]`` is the
-    total per-step bias), the data set the final stage solved (increments with the earlier
-    stages' bias removed) and the stages."""
-    ws = problem.spec.solver.warm_start
-    estimate_bias = problem.spec.model.odometry.estimate_bias
-    stage_problem = problem.with_overrides([f"solver.max_iter={ws.stage_max_iter}"])
-
-    def stage(n: int, prev: tuple | None, last: bool) -> tuple[Solution, tuple]:
-        bias_total = np.zeros(data.dim) if prev is None else prev[-1]
-        part = data.prefix(n).debiased(bias_total)
-        start = None if prev is None else continued(prev[0].x["P"], part.dead_reckoning())
-        solved = solve_translational(problem if last else stage_problem, part, progress, start)
-        bias = solved[0].x.get("bias")
-        if estimate_bias and bias is not None:
-            bias_total = bias_total + np.ravel(bias)
-        return solved[0], (*solved, part, bias_total)
-
-    solved = grow(stage_lengths(data.n_samples, ws.first_samples, ws.growth), stage)
-    stages = [
-        Stage(
-            samples=n,
-            status=so.status,
-            success=so.success,
-            iterations=so.iterations,
-            solve_seconds=so.solve_seconds,
-            build_seconds=state[1].build_seconds,
-            bias=[float(v) for v in state[-1]] if estimate_bias else None,
-        )
-        for n, so, state in solved
-    ]
-    sol, nlp, hyper, field, structure, part, bias_total = solved[-1][2]
-    if estimate_bias:
-        sol.x["bias"] = bias_total.reshape(1, -1)
-    return sol, nlp, hyper, field, structure, part, stages

@@ -20,6 +20,7 @@ from casmag.problem.spec import load_problem
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.multisession import session_order, solve_sessions, split, stack
 from casmag.solver.sessions import revisit_fraction
+from casmag.solver.translational import TranslationalStaged
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -94,8 +95,20 @@ def test_stacked_dead_reckoning_restarts_at_every_anchor():
     )
     parts = split(d, d.P_true)
     np.testing.assert_array_equal(parts[1], B.P_true)
-    with pytest.raises(ValueError, match="sessions"):
-        d.prefix(10)
+    # A prefix reaches the sessions it cuts: the first whole, the second's first samples.
+    cut = d.prefix(A.n_samples + 5)
+    assert cut.starts == d.starts and cut.anchor.shape == (2, 2)
+    np.testing.assert_array_equal(cut.dead_reckoning(), d.dead_reckoning()[: A.n_samples + 5])
+    assert d.prefix(A.n_samples).starts == (0,)
+    np.testing.assert_array_equal(d.prefix(A.n_samples).anchor, A.anchor.reshape(1, -1))
+    # Each session's bias comes off its own steps only.
+    b = np.array([[1e-3, 0.0], [0.0, -2e-3]])
+    P = d.debiased(b).dead_reckoning()
+    steps = np.arange(A.n_samples)[:, None]
+    np.testing.assert_allclose(P[: A.n_samples], A.dead_reckoning() - steps * b[0])
+    np.testing.assert_allclose(
+        P[A.n_samples :], B.dead_reckoning() - np.arange(B.n_samples)[:, None] * b[1]
+    )
 
 
 def test_revisits_order_the_sessions():
@@ -112,7 +125,13 @@ def test_a_line_is_localised_against_the_map_of_a_spiral():
     base, A, B = _pair()
     result, data, order = solve_sessions(base, [B, A])
     assert order == [1, 0] and result.success
-    assert len(result.stages_named("start")) == 1
+    # The spiral from its dead reckoning, then the line (too short for growing prefixes)
+    # from its dead reckoning beside the spiral's estimate; the final solve starts there.
+    starts = result.stages_named("start")
+    assert [(st["session"], st["start"], st["kept"]) for st in starts] == [
+        (0, "dead reckoning", True),
+        (1, "dead reckoning", True),
+    ]
     for P_odo, P_est, P_true in zip(
         split(data, result.arrays["P_odometry"]),
         split(data, result.arrays["P_estimate"]),
@@ -169,3 +188,26 @@ def test_real_problem_takes_one_recording_or_sessions(tmp_path):
     two = tmp_path / "two.yaml"
     two.write_text(f"name: t\nsessions: [{rec}, {rec}]\n")
     assert len(load_real_problem(two).recordings) == 2
+
+
+def test_the_translational_staged_model_continues_each_session_from_its_own_start():
+    """casmag.solver.translational.TranslationalStaged.extend: within the session it has
+    reached, the bias-corrected dead reckoning joined to the last position; a session it
+    has not reached, from that session's anchor, its bias still zero."""
+    base, A, B = _pair()
+    d = stack([A, B])
+    model = TranslationalStaged(base, d)
+    n1, n = A.n_samples, d.n_samples
+    assert model.sessions(n1 - 10) == [(0, n1 - 10)]
+    assert model.sessions(n) == [(0, n1), (n1, n)]
+    P = A.P_true[: n1 - 10]
+    bias = np.array([[1e-3, -1e-3]])
+    out = model.extend({"P": P, "bias": bias}, n)
+    assert out["P"].shape == (n, 2) and out["bias"].shape == (2, 2)
+    np.testing.assert_array_equal(out["bias"], [[1e-3, -1e-3], [0.0, 0.0]])
+    np.testing.assert_array_equal(out["P"][: n1 - 10], P)
+    DR = A.debiased(bias).dead_reckoning()
+    np.testing.assert_allclose(out["P"][n1 - 10 : n1], DR[n1 - 10 :] - DR[n1 - 11] + P[-1])
+    np.testing.assert_allclose(out["P"][n1:], B.dead_reckoning())
+    with pytest.raises(ValueError, match="no heading"):
+        model.start(n, 0.01)

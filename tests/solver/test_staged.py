@@ -18,6 +18,7 @@ from casmag.data.posesim import simulate_pose
 from casmag.problem.imu import STAGED_STRATEGIES, load_planar_options
 from casmag.problem.pose import load_pose_options
 from casmag.problem.spec import SolverSpec, WarmStartSpec, load_problem
+from casmag.result import MOTIONS
 from casmag.solver.planar import solve_planar
 from casmag.solver.pose import solve_pose
 from casmag.solver.staged import (
@@ -181,10 +182,13 @@ PAIRS = [
 
 def test_every_pair_is_solved_somewhere() -> None:
     """Every motion model with every strategy: solved here or elsewhere (the IMU model's in
-    tests/solver/test_imu_strategies.py)."""
+    tests/solver/test_imu_strategies.py; the translational model's growing prefixes in
+    tests/solver/test_slam.py, coarse-to-fine and sliding windows in
+    tests/solver/test_windowing.py, none everywhere)."""
     solved_elsewhere = {("planar", "none"), ("planar", "growing"), ("pose", "none")}
     solved_elsewhere |= {("imu", s) for s in ("none", "growing", "coarse-to-fine", "sliding")}
-    every = {(m, s) for m in ("planar", "pose", "imu") for s in STAGED_STRATEGIES}
+    solved_elsewhere |= {("translational", s) for s in STAGED_STRATEGIES}
+    every = {(m, s) for m in MOTIONS for s in STAGED_STRATEGIES}
     assert every == solved_elsewhere | set(PAIRS)
 
 
