@@ -248,7 +248,8 @@ class NLPBuilder:
         x, p = self._x.vector(), self._p.vector()
         f = sum(self.blocks.values(), ca.MX(0))
         nlp = {"x": x, "p": p, "f": f}
-        hessian = "exact" if solver.hessian in ("auto", "gauss-newton") else solver.hessian
+        # IPOPT's own choice: every mode but limited-memory hands it a Hessian.
+        hessian = "limited-memory" if solver.hessian == "limited-memory" else "exact"
         opts: dict[str, Any] = {
             "ipopt.max_iter": solver.max_iter,
             "ipopt.tol": solver.tol,

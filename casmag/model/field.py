@@ -200,9 +200,9 @@ class ReducedRankField(FieldModel):
     (casmag.model.rrmap); hyperparameters in ``estimate`` are unknowns, with ``gp_logdet``.
     Through a rotation the unknowns are whitened weights and the residual is symbolic per
     sample (casmag.model.rotated); ``curvature`` sets its Hessian callback's mode
-    (``hybrid``, ``exact`` or ``gauss-newton``) unless ``solver.hessian`` is
-    ``gauss-newton`` (:meth:`mode`; the map-frame block takes its mode from
-    ``solver.hessian``). ``metis``: MUMPS with METIS ordering unless the problem chose one."""
+    (``hybrid``, ``exact`` or ``gauss-newton``) unless ``solver.hessian`` names one
+    (:meth:`mode`; the map-frame block takes its mode from ``solver.hessian``, ``auto``
+    being ``hybrid``). ``metis``: MUMPS with METIS ordering unless the problem chose one."""
 
     kernel: str
     basis: tuple
@@ -226,7 +226,7 @@ class ReducedRankField(FieldModel):
                     "a rotated reduced-rank map has a constant field and fixed hyperparameters"
                 )
             add_rotated_map(b, basis, self.kernel, pose)
-            if solver.hessian not in ("auto", "gauss-newton"):
+            if solver.hessian == "limited-memory":
                 return None
             return rotated_gauss_newton(b, basis, self.kernel, pose, self.mode(solver))
         sigma_f, ell, _ = (hyperparameter(b, h, h in self.estimate) for h in HYPERPARAMETERS)
@@ -243,10 +243,10 @@ class ReducedRankField(FieldModel):
         return self._hessian(solver, model, "mag_hessian")
 
     def mode(self, solver: SolverSpec) -> str:
-        """The rotated block's Hessian mode: ``gauss-newton`` when ``solver.hessian`` says
-        so, else the model's ``curvature`` (``auto``; ``exact`` and ``limited-memory`` take
-        CasADi's Hessian or none)."""
-        return "gauss-newton" if solver.hessian == "gauss-newton" else self.curvature
+        """The rotated block's Hessian mode: ``solver.hessian`` when it names one
+        (``exact``, ``hybrid``, ``gauss-newton``), else (``auto``) the model's own
+        ``curvature``."""
+        return self.curvature if solver.hessian == "auto" else solver.hessian
 
     def _weights(self, b: NLPBuilder, basis: HilbertBasis) -> tuple[ca.MX, ca.MX | None]:
         M = basis.num_basis
@@ -290,7 +290,7 @@ class WindowField(ReducedRankField):
                     "a rotated window map has a constant field and fixed hyperparameters"
                 )
             add_rotated_map(b, basis, self.kernel, pose, window=True)
-            if solver.hessian not in ("auto", "gauss-newton"):
+            if solver.hessian == "limited-memory":
                 return None
             return rotated_gauss_newton(b, basis, self.kernel, pose, self.mode(solver))
         W, c = self._weights(b, basis)

@@ -24,6 +24,7 @@ from pydantic import Field, field_validator, model_validator
 
 from casmag.errors import ProblemError
 from casmag.problem.spec import (
+    NUMPY_HESSIANS,
     SolverSpec,
     Strict,
     WarmStartSpec,
@@ -221,7 +222,8 @@ class ImuGPSpec(Strict):
     (``gauss-newton``); ``auto``: always when the field varies little (sigma_f / l below 5
     sigma_m for curl-free, sigma_f below 5 sigma_m for se); otherwise ``hybrid``:
     Gauss-Newton while the magnetometer cost falls fast and the exact terms once it falls by
-    less than 1 % between iterations.
+    less than 1 % between iterations. It chooses under ``solver.hessian: auto``;
+    ``exact``, ``hybrid`` or ``gauss-newton`` there choose instead.
 
     anneal: factors on sigma_m of successive GP-SLAM passes, each starting from the previous
     one (a softer magnetometer first widens the basin of the global optimum).
@@ -467,8 +469,10 @@ class ImuProblemSpec(Strict):
                 f"{self.model.keyframe_rate:g} Hz keyframes; neighbouring keyframes would "
                 f"share noise), got {samples}"
             )
-        if self.solver.hessian == "gauss-newton" and self.model.gp.form != "reduced_rank":
-            raise ValueError("solver.hessian: gauss-newton needs model.gp.form: reduced_rank")
+        if self.solver.hessian in NUMPY_HESSIANS and self.model.gp.form != "reduced_rank":
+            raise ValueError(
+                f"solver.hessian: {self.solver.hessian} needs model.gp.form: reduced_rank"
+            )
         return self
 
 
@@ -724,7 +728,9 @@ class PlanarOptions:
     form: the map, ``reduced_rank`` (one box around the dead reckoning) or ``tiled``
     (casmag.gp.tiles: tiles only where the path goes, each sample touching the four
     around it; needs kernel ``curl_free``; the Hessian is Gauss-Newton, ``curvature``
-    applies to the box only) [reduced_rank]; solver: IPOPT settings."""
+    applies to the box only) [reduced_rank]; solver: IPOPT settings. ``curvature``: the
+    box's magnetometer block with its exact Hessian (true) or Gauss-Newton (false) under
+    ``solver.hessian: auto`` (another value there chooses instead) [true]."""
 
     sigma_disp: float = 0.01
     sigma_dyaw: float = 0.002

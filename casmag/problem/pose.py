@@ -85,8 +85,8 @@ class PoseOptions:
     the dead-reckoned path, the magnetometer turned into the map frame by the dead-reckoned
     orientation) [estimate]; kernel [curl_free: the field is the gradient of a potential];
     sigma_lin: constant-field prior (None: from the data); num_basis, margin: reduced-rank
-    basis; curvature: Hessian mode of the magnetometer block (casmag.model.rotated)
-    [hybrid].
+    basis; curvature: Hessian mode of the magnetometer block (casmag.model.rotated) under
+    ``solver.hessian: auto`` (another value there chooses instead) [hybrid].
 
     map_dim: 3, 2 (the field a function of x and y only: motion near a plane) or ``auto``
     (2 when the dead reckoning's height varies by less than one lengthscale over stretches

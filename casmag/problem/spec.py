@@ -350,12 +350,22 @@ class WarmStartSpec(Strict):
         return None if window is None else max(1, window // 2)
 
 
+#: ``solver.hessian`` values only a map read with numpy has (not the exact GP).
+NUMPY_HESSIANS = ("gauss-newton", "hybrid")
+
+
 class SolverSpec(Strict):
     """IPOPT settings. ``ipopt`` passes further options through unchanged.
 
-    hessian: ``auto`` is ``exact`` for the exact GP and ``gauss-newton`` for the reduced-rank
-    map (its magnetometer block's Gauss-Newton Hessian formed with numpy, the other blocks'
-    exact Hessian from CasADi); ``limited-memory`` is IPOPT's L-BFGS.
+    hessian (one key for every motion model): the Hessian of the magnetometer block that a
+    map read with numpy has (reduced rank, tiled, rotated or not; the other blocks' is
+    CasADi's exact one): ``gauss-newton`` J^T J alone; ``exact`` with the residuals'
+    second-order terms; ``hybrid`` Gauss-Newton while the block's cost falls fast, the exact
+    terms once it falls by less than 1 % an iteration; ``auto`` the model's own choice
+    (translational and tiled maps ``hybrid``; planar ``model.curvature``, pose
+    ``model.curvature``, IMU ``model.gp.curvature``). The exact GP takes CasADi's exact
+    Hessian (``auto`` or ``exact``). ``limited-memory`` is IPOPT's L-BFGS (no Laplace
+    covariance).
     uncertainty: compute the Laplace covariance of every position at the solution
     (casmag.solver.uncertainty): a 1-sigma column in trajectory.csv, ellipses in trajectory.png, the
     NEES against truth in result.json.
@@ -375,7 +385,7 @@ class SolverSpec(Strict):
 
     max_iter: Annotated[int, Field(ge=1, le=100_000)] = 200
     tol: PositiveFloat = 1.0e-6
-    hessian: Literal["auto", "exact", "gauss-newton", "limited-memory"] = "auto"
+    hessian: Literal["auto", "exact", "gauss-newton", "hybrid", "limited-memory"] = "auto"
     linear_solver: str = "mumps"
     print_level: Annotated[int, Field(ge=0, le=12)] = 0
     ipopt: dict[str, float | int | str] = {}
@@ -454,9 +464,9 @@ class ProblemSpec(Strict):
     @model_validator(mode="after")
     def _consistent(self) -> ProblemSpec:
         gp = self.model.gp
-        if self.solver.hessian == "gauss-newton" and gp.form == "exact":
+        if self.solver.hessian in NUMPY_HESSIANS and gp.form == "exact":
             raise ValueError(
-                "solver.hessian: gauss-newton needs model.gp.form: reduced_rank or tiled"
+                f"solver.hessian: {self.solver.hessian} needs model.gp.form: reduced_rank or tiled"
             )
         kernel = gp.kernel or self.simulation.field.kernel
         field = self.simulation.field

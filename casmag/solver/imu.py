@@ -694,8 +694,10 @@ def _slam_setup(
     problem: ImuProblem, P: np.ndarray, hyper: dict[str, float]
 ) -> tuple[tuple | None, str]:
     """The map's basis key (built around the positions P: the previous stage's) and the
-    magnetometer block's Hessian mode (``model.gp.curvature``: true ``exact``, false
-    ``gauss-newton``, auto ``exact`` in a field that varies little, else ``hybrid``)."""
+    magnetometer block's Hessian mode: ``solver.hessian`` when it names one (``exact``,
+    ``hybrid``, ``gauss-newton``); under ``auto`` the model's ``model.gp.curvature`` (true
+    ``exact``, false ``gauss-newton``, auto ``exact`` in a field that varies little, else
+    ``hybrid``)."""
     m = problem.spec.model
     basis_key = None
     if m.gp.form == "reduced_rank":
@@ -706,7 +708,9 @@ def _slam_setup(
         hb = make_basis(m.gp.kernel, P, hyper["lengthscale"], num_basis, m.gp.margin)
         basis_key = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
     variation = hyper["sigma_f"] / (hyper["lengthscale"] if m.gp.kernel == "curl_free" else 1.0)
-    if m.gp.curvature == "auto":
+    if problem.spec.solver.hessian in ("exact", "hybrid", "gauss-newton"):
+        mode = problem.spec.solver.hessian
+    elif m.gp.curvature == "auto":
         mode = "exact" if variation < CURVATURE_BELOW * problem.sigma_m else "hybrid"
     else:
         mode = "exact" if m.gp.curvature else "gauss-newton"

@@ -11,6 +11,7 @@ import casmag
 from casmag.data.simulate import simulate_problem
 from casmag.gp.kernels import FIELD_DIM
 from casmag.model.translational import Structure, cached_nlp, parameters_and_guess
+from casmag.problem.imu import load_imu_problem
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -147,9 +148,16 @@ def test_reduced_rank_refuses_sigma_f_and_lengthscale_estimation():
         )
 
 
-def test_gauss_newton_needs_reduced_rank():
-    with pytest.raises(casmag.ProblemError, match="gauss-newton needs"):
-        casmag.load_problem({"seed": 1, "solver": {"hessian": "gauss-newton"}})
+@pytest.mark.parametrize("hessian", ["gauss-newton", "hybrid"])
+def test_gauss_newton_needs_reduced_rank(hessian):
+    """The modes only a map read with numpy has are refused for the exact GP (whose
+    Hessian is CasADi's), for the translational and the IMU model alike."""
+    with pytest.raises(casmag.ProblemError, match=f"{hessian} needs"):
+        casmag.load_problem({"seed": 1, "solver": {"hessian": hessian}})
+    imu = ROOT / "problems" / "imu" / "rectangle.yaml"
+    with pytest.raises(casmag.ProblemError, match=f"{hessian} needs"):
+        load_imu_problem(imu, ["model.gp.form=exact", f"solver.hessian={hessian}"])
+    casmag.load_problem({"seed": 1, "solver": {"hessian": "exact"}})  # CasADi's: taken
 
 
 def test_div_free_has_no_reduced_rank_form():
