@@ -46,7 +46,7 @@ from casmag.solver.sessions import revisit_order, session_errors
 from casmag.solver.staged import SessionsRun, StagedRun, solve_starts
 from casmag.solver.staged import Stage as StagedStage
 from casmag.solver.staged import solve_sessions as staged_sessions
-from casmag.solver.translational import TranslationalStaged
+from casmag.solver.translational import TranslationalStaged, stage_record
 
 
 def stack(sessions: Sequence[Dataset]) -> Dataset:
@@ -137,21 +137,11 @@ def starts(problem: Problem, n: int) -> tuple[list[WarmStartSpec], list[str]]:
 
 
 def _record(model: TranslationalStaged, st: StagedStage, name: str, **more: Any) -> dict:
-    so, nlp = st.solved.sol, st.solved.nlp
-    bias = model.states(st.solved)["bias"] if "bias" in so.x else None
-    return {
-        "name": "start",
-        "samples": st.samples,
-        "status": so.status,
-        "success": so.success,
-        "iterations": so.iterations,
-        "solve_seconds": so.solve_seconds,
-        "build_seconds": nlp.build_seconds,
-        "bias": None if bias is None else [float(v) for v in np.ravel(bias)],
-        "start": name,
-        "cost": so.objective if so.success else None,
-        **more,
-    }
+    """A ``start`` record: the solve's (casmag.solver.translational.stage_record), its
+    start's ``name`` and its MAP ``cost`` (None when it failed)."""
+    so = st.solved.sol
+    cost = so.objective if so.success else None
+    return {**stage_record(model, st), "name": "start", "start": name, "cost": cost, **more}
 
 
 def start_records(model: TranslationalStaged, run: StagedRun, names: list[str]) -> list[dict]:

@@ -296,7 +296,7 @@ class TranslationalStaged(StagedModel):
         )
 
 
-def _stage_record(model: TranslationalStaged, st: Stage) -> dict[str, Any]:
+def stage_record(model: TranslationalStaged, st: Stage) -> dict[str, Any]:
     """A result's ``stages`` record of one solve of a strategy (``prefix``, ``lengthscale``
     or ``batch``): samples, IPOPT's outcome, seconds, the total bias it left (None when the
     bias is not estimated); a coarse-to-fine stage's also its lengthscale."""
@@ -332,7 +332,7 @@ def solve_translational_strategy(
     last = stages[-1].solved
     own: TranslationalSolve = last.nominal
     sol = last.sol
-    records = [_stage_record(model, st) for st in stages]
+    records = [stage_record(model, st) for st in stages]
     if problem.spec.model.odometry.estimate_bias and "bias" in sol.x:
         sol.x["bias"] = model.states(last)["bias"]
     return sol, last.nlp, own.hyper, own.field, last.structure, own.data, records
