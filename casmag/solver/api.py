@@ -35,6 +35,7 @@ from casmag.solver.oriented import solve_oriented
 from casmag.solver.sliding import solve_sliding
 from casmag.solver.translational import solve_translational, solve_translational_strategy
 from casmag.solver.uncertainty import (
+    KNOT_UNCERTAINTY_MAX_UNKNOWNS,
     UNCERTAINTY_MAX_UNKNOWNS,
     NotPositiveDefinite,
     laplace_positions,
@@ -297,8 +298,8 @@ def _uncertainty(
     if solved.n_samples != P_est.shape[0]:
         return None, None, None
 
-    if nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
-        reason = f"{nlp.x_layout.size} unknowns > {UNCERTAINTY_MAX_UNKNOWNS}"
+    if nlp.x_layout.size > KNOT_UNCERTAINTY_MAX_UNKNOWNS:
+        reason = f"{nlp.x_layout.size} unknowns > {KNOT_UNCERTAINTY_MAX_UNKNOWNS}"
         return {"error": f"not computed: {reason}"}, None, None
     if (missing := without_hessian(nlp)) is not None:
         return missing, None, None

@@ -142,43 +142,69 @@ def position_uncertainty(
     meat: np.ndarray | None = None,
     var: str = "C",
     fixed: tuple[str, ...] = (),
+    dense_max: int | None = None,
 ) -> PositionUncertainty:
     """Laplace covariances of the positions at the solution ``sol`` of ``nlp``: the
     unknowns ``var`` (K, dim) at the knots (``C``: the translational model's knot
     corrections; ``P`` with one knot per sample: the positions of the planar and pose
     models, every sample an unknown).
 
-    The Hessian is factored densely (the unknowns are the knots, the bias, the map weights
-    and estimated hyperparameters: a few thousand at most with knots), then solved for the
-    knot columns only. Between knots the odometry random walk (per-step standard deviation
-    sigma_o) adds its Brownian-bridge variance sigma_o^2 s (k - s) / k per axis, s steps
-    after a knot of an interval of k steps: the knot model leaves that part of the odometry
-    noise out of the unknowns. Raises NotPositiveDefinite when the factorisation fails.
+    The Hessian is factored densely up to ``dense_max`` unknowns (default
+    :data:`DENSE_MAX_UNKNOWNS`) and solved for the knot columns; above, it is factored
+    sparsely and solved for the covariance of each pair of neighbouring knots only
+    (:func:`_knot_covariance_sparse`: the same figures, memory that grows with the
+    factor's fill, not with the square of the unknowns). Between knots the odometry random
+    walk (per-step standard deviation sigma_o) adds its Brownian-bridge variance
+    sigma_o^2 s (k - s) / k per axis, s steps after a knot of an interval of k steps: the
+    knot model leaves that part of the odometry noise out of the unknowns. Raises
+    NotPositiveDefinite when the factorisation fails.
     (The Hessian does not depend on the bias value, in which the odometry block is
     quadratic, so the total bias a growing or sliding solve leaves in ``sol.x`` is harmless.)
-    meat: a dense (n_x, n_x) matrix B - H (:func:`magnetometer_correction`): the sandwich
-    covariance H^-1 B H^-1 of the knots instead of H^-1 (the covariance of the MAP estimate
-    when the score's covariance is B, not H). fixed: variables the solve held at their
-    start values (NLP.solve's ``fixed``): conditioned on, not marginalised.
+    meat: an (n_x, n_x) matrix B - H, dense or sparse (:func:`magnetometer_correction`,
+    :func:`whitened_correction`): the sandwich covariance H^-1 B H^-1 of the knots instead
+    of H^-1 (the covariance of the MAP estimate when the score's covariance is B, not H).
+    fixed: variables the solve held at their start values (NLP.solve's ``fixed``):
+    conditioned on, not marginalised.
     """
+    dense_max = DENSE_MAX_UNKNOWNS if dense_max is None else dense_max
     x = {k: v for k, v in sol.x.items() if k in nlp.x_layout.entries}
-    H = nlp.hessian(x, params).toarray()
+    H = nlp.hessian(x, params)
     entries = nlp.x_layout.entries
     free = np.ones(H.shape[0], dtype=bool)
     for name in fixed:
         free[entries[name].offset + np.arange(entries[name].size)] = False
-    H = H[np.ix_(free, free)]
+    keep = np.flatnonzero(free)
+    H = H[keep][:, keep]
     if meat is not None:
-        meat = meat[np.ix_(free, free)]
+        meat = meat[keep][:, keep] if hasattr(meat, "tocsr") else meat[np.ix_(free, free)]
+    position = keep.searchsorted(entries[var].offset)
+    if H.shape[0] > dense_max:
+        cov = _knot_covariance_sparse(H.tocsc(), meat, knots, dim, position)
+    else:
+        cov = _knot_covariance_dense(H.toarray(), meat, knots, dim, position)
+    N = knots.n
+    s_in = np.arange(N) - knots.samples[knots.left]
+    k_in = knots.samples[knots.left + 1] - knots.samples[knots.left]
+    bridge = sigma_o**2 * s_in * (k_in - s_in) / k_in
+    cov += bridge[:, None, None] * np.eye(dim)
+    return PositionUncertainty(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+
+
+def _not_positive_definite(exc: Any) -> NotPositiveDefinite:
+    return NotPositiveDefinite(f"Hessian at the solution is not positive definite ({exc})")
+
+
+def _knot_covariance_dense(
+    H: np.ndarray, meat: Any, knots: Knots, dim: int, position: int
+) -> np.ndarray:
+    """(N, d, d) covariances of the samples from a dense Cholesky factor of H, solved for
+    every knot column (``position``: the first knot unknown's row)."""
     K = knots.count
-    position = np.flatnonzero(free).searchsorted(entries[var].offset)
     cols = position + np.arange(K * dim)  # column-major (K, d): axis a at a*K + j
     try:
         factor = sla.cho_factor(H, lower=True, check_finite=True)
     except (np.linalg.LinAlgError, ValueError) as exc:
-        raise NotPositiveDefinite(
-            f"Hessian at the solution is not positive definite ({exc})"
-        ) from None
+        raise _not_positive_definite(exc) from None
     E = np.zeros((H.shape[0], cols.size))
     E[cols, np.arange(cols.size)] = 1.0
     Z = sla.cho_solve(factor, E)  # (n_x, K d)
@@ -186,17 +212,63 @@ def position_uncertainty(
     if meat is not None:
         cov_c = cov_c + Z.T @ (meat @ Z)
     A = knots.matrix  # sparse (N, K)
-    N = knots.n
-    cov = np.empty((N, dim, dim))
+    cov = np.empty((knots.n, dim, dim))
     for a in range(dim):
         for b in range(dim):
             block = cov_c[a * K : (a + 1) * K, b * K : (b + 1) * K]
             cov[:, a, b] = _row_quadratic(A, block)
-    s_in = np.arange(N) - knots.samples[knots.left]
-    k_in = knots.samples[knots.left + 1] - knots.samples[knots.left]
-    bridge = sigma_o**2 * s_in * (k_in - s_in) / k_in
-    cov += bridge[:, None, None] * np.eye(dim)
-    return PositionUncertainty(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+    return cov
+
+
+#: Bytes of the dense right-hand sides one sparse solve of :func:`_knot_covariance_sparse`
+#: may hold (they set how many knots a chunk takes).
+SPARSE_CHUNK_BYTES = 256 * 2**20
+
+
+def _knot_covariance_sparse(H: Any, meat: Any, knots: Knots, dim: int, position: int) -> np.ndarray:
+    """(N, d, d) covariances of the samples from a sparse LU factor of H (diagonal
+    pivoting, so its pivots are positive exactly when H is positive definite): a sample
+    reads at most its two neighbouring knots (casmag.model.knots), so only the covariance
+    of each pair of neighbouring knots is needed. The samples are taken in chunks of their
+    left knots, each solved for those knots and the next; memory is the factor plus one
+    chunk's
+    right-hand sides (:data:`SPARSE_CHUNK_BYTES`), whatever the number of knots."""
+    import scipy.sparse.linalg as spla
+
+    n, K = H.shape[0], knots.count
+    try:
+        lu = spla.splu(
+            H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )  # fmt: skip
+    except RuntimeError as exc:  # an exactly singular factor
+        raise _not_positive_definite(exc) from None
+    pivots = lu.U.diagonal()
+    if not (np.all(np.isfinite(pivots)) and np.all(pivots > 0)):
+        raise _not_positive_definite(f"a pivot of {pivots.min():.3g}")
+    A = knots.matrix.tocsr()  # (N, K), each row on its left knot and the next
+    left = np.asarray(knots.left)
+    chunk = max(1, SPARSE_CHUNK_BYTES // (8 * n * dim) - 1)
+    cov = np.empty((knots.n, dim, dim))
+    for j0 in range(0, K, chunk):
+        j1 = min(K, j0 + chunk)
+        lo, hi = j0, min(K, j1 + 1)
+        span = np.arange(lo, hi)
+        cols = position + np.concatenate([a * K + span for a in range(dim)])
+        E = np.zeros((n, cols.size))
+        E[cols, np.arange(cols.size)] = 1.0
+        Z = lu.solve(E)
+        G = Z[cols, :]
+        if meat is not None:
+            G = G + Z.T @ np.asarray(meat @ Z)
+        rows = np.flatnonzero((left >= j0) & (left < j1))
+        Ar = A[rows][:, lo:hi]
+        m = span.size
+        for a in range(dim):
+            for b in range(dim):
+                block = G[a * m : (a + 1) * m, b * m : (b + 1) * m]
+                cov[rows, a, b] = _row_quadratic(Ar, block)
+    return cov
 
 
 def _row_quadratic(A, B: np.ndarray) -> np.ndarray:
@@ -207,9 +279,19 @@ def _row_quadratic(A, B: np.ndarray) -> np.ndarray:
     return np.sum(np.asarray(A) * AB, axis=1)
 
 
-#: Largest number of unknowns for which the Laplace covariance is computed (a dense factor
-#: of the Hessian: 12,000 unknowns take 1.2 GB).
-UNCERTAINTY_MAX_UNKNOWNS = 12_000
+#: Largest number of unknowns whose Hessian :func:`position_uncertainty` factors densely
+#: (12,000 unknowns take 1.2 GB); above, it factors it sparsely.
+DENSE_MAX_UNKNOWNS = 12_000
+
+#: Largest number of unknowns for which the Laplace covariance of a model with a state at
+#: every sample (planar, pose) is computed: densely (the sparse path would solve for two
+#: columns a sample).
+UNCERTAINTY_MAX_UNKNOWNS = DENSE_MAX_UNKNOWNS
+
+#: Largest number of unknowns for which the translational model's Laplace covariance is
+#: computed (sparsely above DENSE_MAX_UNKNOWNS: its knots are few, so the columns solved
+#: for are too).
+KNOT_UNCERTAINTY_MAX_UNKNOWNS = 200_000
 
 
 def without_hessian(nlp: NLP) -> dict[str, Any] | None:
@@ -305,12 +387,12 @@ def sample_state_uncertainty(
 
 
 def whitened_correction(J: Any, factors: np.ndarray) -> np.ndarray:
-    """Dense (n_x, n_x) B - H = sum_kc (factors_kc - 1) J_kc^T J_kc for the Jacobian J
+    """Sparse (n_x, n_x) B - H = sum_kc (factors_kc - 1) J_kc^T J_kc for the Jacobian J
     (3N, n_x) of whitened residuals (y - m) / sigma_m stacked sample by sample."""
     import scipy.sparse as sp
 
     v = np.asarray(factors, dtype=float).ravel() - 1.0  # (N, 3) row-major: sample-major
-    return np.asarray((J.T @ sp.diags(v) @ J).toarray())
+    return sp.csr_matrix(J.T @ sp.diags(v) @ J)
 
 
 # ----------------------------------------------------------------- correlated residuals
@@ -406,7 +488,7 @@ def residual_inflation(
 def magnetometer_correction(
     nlp: NLP, sol: Solution, structure, weights: np.ndarray, sigma_m: float
 ) -> np.ndarray:
-    """Dense (n_x, n_x) change of the Hessian when the Gauss-Newton information of each
+    """Sparse (n_x, n_x) change of the Hessian when the Gauss-Newton information of each
     magnetometer residual (sample k, component c) is scaled by weights[k, c]:
     sum_kc (weights_kc - 1) J_kc^T J_kc / sigma_m^2, with J_kc the residual's gradient.
 
@@ -414,17 +496,16 @@ def magnetometer_correction(
     interpolation matrix A, the weights through the basis row (SE: component c's column of
     W; curl-free: the shared potential) and the constant field c_c. Exact GP: the residual
     y_kc - M_kc, so only the diagonal of the M block changes."""
+    import scipy.sparse as sp
+
     n_x = nlp.x_layout.size
     E = nlp.x_layout.entries
     V = (np.asarray(weights, dtype=float) - 1.0) / sigma_m**2  # (N, 3)
-    out = np.zeros((n_x, n_x))
     if structure.form != "reduced_rank":
         e = E["M"]
         N = e.shape[0]
         idx = e.offset + np.arange(N * FIELD_DIM)  # column-major (N, 3)
-        out[idx, idx] = V.ravel(order="F")
-        return out
-    import scipy.sparse as sp
+        return sp.csr_matrix((V.ravel(order="F"), (idx, idx)), shape=(n_x, n_x))
 
     knots, d, kernel = structure.knots, structure.dim, structure.kernel
     basis = structure.hilbert_basis()
@@ -435,6 +516,7 @@ def magnetometer_correction(
     w0 = E["W"].offset
     c0 = E["c"].offset if "c" in E else None
     A = knots.matrix
+    parts: list[tuple[np.ndarray, ...]] = []
     step = MapModel.CHUNK // 4
     for s0 in range(0, knots.n, step):
         r = slice(s0, min(knots.n, s0 + step))
@@ -455,9 +537,17 @@ def magnetometer_correction(
             else:
                 Jd, didx = Jw, widx
             VJp = sp.diags(v) @ Jp
-            out[np.ix_(cidx, cidx)] += (Jp.T @ VJp).toarray()
             Hpd = np.asarray(VJp.T @ Jd)
-            out[np.ix_(cidx, didx)] += Hpd
-            out[np.ix_(didx, cidx)] += Hpd.T
-            out[np.ix_(didx, didx)] += Jd.T @ (v[:, None] * Jd)
-    return out
+            parts.append(_placed((Jp.T @ VJp).tocoo(), cidx, cidx))
+            parts.append(_placed(sp.coo_matrix(Hpd), cidx, didx))
+            parts.append(_placed(sp.coo_matrix(Hpd.T), didx, cidx))
+            parts.append(_placed(sp.coo_matrix(Jd.T @ (v[:, None] * Jd)), didx, didx))
+    if not parts:
+        return sp.csr_matrix((n_x, n_x))
+    rows, cols, vals = (np.concatenate(t) for t in zip(*parts, strict=True))
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n_x, n_x))  # duplicates summed
+
+
+def _placed(block: Any, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(row, column, value) of a sparse block placed at the unknowns ``rows`` x ``cols``."""
+    return rows[block.row], cols[block.col], block.data
