@@ -246,7 +246,7 @@ class ReducedRankField(FieldModel):
         """The rotated block's Hessian mode: ``solver.hessian`` when it names one
         (``exact``, ``hybrid``, ``gauss-newton``), else (``auto``) the model's own
         ``curvature``."""
-        return self.curvature if solver.hessian == "auto" else solver.hessian
+        return solver.hessian_mode(self.curvature)
 
     def _weights(self, b: NLPBuilder, basis: HilbertBasis) -> tuple[ca.MX, ca.MX | None]:
         M = basis.num_basis

@@ -353,6 +353,9 @@ class WarmStartSpec(Strict):
 #: ``solver.hessian`` values only a map read with numpy has (not the exact GP).
 NUMPY_HESSIANS = ("gauss-newton", "hybrid")
 
+#: ``solver.hessian`` values that name the mode of a numpy magnetometer block.
+HESSIAN_MODES = ("exact", "hybrid", "gauss-newton")
+
 
 class SolverSpec(Strict):
     """IPOPT settings. ``ipopt`` passes further options through unchanged.
@@ -361,7 +364,8 @@ class SolverSpec(Strict):
     map read with numpy has (reduced rank, tiled, rotated or not; the other blocks' is
     CasADi's exact one): ``gauss-newton`` J^T J alone; ``exact`` with the residuals'
     second-order terms; ``hybrid`` Gauss-Newton while the block's cost falls fast, the exact
-    terms once it falls by less than 1 % an iteration; ``auto`` the model's own choice
+    terms once it falls by less than 20 % an iteration (1 % through a rotation); ``auto``
+    the model's own choice
     (translational and tiled maps ``hybrid``; planar ``model.curvature``, pose
     ``model.curvature``, IMU ``model.gp.curvature``). The exact GP takes CasADi's exact
     Hessian (``auto`` or ``exact``). ``limited-memory`` is IPOPT's L-BFGS (no Laplace
@@ -382,6 +386,11 @@ class SolverSpec(Strict):
     against 5.2-16.7 without; factor 1 on white noise); ``correlation``, the same with
     sigma_m^2 times the autocorrelation time; ``none``, the plain Laplace covariance.
     """
+
+    def hessian_mode(self, own: str) -> str:
+        """The mode of a numpy magnetometer block: the one ``hessian`` names, else (``auto``)
+        the model's ``own``."""
+        return self.hessian if self.hessian in HESSIAN_MODES else own
 
     max_iter: Annotated[int, Field(ge=1, le=100_000)] = 200
     tol: PositiveFloat = 1.0e-6

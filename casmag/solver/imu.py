@@ -708,13 +708,11 @@ def _slam_setup(
         hb = make_basis(m.gp.kernel, P, hyper["lengthscale"], num_basis, m.gp.margin)
         basis_key = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
     variation = hyper["sigma_f"] / (hyper["lengthscale"] if m.gp.kernel == "curl_free" else 1.0)
-    if problem.spec.solver.hessian in ("exact", "hybrid", "gauss-newton"):
-        mode = problem.spec.solver.hessian
-    elif m.gp.curvature == "auto":
-        mode = "exact" if variation < CURVATURE_BELOW * problem.sigma_m else "hybrid"
+    if m.gp.curvature == "auto":
+        own = "exact" if variation < CURVATURE_BELOW * problem.sigma_m else "hybrid"
     else:
-        mode = "exact" if m.gp.curvature else "gauss-newton"
-    return basis_key, mode
+        own = "exact" if m.gp.curvature else "gauss-newton"
+    return basis_key, problem.spec.solver.hessian_mode(own)
 
 
 def _slam_solve(

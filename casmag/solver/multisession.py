@@ -108,7 +108,7 @@ def solve_sessions(
         return result, data, order
     model = TranslationalStaged(problem, data)
     strategies, _ = starts(problem, ordered[0].n_samples)
-    run = staged_sessions(model, strategies[-1], [0.0] * len(strategies), strategies)
+    run = staged_sessions(model, _growing(problem), [0.0] * len(strategies), strategies)
     stages = _records(model, run)
     final = run.final
     P0 = model.states(final)["P"] if final.sol.success else data.dead_reckoning()
@@ -128,12 +128,16 @@ def starts(problem: Problem, n: int) -> tuple[list[WarmStartSpec], list[str]]:
     """The starts of a translational solve of n samples and their names: the batch from
     the dead reckoning, and (above 2 x FIRST_PREFIX samples) growing prefixes from
     FIRST_PREFIX samples."""
-    ws = problem.spec.solver.warm_start
-    batch = ws.model_copy(update={"strategy": "none"})
+    batch = problem.spec.solver.warm_start.model_copy(update={"strategy": "none"})
     if n <= 2 * FIRST_PREFIX:
         return [batch], ["dead reckoning"]
-    grow = ws.model_copy(update={"strategy": "growing", "first_samples": FIRST_PREFIX})
-    return [batch, grow], ["dead reckoning", "growing prefixes"]
+    return [batch, _growing(problem)], ["dead reckoning", "growing prefixes"]
+
+
+def _growing(problem: Problem) -> WarmStartSpec:
+    """Growing prefixes from FIRST_PREFIX samples (a start's, and each added session's)."""
+    ws = problem.spec.solver.warm_start
+    return ws.model_copy(update={"strategy": "growing", "first_samples": FIRST_PREFIX})
 
 
 def _record(model: TranslationalStaged, st: StagedStage, name: str, **more: Any) -> dict:

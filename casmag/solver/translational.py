@@ -238,10 +238,8 @@ class TranslationalStaged(StagedModel):
     def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
         if bias != 0.0:
             raise ValueError("the translational model has no heading to turn")
-        return {
-            "P": self._part(k, self._bias(None, k)).dead_reckoning(),
-            "bias": self._bias(None, k),
-        }
+        zero = self._bias(None, k)
+        return {"P": self._part(k, zero).dead_reckoning(), "bias": zero}
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
         own: TranslationalSolve = solved.nominal
