@@ -10,7 +10,7 @@
   tiles (casmag.gp.tiles): each sample touches the tiles around it, so the Hessian grows
   with the tiles the path visits, not with the area of one box (map frame).
 - :class:`WindowField`: the reduced-rank map of one window of the fixed-lag smoother, whose
-  prior is the Gaussian carried from the earlier windows (casmag.solver.sliding).
+  prior is the Gaussian carried from the earlier windows (casmag.solver.staged.slide).
 - :class:`casmag.model.builder.NoField`: no map.
 
 Each declares its unknowns and blocks on the :class:`~casmag.model.builder.Pose` a motion

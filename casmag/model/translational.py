@@ -37,7 +37,7 @@ from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
 from casmag.gp.tiles import TileGrid, cached_tiles
 from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam
-from casmag.model.field import ExactField, ReducedRankField, TiledField
+from casmag.model.field import ExactField, ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rrmap import field_and_jacobians, make_basis
 from casmag.model.tiledmap import home_points, ridge_tile_weights, tile_grid
@@ -181,6 +181,131 @@ class TranslationalMotion(MotionModel):
         elif self.bias_prior == "gaussian":
             db = own["bias"] - own["bias_mean"]
             b.cost("bias_prior", 0.5 * ca.mtimes(ca.mtimes(db, own["bias_precision"]), db.T))
+
+
+# ---------------------------------------------------------------- sliding windows
+
+
+@dataclass(frozen=True)
+class WindowStructure:
+    """A window of the translational sliding windows (casmag.solver.translational,
+    casmag.solver.staged.solve_sliding) or of the localisation against a saved map
+    (casmag.solver.localize): everything that changes its NLP (and so needs a new build).
+
+    ``basis``: (center, half_width, num_basis) of the map's reduced-rank box;
+    ``share_columns`` False: one precision over every weight (a saved map's)."""
+
+    n: int
+    dim: int
+    kernel: str
+    basis: tuple
+    knot_every: int
+    constant_field: bool
+    estimate_bias: bool
+    solver: str  # SolverSpec as JSON
+    share_columns: bool = True
+
+    @property
+    def shared_prior(self) -> bool:
+        """SE map without a constant field (and ``share_columns``): the three weight
+        columns share one design matrix, so one M x M precision serves all of them."""
+        return self.share_columns and self.kernel == "se" and not self.constant_field
+
+    def hilbert_basis(self) -> HilbertBasis:
+        return cached_basis(self.basis)
+
+    @property
+    def knots(self) -> Knots:
+        return Knots(self.n, self.knot_every)
+
+    def motion(self) -> TranslationalMotion:
+        """One session; the bias (when estimated) under the Gaussian carried from the
+        earlier windows."""
+        bias_prior = "gaussian" if self.estimate_bias else "none"
+        return TranslationalMotion(
+            self.n, self.dim, self.knot_every, (0,), self.estimate_bias, bias_prior
+        )
+
+    def fixed_field(self) -> ReducedRankField:
+        """The map of a window located against a known map: the plain reduced-rank map
+        (no ``map_prior`` block), whose weights the solve holds fixed."""
+        return ReducedRankField(self.kernel, self.basis, constant_field=self.constant_field)
+
+    def field(self) -> WindowField:
+        return WindowField(
+            self.kernel,
+            self.basis,
+            constant_field=self.constant_field,
+            prior_shape=self.prior_shape,
+            shared_prior=self.shared_prior,
+        )
+
+    @property
+    def prior_shape(self) -> tuple[int, int]:
+        """Shape of the prior's unknowns Z: W (M, 3) when shared, else the stacked
+        [vec(W); c] (n_z, 1)."""
+        M = self.basis[2]
+        if self.shared_prior:
+            return (M, FIELD_DIM)
+        n_w = M * FIELD_DIM if self.kernel == "se" else M
+        return (n_w + (FIELD_DIM if self.constant_field else 0), 1)
+
+    def nlp(self, fixed_map: bool = False) -> NLP:
+        """The window NLP, built once per process; ``fixed_map``: the one of
+        :meth:`fixed_field`."""
+        return cached_slam(self.motion(), self.fixed_field() if fixed_map else self.field(),
+                           self.solver)  # fmt: skip
+
+    def design(self, P: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The map as a linear model of the prior's unknowns Z at positions P (n, d):
+        (J, T) with the samples Y (n, 3) = J Z (+ noise) column by column. Shared SE
+        prior: J = Phi (n, M), T = Y; otherwise J (3n, n_z) component-major and
+        T = vec(Y) (3n, 1)."""
+        basis = self.hilbert_basis()
+        M = basis.num_basis
+        n_w = M * FIELD_DIM if self.kernel == "se" else M
+        _, A, _ = field_and_jacobians(basis, self.kernel, P, np.zeros(n_w))
+        if self.shared_prior:
+            return A[0], Y
+        n = P.shape[0]
+        J = np.zeros((FIELD_DIM * n, self.prior_shape[0]))
+        for q in range(FIELD_DIM):
+            rows = slice(q * n, (q + 1) * n)
+            if self.kernel == "se":
+                J[rows, q * M : (q + 1) * M] = A[0]
+            else:
+                J[rows, :M] = A[q]
+            if self.constant_field:
+                J[rows, n_w + q] = 1.0
+        return J, Y.reshape(-1, 1, order="F")
+
+    def prior_precision(
+        self, sigma_f: float, lengthscale: float, sigma_lin: float | None
+    ) -> np.ndarray:
+        """Lambda_0: the GP prior's diagonal precision diag(1 / S(l)) on the weights (and
+        1 / sigma_lin^2 on a constant field)."""
+        S = np.asarray(
+            self.hilbert_basis().prior_variances(self.kernel, sigma_f, lengthscale)
+        ).ravel()
+        if self.shared_prior:
+            return np.diag(1.0 / S)
+        inv = 1.0 / (np.tile(S, FIELD_DIM) if self.kernel == "se" else S)
+        if self.constant_field:
+            inv = np.concatenate([inv, np.full(FIELD_DIM, float(sigma_lin) ** -2)])
+        return np.diag(inv)
+
+    def unknowns(self, Z: np.ndarray) -> dict[str, np.ndarray]:
+        """The NLP's map unknowns (``W``, and ``c`` with a constant field) from Z of
+        :attr:`prior_shape`."""
+        if self.shared_prior:
+            return {"W": Z}
+        M = self.basis[2]
+        n_w = M * FIELD_DIM if self.kernel == "se" else M
+        z = Z.ravel()
+        out = {"W": z[:n_w].reshape((M, FIELD_DIM) if self.kernel == "se" else (M, 1), order="F")}
+        if self.constant_field:
+            out["c"] = z[n_w:].reshape(-1, 1)
+        return out
 
 
 def initial_weights(

@@ -251,8 +251,8 @@ class ModelSpec(Strict):
 
 
 class WarmStartSpec(Strict):
-    """How the initial trajectory of the full problem is found (casmag.solver.windowing,
-    casmag.solver.sliding).
+    """How the initial trajectory of the full problem is found (casmag.solver.staged,
+    casmag.solver.windowing).
 
     strategy ``none``: the dead reckoning. ``growing``: solve the first ``first_samples``
     samples, then prefixes ``growth`` times longer up to all samples; each stage starts from
@@ -337,7 +337,7 @@ class WarmStartSpec(Strict):
 
     @property
     def window_samples(self) -> int | None:
-        """The window length in samples (None for ``auto``: casmag.solver.sliding.auto_window)."""
+        """The window length in samples (None for ``auto``: casmag.solver.windowing.window_size)."""
         return None if self.window == "auto" else self._samples(self.window)
 
     @property

@@ -32,7 +32,6 @@ from casmag.result.evaluation import anchor_info
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.imu import solve_imu
 from casmag.solver.oriented import solve_oriented
-from casmag.solver.sliding import solve_sliding
 from casmag.solver.translational import solve_translational, solve_translational_strategy
 from casmag.solver.uncertainty import (
     KNOT_UNCERTAINTY_MAX_UNKNOWNS,
@@ -101,15 +100,12 @@ def solve(
     ws = problem.spec.solver.warm_start
     stages: list[dict[str, Any]] = []
     if initial_positions is None and (
-        ws.strategy == "coarse-to-fine"
+        ws.strategy in ("coarse-to-fine", "sliding")
         or (ws.strategy == "growing" and data.n_samples > ws.first_samples)
     ):
         sol, nlp, hyper, field, structure, solved, stages = solve_translational_strategy(
             problem, data, progress
         )
-    elif ws.strategy == "sliding" and initial_positions is None:
-        sol, nlp, hyper, field, structure, solved, windows = solve_sliding(problem, data, progress)
-        stages = [st.to_dict() for st in windows]
     else:
         sol, nlp, hyper, field, structure = solve_translational(
             problem, data, progress, initial_positions

@@ -1139,7 +1139,7 @@ class ImuStaged(StagedModel):
     def solve_window(
         self, a: int, k: int, start: dict[str, np.ndarray],
         anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
-        bias: dict[str, np.ndarray], bias_sigma: dict[str, np.ndarray] | None,
+        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
         prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
     ) -> Solved:  # fmt: skip
         problem, m = self.problem, self.problem.spec.model

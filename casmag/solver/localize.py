@@ -7,14 +7,13 @@ reduced-rank NLP of one window structure with the map's unknowns fixed (IPOPT fa
 the path's knots and the odometry bias alone, so a step costs what the path costs, not
 what the map does):
 
-1. the fixed-lag smoother (casmag.solver.sliding) over the recording: each window is
-   located against the map from where the previous one ended; its path and odometry bias
-   start
-2. one solve over the whole recording.
+1. windows over the recording (:func:`locate_windows`), each located against the map
+   from where the previous one ended: their path starts
+2. one solve over the whole recording, which estimates the odometry bias.
 
 The map's own uncertainty enters as magnetometer noise: sigma_m is widened to
 sqrt(sigma_m^2 + s^2), s the RMS of the map's posterior standard deviation along the
-smoother's path (``info.localisation.sigma_m_used``, ``map_std_on_path``), so a map that
+windows' path (``info.localisation.sigma_m_used``, ``map_std_on_path``), so a map that
 knows little does not give a confident path. The new recording does not update the map:
 the saved precision is dense (n_z x n_z) and as a prior inside the NLP its Hessian block
 made a window solve take minutes at the real field's 3,675 unknowns; an update in
@@ -33,30 +32,27 @@ is ``info.localisation.covered`` and below :data:`MIN_COVERED` the result is fla
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from casmag.data.simulate import Dataset
-from casmag.errors import DataError
+from casmag.errors import DataError, ProblemError
 from casmag.gp.fieldmap import map_grid
 from casmag.gp.savedmap import SavedMap
-from casmag.model.knots import Knots
+from casmag.model.translational import WindowStructure
 from casmag.problem.spec import Problem
 from casmag.result import Result
 from casmag.result.evaluation import anchor_info
 from casmag.result.metrics import rmse_and_max
-from casmag.solver.sliding import (
-    OFF_MAP,
-    WindowStructure,
-    auto_window,
-    batch_stage,
-    fixed_lag_smoother,
-    window_nlp,
-)
 from casmag.solver.uncertainty import NotPositiveDefinite, position_uncertainty
+from casmag.solver.windowing import ACCEPTED, continued, window_size, window_starts
 from casmag.versions import __version__, versions
+
+OFF_MAP = "Off_Map_Dead_Reckoning"
+"""Status of a window that left the map's box: kept as its start (the dead reckoning
+continued from the previous window), and the next window tries the map again."""
 
 #: Below this share of the estimated path on mapped ground the result is flagged ``off_map``.
 MIN_COVERED = 0.5
@@ -94,6 +90,105 @@ def _structure(problem: Problem, data: Dataset, saved: SavedMap, n: int) -> Wind
         solver=solver.model_dump_json(),
         share_columns=False,
     )
+
+
+@dataclass
+class Located:
+    """The windows located against the map: positions (N, d) [m], each sample from the
+    last window that committed it (the dead reckoning when ``completed`` is False);
+    ``stages`` one record each (as a result's ``stages``); ``completed``: every window
+    reached an accepted IPOPT outcome (a window off the map's box counts, keeping its dead
+    reckoning with status :data:`OFF_MAP`). Otherwise the failing window is the last
+    record."""
+
+    positions: np.ndarray
+    stages: list[dict[str, Any]]
+    completed: bool
+
+    @property
+    def iterations(self) -> int:
+        return sum(st["iterations"] for st in self.stages)
+
+
+def window_length(problem: Problem, data: Dataset) -> tuple[int, int]:
+    """(window, overlap) in samples (casmag.solver.windowing.window_size, from the
+    odometry's step lengths and the map's lengthscale)."""
+    ws = problem.spec.solver.warm_start
+    steps = np.linalg.norm(data.U, axis=1)
+    n, overlap = window_size(ws, steps, problem.assumed_lengthscale, data.n_samples)
+    if overlap is None or not 1 <= overlap < n:
+        raise ProblemError(
+            problem.source,
+            "solver.warm_start.overlap",
+            f"overlap must be at least 1 sample and shorter than the window "
+            f"(got {overlap} of {n} samples)",
+        )
+    return n, overlap
+
+
+def locate_windows(
+    problem: Problem, data: Dataset, s: WindowStructure, overlap: int, mean: np.ndarray
+) -> Located:
+    """Windows of ``s.n`` samples overlapping by ``overlap``, located in time order against the
+    map held at its mean ``mean`` (the plain reduced-rank NLP with the map's unknowns fixed:
+    IPOPT factorises a window's path alone; no bias is estimated in a window). Each window
+    starts at the previous one's estimate of its first sample, from the previous one's path
+    on the overlap continued by the odometry. A window whose path leaves the map's box keeps
+    that start (no map information there) and the next one tries the map again; any other
+    failure ends the windows."""
+    N, n = data.n_samples, s.n
+    starts = window_starts(N, n, overlap)
+    nlp = s.nlp(fixed_map=True)
+    knots = s.knots
+    m = problem.spec.model
+    held = ("W", "c") if s.constant_field else ("W",)
+    center, half = (np.asarray(v)[: data.dim] for v in s.basis[:2])
+    unknowns = s.unknowns(mean)
+    params = {
+        "sigma_o": problem.assumed_sigma_odometry,
+        "sigma_anchor": m.anchor.sigma,
+        "sigma_m": problem.assumed_sigma_m,
+        # the held map's own prior is a constant of the window's cost
+        "sigma_f": problem.assumed_sigma_f,
+        "lengthscale": problem.assumed_lengthscale,
+        "sigma_lin": 1.0,
+    }
+    P_est = np.full((N, data.dim), np.nan)
+    stages: list[dict[str, Any]] = []
+    anchor = np.asarray(data.anchor, dtype=float)
+    previous: np.ndarray | None = None  # the previous window's path from this start on
+    for k, start in enumerate(starts):
+        end, nxt = start + n, starts[k + 1] if k + 1 < len(starts) else N
+        Q = np.vstack([anchor, anchor + np.cumsum(data.U[start : end - 1], axis=0)])
+        P0 = Q if previous is None else continued(previous, Q)
+        C0 = knots.fit(Q, P0)
+        P0 = knots.positions(Q, C0)
+        window = {**params, "Q": Q, "Y": data.Y[start:end], "anchor": anchor.reshape(1, -1)}
+        sol = nlp.solve(window, {"C": C0, **unknowns}, fixed=held)
+        P, status = knots.positions(Q, sol.x["C"]), sol.status
+        if status in ACCEPTED and not (np.all(np.isfinite(P)) and np.all(P >= center - half)
+                                       and np.all(P <= center + half)):  # fmt: skip
+            P, status = P0, OFF_MAP  # off the map: its start, and the next window tries again
+        stages.append(
+            {
+                "name": "window",
+                "start": start,
+                "samples": n,
+                "status": status,
+                "success": sol.success,
+                "iterations": sol.iterations,
+                "solve_seconds": sol.solve_seconds,
+                "build_seconds": nlp.build_seconds if k == 0 else 0.0,
+                "lengthscale": problem.assumed_lengthscale,
+                "bias": None,
+            }
+        )
+        if status not in (*ACCEPTED, OFF_MAP):
+            return Located(data.dead_reckoning(), stages, False)
+        P_est[start:nxt] = P[: nxt - start]
+        if nxt < N:
+            anchor, previous = P[nxt - start], P[nxt - start :]
+    return Located(P_est, stages, True)
 
 
 def covered(saved: SavedMap, P: np.ndarray) -> np.ndarray:
@@ -134,22 +229,21 @@ def localise(
     problem = map_problem(problem, saved)
     m = problem.spec.model
     N = data.n_samples
-    prior = (saved.mean.reshape(-1, 1), saved.precision)
     started = time.perf_counter()
 
-    # 1. The fixed-lag smoother, located against the map from its first window on.
-    n, _ = auto_window(problem, data)
-    # Windows of a second or two cannot tell a bias from a shifted map position: the bias
-    # is left to the solve over the whole recording.
+    # 1. The windows, located against the map from the first on. Windows of a second or
+    #    two cannot tell a bias from a shifted map position: the bias is left to the solve
+    #    over the whole recording.
+    n, overlap = window_length(problem, data)
     windows = replace(_structure(problem, data, saved, n), estimate_bias=False)
-    sm = fixed_lag_smoother(problem, data, structure=windows, prior=prior, fixed_map=True)
+    sm = locate_windows(problem, data, windows, overlap, saved.mean.reshape(-1, 1))
 
     # 2. One solve over the whole recording, the map held at its mean, the magnetometer's
     #    noise widened by the map's own uncertainty along the smoother's path.
     s = replace(_structure(problem, data, saved, N), solver=problem.spec.solver.model_dump_json())
-    nlp = window_nlp(s, fixed_map=True)
-    knots = Knots(N, s.knot_every)
-    U = data.U - sm.bias
+    nlp = s.nlp(fixed_map=True)
+    knots = s.knots
+    U = data.U
     anchor = np.asarray(data.anchor, dtype=float).reshape(1, -1)
     Q = np.vstack([anchor, anchor + np.cumsum(U, axis=0)])
     map_std = float(np.sqrt(np.mean(saved.std(sm.positions) ** 2)))
@@ -165,8 +259,7 @@ def localise(
         "sigma_f": saved.sigma_f,
         "lengthscale": saved.lengthscale,
         "sigma_lin": 1.0,
-        # the model's prior is on the total bias; the smoother's estimate is already removed
-        "bias_mean": -sm.bias.reshape(1, -1),
+        "bias_mean": np.zeros((1, data.dim)),
         "bias_precision": np.eye(data.dim) * model_prec,
     }
     x0: dict[str, Any] = {"C": knots.fit(Q, sm.positions), **saved.unknowns()}
@@ -175,10 +268,21 @@ def localise(
     held = ("W", "c") if saved.constant_field else ("W",)
     sol = nlp.solve(params, x0, progress=progress, fixed=held)
     P_est = knots.positions(Q, sol.x["C"])
-    bias = sm.bias + (sol.x["bias"].ravel() if s.estimate_bias else 0.0)
+    bias = sol.x["bias"].ravel() if s.estimate_bias else np.zeros(data.dim)
     seconds = time.perf_counter() - started
 
-    stage = batch_stage(sol, nlp, N, saved.lengthscale, bias if s.estimate_bias else None)
+    stage = {
+        "name": "batch",
+        "start": 0,
+        "samples": N,
+        "status": sol.status,
+        "success": sol.success,
+        "iterations": sol.iterations,
+        "solve_seconds": sol.solve_seconds,
+        "build_seconds": nlp.build_seconds,
+        "lengthscale": saved.lengthscale,
+        "bias": [float(v) for v in bias] if s.estimate_bias else None,
+    }
     P_odo = data.dead_reckoning()
     before = after = (None, None)
     if data.P_true is not None:
@@ -187,17 +291,17 @@ def localise(
             after = rmse_and_max(P_est, data.P_true)
     arrays, uncertainty, flags, warnings = {}, None, [], []
     on_map = None
+    off = [st for st in sm.stages if st["status"] == OFF_MAP]
     if sol.success:
-        off = [st for st in sm.windows if st.status == OFF_MAP]
         if not sm.completed:
-            last = sm.windows[-1]
+            last = sm.stages[-1]
             flags.append(
                 {
                     "name": "start_lost",
-                    "reason": f"the window-by-window location failed at sample {last.start} "
-                    f"({last.status}): the whole-recording solve started from the dead "
+                    "reason": f"the window-by-window location failed at sample {last['start']} "
+                    f"({last['status']}): the whole-recording solve started from the dead "
                     "reckoning",
-                    "evidence": {"first_sample": last.start, "status": last.status},
+                    "evidence": {"first_sample": last["start"], "status": last["status"]},
                 }
             )
         if off:
@@ -205,8 +309,8 @@ def localise(
                 {
                     "check": "off_map_windows",
                     "column": "",
-                    "reason": f"{len(off)} of {len(sm.windows)} windows left the map's box "
-                    f"(first at sample {off[0].start}) and kept their dead reckoning",
+                    "reason": f"{len(off)} of {len(sm.stages)} windows left the map's box "
+                    f"(first at sample {off[0]['start']}) and kept their dead reckoning",
                 }
             )
         on_map = float(covered(saved, P_est).mean())
@@ -246,7 +350,7 @@ def localise(
             "frame": saved.frame,
             "map_unknowns": saved.size,
             "smoother_completed": sm.completed,
-            "windows_off_map": sum(st.status == OFF_MAP for st in sm.windows),
+            "windows_off_map": len(off),
             "covered": on_map,
             "sigma_m_used": sigma_m,
             "map_std_on_path": map_std,
@@ -275,7 +379,7 @@ def localise(
         if data.bias_true is None
         else [float(v) for v in np.ravel(data.bias_true)],
         cost_blocks=sol.cost_blocks(),
-        stages=[st.to_dict() for st in [*sm.windows, stage]],
+        stages=[*sm.stages, stage],
         cost_per_iteration=sol.cost_per_iteration,
         constraint_violation_per_iteration=sol.inf_pr_per_iteration,
         uncertainty=uncertainty,

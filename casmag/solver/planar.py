@@ -431,7 +431,7 @@ class PlanarStaged(StagedModel):
     def solve_window(
         self, a: int, k: int, start: dict[str, np.ndarray],
         anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
-        bias: dict[str, np.ndarray], bias_sigma: dict[str, np.ndarray] | None,
+        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
         prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
     ) -> Solved:  # fmt: skip
         # The anchor prior takes the standard deviations (anchor_sigma), not anchor_cov.
@@ -448,8 +448,8 @@ class PlanarStaged(StagedModel):
             "map_mean": prior.mean.reshape(-1, 1),
             "map_precision": prior.Lam,
         }
-        if bias_sigma is not None:
-            params["sigma_bias0"] = float(np.ravel(bias_sigma["bias"])[0])
+        if bias_cov is not None:  # the marginal standard deviation
+            params["sigma_bias0"] = float(np.sqrt(bias_cov["bias"][0, 0]))
         if anchor_sigma is not None:  # one standard deviation for both axes: the larger
             params["sigma_anchor"] = float(np.max(anchor_sigma["P"]))
             params["sigma_psi0"] = float(np.ravel(anchor_sigma["psi"])[0])

@@ -457,7 +457,7 @@ class PoseStaged(StagedModel):
     def solve_window(
         self, a: int, k: int, start: dict[str, np.ndarray],
         anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
-        bias: dict[str, np.ndarray], bias_sigma: dict[str, np.ndarray] | None,
+        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
         prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
     ) -> Solved:  # fmt: skip
         # The anchor prior takes the standard deviations (anchor_sigma), not anchor_cov.
@@ -473,8 +473,8 @@ class PoseStaged(StagedModel):
             **nominal_parameters(Q0),
         }  # fmt: skip
         for key, sigma in (("bias_p", "sigma_bp"), ("bias_w", "sigma_bw")):
-            if bias_sigma is not None and key in bias_sigma:  # one for every axis: the largest
-                params[sigma] = float(np.max(bias_sigma[key]))
+            if bias_cov is not None and key in bias_cov:  # one for every axis: the largest
+                params[sigma] = float(np.sqrt(np.max(np.diag(bias_cov[key]))))
         if anchor_sigma is not None:
             params["sigma_anchor"] = float(np.max(anchor_sigma["P"]))
             params["sigma_att0"] = float(np.max(anchor_sigma["Q"]))

@@ -145,12 +145,13 @@ class StagedModel(ABC):
     def solve_window(
         self, a: int, k: int, start: dict[str, np.ndarray],
         anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
-        bias: dict[str, np.ndarray], bias_sigma: dict[str, np.ndarray] | None,
+        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
         prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
     ) -> Solved:  # fmt: skip
         """The window [a, a + k) with the total ``bias`` removed from its odometry, its own
-        bias unknowns the increments on it (prior: zero mean, ``bias_sigma``, None for the
-        model's own), its first state under a prior at ``anchor`` with standard deviations
+        bias unknowns the increments on it (prior: zero mean, covariance ``bias_cov[name]``,
+        the previous window's Laplace marginal of each; None for the model's own prior), its
+        first state under a prior at ``anchor`` with standard deviations
         ``anchor_sigma`` (None: the model's known start and its own priors), the map under
         ``prior``; its states are those of :meth:`states` with the increments as biases.
         ``anchor_cov``: the anchor's whole Laplace covariance (its states in the order of
@@ -222,16 +223,30 @@ class WindowPrior:
         self.eta = self.eta + J.T @ y / s2
 
 
+#: Status of a window whose states left its map's box (IPOPT itself stopped normally).
+LEFT_BOX = "Left_Map_Box"
+
+
 @dataclass
 class Stage:
     """One solve of a strategy: its kind (``prefix``, ``lengthscale``, ``window``,
-    ``batch``), samples, lengthscale, the solve, and its first sample (a window's)."""
+    ``batch``), samples, lengthscale, the solve, and its first sample (a window's);
+    a window's ``handed``: the Laplace marginal standard deviations of its bias increments
+    it hands the next window as prior (None: none handed), ``left_box``: its states left
+    the map's box (the smoother ended there)."""
 
     kind: str
     samples: int
     lengthscale: float
     solved: Solved
     first: int = 0
+    handed: dict[str, np.ndarray] | None = None
+    left_box: bool = False
+
+    @property
+    def status(self) -> str:
+        """IPOPT's status, or :data:`LEFT_BOX`."""
+        return LEFT_BOX if self.left_box else self.solved.sol.status
 
 
 def solve_strategy(
@@ -289,25 +304,38 @@ def _rows(states: dict[str, np.ndarray], keys: tuple[str, ...], rows: slice) -> 
     return {key: states[key][rows] for key in keys}
 
 
-def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> list[Stage]:
-    """Sliding windows (a fixed-lag smoother), then the full problem from their
-    trajectory: the strategy ``sliding`` of casmag.solver.sliding written once for every
-    staged model. Windows of ``k`` samples overlapping by ``o`` (:func:`window_length`) are
-    solved in time order; the map is a reduced-rank box around the whole recording whose
-    unknowns carry a Gaussian prior from window to window (:class:`WindowPrior`), which the
-    samples a window commits (those before the next window starts) enter as linear-Gaussian
-    observations at their solved poses, so no sample counts twice. Each window removes the
-    total bias estimated so far from its odometry and estimates the increment, under (with
+@dataclass
+class Windows:
+    """The sliding windows alone (:func:`slide`): every window solved (``stages``); when
+    ``completed`` (every window reached an accepted IPOPT outcome inside its map's box), the
+    whole recording's states joined from the samples each window committed (``states``,
+    as :meth:`StagedModel.joined`: the full problem's start) and the map's prior after
+    every sample (``prior``); otherwise ``states`` is None and the failing window is the
+    last stage."""
+
+    stages: list[Stage]
+    states: dict[str, np.ndarray] | None
+    prior: WindowPrior
+
+    @property
+    def completed(self) -> bool:
+        return self.states is not None
+
+
+def slide(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> Windows:
+    """Sliding windows, a fixed-lag smoother written once for every staged model. Windows
+    of ``k`` samples overlapping by ``o`` (:func:`window_length`) are solved in time
+    order; the map is a reduced-rank box around the whole recording whose unknowns carry a
+    Gaussian prior from window to window (:class:`WindowPrior`), which the samples a window
+    commits (those before the next window starts) enter as linear-Gaussian observations at
+    their solved poses, so no sample counts twice. Each window removes the total bias
+    estimated so far from its odometry and estimates the increment, under (with
     ``window_bias_prior: laplace``) the previous window's Laplace marginal of it as a
     zero-mean prior; it is anchored at the previous window's state at its first sample and
     starts from the previous window's states on the overlap, continued by the odometry.
-    A window that fails (IPOPT, or its path leaves the map's box) ends the smoother, and
-    the full problem starts from the dead reckoning instead (measured on the planar drift
-    table's seed 5, a window left the box at sample 168: from the dead reckoning the batch
-    ended at 5.0 m, from the committed states continued by the odometry at 6.9 m; both
-    flagged ``wrong_basin``). ``bias``: the heading-rate bias of the start
-    (:func:`solve_starts`)."""
-    n, ell = model.n, model.lengthscale
+    A window that fails (IPOPT, or its path leaves the map's box) ends the smoother.
+    ``bias``: the heading-rate bias of the start (:func:`solve_starts`)."""
+    n = model.n
     k, overlap = window_length(model, ws)
     firsts = window_starts(n, k, overlap)
     window_solver = model.solver.model_copy(update={"max_iter": ws.window_max_iter})
@@ -315,7 +343,7 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
     total = model.start(2, bias)
     keys = model.sample_states
     total = {key: v for key, v in total.items() if key not in keys}
-    sigma: dict[str, np.ndarray] | None = None
+    bias_cov: dict[str, np.ndarray] | None = None
     anchor: dict[str, np.ndarray] | None = None
     anchor_sigma: dict[str, np.ndarray] | None = None
     anchor_cov: np.ndarray | None = None
@@ -326,12 +354,13 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
         nxt = firsts[i + 1] if i + 1 < len(firsts) else n
         start = model.window_start(a, k, anchor, carried, total)
         solved = model.solve_window(
-            a, k, start, anchor, anchor_sigma, total, sigma, prior, window_solver, anchor_cov
+            a, k, start, anchor, anchor_sigma, total, bias_cov, prior, window_solver, anchor_cov
         )
-        stages.append(Stage("window", k, ell, solved, first=a))
+        stage = Stage("window", k, model.lengthscale, solved, first=a)
+        stages.append(stage)
         if solved.sol.status not in ACCEPTED or not model.window_inside(solved):
-            final = model.solve(n, model.start(n, bias), model.solver, ell)
-            return [*stages, Stage("batch", n, ell, final)]
+            stage.left_box = solved.sol.status in ACCEPTED
+            return Windows(stages, None, prior)
         states = model.states(solved)
         m = nxt - a
         # The Laplace marginals of the bias increments and of the next window's anchor state
@@ -349,13 +378,15 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
             if blocks else np.zeros((0, 0))
         )  # fmt: skip
         var = np.diag(cov)
-        marginal = dict(zip(blocks, np.split(np.sqrt(np.abs(var)), np.cumsum(sizes)[:-1]),
-                            strict=True)) if blocks else {}  # fmt: skip
+        ends = np.cumsum([0, *sizes])
+        rows = {key: slice(ends[j], ends[j + 1]) for j, key in enumerate(blocks)}
         informative = bool(np.all(np.isfinite(var)) and np.all(var > 0))
         if ws.window_bias_prior == "laplace":  # a singular Hessian hands on no information
-            sigma = {key: marginal[key] for key in names} if informative else None
+            bias_cov = {key: cov[rows[key], rows[key]] for key in names} if informative else None
+            if bias_cov:
+                stage.handed = {key: np.sqrt(np.diag(c)) for key, c in bias_cov.items()}
         anchor_sigma = (
-            {key[7:]: v for key, v in marginal.items() if key.startswith("anchor_")}
+            {key[7:]: np.sqrt(var[r]) for key, r in rows.items() if key.startswith("anchor_")}
             if informative else None
         )  # fmt: skip
         at = np.repeat([key.startswith("anchor_") for key in blocks], sizes).astype(bool)
@@ -369,8 +400,20 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
         anchor = _rows(states, keys, slice(m, m + 1))
         carried = _rows(states, keys, slice(m, None))
     joined = {key: np.concatenate([p[key] for p in parts], axis=0) for key in keys}
-    final = model.solve(n, model.joined(joined, total), model.solver, ell)
-    return [*stages, Stage("batch", n, ell, final)]
+    return Windows(stages, model.joined(joined, total), prior)
+
+
+def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> list[Stage]:
+    """Sliding windows (:func:`slide`), then the full problem from their states. When a
+    window failed the full problem starts from the dead reckoning instead (measured on the
+    planar drift table's seed 5, a window left the box at sample 168: from the dead
+    reckoning the batch ended at 5.0 m, from the committed states continued by the
+    odometry at 6.9 m; both flagged ``wrong_basin``)."""
+    windows = slide(model, ws, bias)
+    n = model.n
+    start = windows.states if windows.completed else model.start(n, bias)
+    final = model.solve(n, start, model.solver, model.lengthscale)
+    return [*windows.stages, Stage("batch", n, model.lengthscale, final)]
 
 
 def _record(st: Stage) -> dict[str, Any]:
@@ -381,7 +424,7 @@ def _record(st: Stage) -> dict[str, Any]:
         "samples": st.samples,
         "lengthscale": st.lengthscale,
         "cost": so.objective,
-        "status": so.status,
+        "status": st.status,
         "iterations": so.iterations,
         "solve_seconds": so.solve_seconds,
     }

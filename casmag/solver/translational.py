@@ -3,8 +3,8 @@ initial positions), with the estimated hyperparameters started from the windowed
 likelihood, the assumed values, or both kept by cost (``model.estimate_start``). The NLP
 and its initial guess come from casmag.model.translational. The model as the warm-start
 strategies of casmag.solver.staged see it (:class:`TranslationalStaged`: growing prefixes,
-coarse-to-fine, several starts and sessions, :func:`solve_translational_strategy`); its
-sliding windows are casmag.solver.sliding.
+coarse-to-fine, sliding windows, several starts and sessions,
+:func:`solve_translational_strategy`).
 """
 
 from __future__ import annotations
@@ -19,8 +19,10 @@ from casmag.errors import ProblemError
 from casmag.gp.hyper import estimate_conditional
 from casmag.gp.kernels import FIELD_DIM
 from casmag.model.field import HYPERPARAMETERS
+from casmag.model.rrmap import make_basis
 from casmag.model.translational import (
     Structure,
+    WindowStructure,
     cached_nlp,
     field_estimate,
     initial_weights,
@@ -29,7 +31,8 @@ from casmag.model.translational import (
 )
 from casmag.nlp import NLP, Solution, lowest_cost
 from casmag.problem.spec import Problem, SolverSpec
-from casmag.solver.staged import Solved, Stage, StagedModel, solve_strategy
+from casmag.solver.staged import Solved, Stage, StagedModel, WindowPrior, solve_strategy
+from casmag.solver.windowing import continued
 
 
 def estimate_start(
@@ -193,6 +196,14 @@ def _solve_from(
 
 
 @dataclass
+class WindowSolve:
+    """What a translational window leaves beside IPOPT's solution: the total per-step
+    bias its odometry had removed ((1, d); its own ``bias`` is the increment on it)."""
+
+    removed: np.ndarray
+
+
+@dataclass
 class TranslationalSolve:
     """What a translational solve leaves beside IPOPT's solution: the hyperparameters, the
     field at the samples, the data it solved (the increments with ``debias`` removed,
@@ -206,21 +217,31 @@ class TranslationalSolve:
 
 class TranslationalStaged(StagedModel):
     """The translational model as the warm-start strategies see it (casmag.solver.staged):
-    growing prefixes, coarse-to-fine, several starts kept by cost and several sessions
-    run by the same code as the planar, pose and IMU models'. States: positions ``P`` and
-    ``bias``, the total per-step odometry bias of each session reached (S, d). A solve
-    removes its start's ``bias`` from the increments and estimates what is left
-    (casmag.data.simulate.Dataset.debiased), from its start's positions (the dead
+    growing prefixes, coarse-to-fine, sliding windows, several starts kept by cost and
+    several sessions run by the same code as the planar, pose and IMU models'. States:
+    positions ``P`` and ``bias``, the total per-step odometry bias of each session reached
+    (S, d). A solve removes its start's ``bias`` from the increments and estimates what is
+    left (casmag.data.simulate.Dataset.debiased), from its start's positions (the dead
     reckoning: the plain batch, its box around the dead reckoning); a start that carries a
     solve's whole solution (``x``: a coarse-to-fine stage, the same samples again) starts
     the NLP there, the map's weights included. No heading-rate bias: the model has no
-    heading."""
+    heading. ``window_box``: the positions the sliding windows' map box is laid around
+    (default the dead reckoning, so that it holds the truth wherever the drift took the
+    odometry)."""
 
-    def __init__(self, problem: Problem, data: Dataset, progress: Any = None) -> None:
+    def __init__(
+        self,
+        problem: Problem,
+        data: Dataset,
+        progress: Any = None,
+        window_box: np.ndarray | None = None,
+    ) -> None:
         self.problem, self.data, self.progress = problem, data, progress
         self.n, self.solver = data.n_samples, problem.spec.solver
         self.lengthscale = problem.assumed_lengthscale
         self.session_starts = tuple(int(i) for i in data.starts)
+        self._window_box = window_box
+        self._window_basis: tuple | None = None
 
     def _part(self, k: int, bias: np.ndarray) -> Dataset:
         part = self.data if k == self.n else self.data.prefix(k)
@@ -242,6 +263,10 @@ class TranslationalStaged(StagedModel):
         return {"P": self._part(k, zero).dead_reckoning(), "bias": zero}
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
+        if isinstance(solved.nominal, WindowSolve):  # the bias increment of the window
+            bias = solved.sol.x.get("bias")
+            return {"P": solved.sol.x["P"],
+                    "bias": np.zeros((1, self.data.dim)) if bias is None else bias}  # fmt: skip
         own: TranslationalSolve = solved.nominal
         bias = solved.sol.x.get("bias")
         total = own.debias if bias is None else own.debias + np.reshape(bias, own.debias.shape)
@@ -293,34 +318,155 @@ class TranslationalStaged(StagedModel):
             sol, nlp, s, lengthscale, nominal=TranslationalSolve(hyper, field, part, debias)
         )
 
+    # ------------------------------------------------------------ sliding windows
+    # Each window is the translational model of its samples (WindowStructure: one session,
+    # knots, the bias increment under a Gaussian prior) with the map a WindowField on one
+    # box around the whole recording. Its first position is held to the previous window's
+    # estimate there by the model's anchor prior (``model.anchor.sigma``, not that
+    # estimate's Laplace marginal), and the prior on its bias increment is the inverse of
+    # the previous window's whole Laplace covariance of it.
 
-def stage_record(model: TranslationalStaged, st: Stage) -> dict[str, Any]:
-    """A result's ``stages`` record of one solve of a strategy (``prefix``, ``lengthscale``
-    or ``batch``): samples, IPOPT's outcome, seconds, the total bias it left (None when the
-    bias is not estimated); a coarse-to-fine stage's also its lengthscale."""
+    def step_lengths(self) -> np.ndarray:
+        return np.linalg.norm(self.data.U, axis=1)
+
+    def _window_structure(self, k: int, solver: SolverSpec) -> WindowStructure:
+        problem, m = self.problem, self.problem.spec.model
+        kernel = problem.assumed_kernel
+        if len(self.session_starts) > 1:
+            raise ValueError("sliding windows: one session at a time, not several")
+        if kernel == "div_free":
+            raise ProblemError(
+                problem.source,
+                "solver.warm_start.strategy",
+                "sliding windows need a reduced-rank map (kernel se or curl_free, not div_free)",
+            )
+        if self._window_basis is None:
+            X = self.data.dead_reckoning() if self._window_box is None else self._window_box
+            hb = make_basis(kernel, X, problem.assumed_lengthscale, m.gp.num_basis, m.gp.margin)
+            self._window_basis = (tuple(hb.domain.center), tuple(hb.domain.half_width),
+                                  hb.num_basis)  # fmt: skip
+        return WindowStructure(
+            n=k,
+            dim=self.data.dim,
+            kernel=kernel,
+            basis=self._window_basis,
+            knot_every=min(m.trajectory.knot_every, k - 1),
+            constant_field=m.gp.sigma_lin is not None,
+            estimate_bias=m.odometry.estimate_bias,
+            solver=solver.model_dump_json(),
+        )
+
+    def window_prior(self) -> WindowPrior:
+        """The GP prior of the box's weights (and constant field), zero mean."""
+        p = self.problem
+        s = self._window_structure(2, self.solver)
+        Lam = s.prior_precision(p.assumed_sigma_f, p.assumed_lengthscale, p.spec.model.gp.sigma_lin)
+        return WindowPrior(np.zeros(s.prior_shape), Lam, p.assumed_sigma_m)
+
+    def _window_odometry(
+        self, a: int, k: int, anchor: dict[str, np.ndarray] | None, bias: dict[str, np.ndarray]
+    ) -> np.ndarray:
+        """The window's dead reckoning Q (k, d) with the total ``bias`` removed, from
+        ``anchor`` (None: the recording's)."""
+        p0 = np.asarray(self.data.anchor, dtype=float) if anchor is None else anchor["P"][0]
+        U = self.data.U[a : a + k - 1] - np.reshape(bias["bias"], (-1, self.data.dim))[0]
+        return np.vstack([p0, p0 + np.cumsum(U, axis=0)])
+
+    def window_start(
+        self, a: int, k: int, anchor: dict[str, np.ndarray] | None,
+        carried: dict[str, np.ndarray] | None, bias: dict[str, np.ndarray],
+    ) -> dict[str, np.ndarray]:  # fmt: skip
+        Q = self._window_odometry(a, k, anchor, bias)
+        P = Q if carried is None else continued(np.asarray(carried["P"]), Q)
+        return {"P": P, "bias": np.zeros((1, self.data.dim))}
+
+    def solve_window(
+        self, a: int, k: int, start: dict[str, np.ndarray],
+        anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
+        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
+        prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
+    ) -> Solved:  # fmt: skip
+        # The anchor is held by the model's anchor prior (anchor_sigma and anchor_cov unused).
+        m, d = self.problem.spec.model, self.data.dim
+        s = self._window_structure(k, solver)
+        nlp = s.nlp()
+        knots = s.knots
+        Q = self._window_odometry(a, k, anchor, bias)
+        C0 = knots.fit(Q, np.asarray(start["P"]))
+        P0 = knots.positions(Q, C0)
+        Y = self.data.Y[a : a + k]
+        if bias_cov and "bias" in bias_cov:
+            precision = np.linalg.inv(bias_cov["bias"])
+        else:  # the first window: the model's prior on the total bias, zero mean
+            sigma_b = m.odometry.bias_prior_sigma
+            precision = np.eye(d) * (0.0 if sigma_b is None else sigma_b**-2)
+        params = {
+            "Q": Q,
+            "Y": Y,
+            "anchor": Q[:1],
+            "sigma_o": self.problem.assumed_sigma_odometry,
+            "sigma_anchor": m.anchor.sigma,
+            "sigma_m": prior.sigma_m,
+            "bias_mean": np.zeros((1, d)),
+            "bias_precision": precision,
+            "map_mean": prior.mean,
+            "map_precision": prior.Lam,
+        }
+        x0: dict[str, Any] = {"C": C0, **s.unknowns(prior.posterior_mean(*s.design(P0, Y)))}
+        if s.estimate_bias:
+            x0["bias"] = np.zeros((1, d))
+        sol = nlp.solve(params, x0, progress=self.progress)
+        sol.x["P"] = knots.positions(Q, sol.x["C"])
+        removed = np.reshape(bias["bias"], (1, d)).copy()
+        return Solved(sol, nlp, s, self.lengthscale, nominal=WindowSolve(removed), first=a)
+
+    def anchor_indices(self, solved: Solved, j: int) -> dict[str, np.ndarray]:
+        return {}  # the positions are the knots' functions, and the anchor prior is fixed
+
+    def window_design(self, solved: Solved, m: int) -> tuple[np.ndarray, np.ndarray]:
+        a = solved.first
+        return solved.structure.design(solved.sol.x["P"][:m], self.data.Y[a : a + m])
+
+    def joined(self, states: dict[str, np.ndarray], bias: dict[str, np.ndarray]) -> dict:
+        return {"P": states["P"], "bias": np.reshape(bias["bias"], (1, self.data.dim))}
+
+
+def stage_record(
+    model: TranslationalStaged, st: Stage, build_seconds: float | None = None
+) -> dict[str, Any]:
+    """A result's ``stages`` record of one solve of a strategy (``prefix``, ``lengthscale``,
+    ``window`` or ``batch``): samples, IPOPT's outcome (a window's ``Left_Map_Box`` when its
+    path left the map's box), seconds (``build_seconds``: the NLP's, default its own), the
+    total bias it left (None when the bias is not estimated); the others' also the first
+    sample and lengthscale, a window's also the standard deviations of the bias it handed
+    the next window (``bias_sigma``, None when none)."""
     so, nlp = st.solved.sol, st.solved.nlp
     estimated = model.problem.spec.model.odometry.estimate_bias
+    bias = model.states(st.solved)["bias"]
+    if isinstance(st.solved.nominal, WindowSolve):  # the increment on what was removed
+        bias = st.solved.nominal.removed + np.reshape(bias, (1, -1))
     record: dict[str, Any] = {
         "name": st.kind,
         "samples": st.samples,
-        "status": so.status,
+        "status": st.status,
         "success": so.success,
         "iterations": so.iterations,
         "solve_seconds": so.solve_seconds,
-        "build_seconds": nlp.build_seconds,
-        "bias": [float(v) for v in np.ravel(model.states(st.solved)["bias"])]
-        if estimated
-        else None,
+        "build_seconds": nlp.build_seconds if build_seconds is None else build_seconds,
+        "bias": [float(v) for v in np.ravel(bias)] if estimated else None,
     }
     if st.kind != "prefix":
-        record |= {"start": 0, "lengthscale": st.lengthscale}
+        record |= {"start": st.first, "lengthscale": st.lengthscale}
+    if st.kind == "window":
+        handed = None if st.handed is None else st.handed.get("bias")
+        record["bias_sigma"] = None if handed is None else [float(v) for v in handed]
     return record
 
 
 def solve_translational_strategy(
     problem: Problem, data: Dataset, progress: Any = None
 ) -> tuple[Solution, NLP, dict[str, float], np.ndarray, Structure, Dataset, list[dict[str, Any]]]:
-    """The warm start ``solver.warm_start`` (growing or coarse-to-fine) of
+    """The warm start ``solver.warm_start`` (growing, coarse-to-fine or sliding) of
     casmag.solver.staged on the translational model. Returns the last stage's solution
     (``sol.x["bias"]``: the total per-step bias), NLP, hyperparameters, field, structure,
     the data it solved (the increments with the earlier stages' bias removed) and every
@@ -330,7 +476,12 @@ def solve_translational_strategy(
     last = stages[-1].solved
     own: TranslationalSolve = last.nominal
     sol = last.sol
-    records = [stage_record(model, st) for st in stages]
+    built: set[int] = set()  # an NLP re-solved (a window's) counts its build once
+    records = []
+    for st in stages:
+        first = id(st.solved.nlp) not in built
+        built.add(id(st.solved.nlp))
+        records.append(stage_record(model, st, None if first else 0.0))
     if problem.spec.model.odometry.estimate_bias and "bias" in sol.x:
         sol.x["bias"] = model.states(last)["bias"]
     return sol, last.nlp, own.hyper, own.field, last.structure, own.data, records

@@ -1,5 +1,6 @@
-"""Sliding windows, the fixed-lag smoother and the coarse-to-fine lengthscale schedule
-(casmag.solver.sliding), and their problem-file settings."""
+"""The translational model's sliding windows (casmag.solver.staged.slide over
+casmag.solver.translational.TranslationalStaged), the coarse-to-fine lengthscale schedule,
+and their problem-file settings."""
 
 import itertools
 from pathlib import Path
@@ -12,12 +13,13 @@ from casmag.data.simulate import simulate_problem
 from casmag.errors import ProblemError
 from casmag.model.builder import BUILDS, cached_slam
 from casmag.result.metrics import rmse_and_max
-from casmag.solver import sliding, windowing
+from casmag.solver import staged, windowing
+from casmag.solver.translational import TranslationalStaged
 
 ROOT = Path(__file__).resolve().parents[2]
 BASE = ROOT / "problems/paper/base.yaml"
 AUTO_SPIRAL = 12
-"""The automatic window on the Table 5 spiral (casmag.solver.sliding.auto_window)."""
+"""The automatic window on the Table 5 spiral (casmag.solver.staged.window_length)."""
 
 
 def _spiral(bias=0.012, noise=1.0e-3, seed=2, *extra):
@@ -66,40 +68,46 @@ def test_window_starts_cover_every_sample():
 
 @pytest.fixture(scope="module")
 def drifting():
-    """The drifting spiral (seed 2), and the smoother run on it from an empty NLP cache
+    """The drifting spiral (seed 2), and its windows alone run from an empty NLP cache
     with the number of window NLPs built meanwhile."""
     problem = _spiral()
     data = simulate_problem(problem)
     cached_slam.cache_clear()
     before = BUILDS["translational_window"]
-    sm = sliding.fixed_lag_smoother(problem, data)
-    return problem, data, sm, BUILDS["translational_window"] - before
+    windows = staged.slide(TranslationalStaged(problem, data), problem.spec.solver.warm_start)
+    return problem, data, windows, BUILDS["translational_window"] - before
+
+
+def _iterations(windows):
+    return sum(st.solved.sol.iterations for st in windows.stages)
 
 
 def test_one_window_nlp_serves_every_window_and_the_map_is_counted_once(drifting):
-    problem, data, sm, builds = drifting
-    assert sm.completed, [w.status for w in sm.windows]
-    assert len(sm.windows) == 16
+    problem, data, windows, builds = drifting
+    assert windows.completed, [st.status for st in windows.stages]
+    assert len(windows.stages) == 16
     assert builds == 1
     # The carried prior is the GP prior plus every sample once, at its committed position.
-    s = sm.structure
-    J, _ = sliding.prior_design(s, sm.positions, data.Y)
-    expected = sliding.prior_precision(s, problem) + J.T @ J / problem.assumed_sigma_m**2
-    np.testing.assert_allclose(sm.map_precision, expected, rtol=1e-9, atol=1e-9 * expected.max())
+    s = windows.stages[0].solved.structure
+    J, _ = s.design(windows.states["P"], data.Y)
+    prior = s.prior_precision(problem.assumed_sigma_f, problem.assumed_lengthscale, None)
+    expected = prior + J.T @ J / problem.assumed_sigma_m**2
+    Lam = windows.prior.Lam
+    np.testing.assert_allclose(Lam, expected, rtol=1e-9, atol=1e-9 * expected.max())
     # The carried map predicts the field at the true positions (field sigma_f = 0.1).
-    basis = s.hilbert_basis()
-    m = basis.phi(data.P_true) @ sm.map_mean
+    m = s.hilbert_basis().phi(data.P_true) @ windows.prior.mean
     assert np.sqrt(np.mean((m - data.M_true) ** 2)) < 0.01
 
 
-def test_fixed_lag_smoother_alone_beats_dead_reckoning(drifting):
-    _, data, sm, _ = drifting
+def test_the_windows_alone_beat_dead_reckoning(drifting):
+    _, data, windows, _ = drifting
     before, _ = rmse_and_max(data.dead_reckoning(), data.P_true)
-    after, _ = rmse_and_max(sm.positions, data.P_true)
+    after, _ = rmse_and_max(windows.states["P"], data.P_true)
     assert before > 0.7  # 3.4 lengthscales of final drift
     assert after < 0.05 * before and after < 0.03, (before, after)
-    np.testing.assert_allclose(sm.bias, data.bias_true, rtol=0.1)  # the last window's
-    assert sm.iterations < 200
+    # the total the windows estimated, the last window's increment included
+    np.testing.assert_allclose(windows.states["bias"].ravel(), data.bias_true, rtol=0.1)
+    assert _iterations(windows) < 200
 
 
 def test_sliding_start_reaches_the_basin_from_a_drifting_start(drifting):
@@ -114,15 +122,14 @@ def test_sliding_start_reaches_the_basin_from_a_drifting_start(drifting):
     np.testing.assert_allclose(slide.odometry_bias, data.bias_true, atol=2e-4)
 
 
-def test_a_window_that_leaves_the_map_box_hands_the_batch_the_dead_reckoning(drifting):
+def test_a_window_that_leaves_the_map_box_ends_the_windows(drifting):
     problem, data, _, _ = drifting
     # A map box far from the path: the first window's positions lie outside it.
-    far = data.dead_reckoning() + 50.0
-    sm = sliding.fixed_lag_smoother(problem, data, box_positions=far)
-    assert not sm.completed
-    assert [w.status for w in sm.windows] == [sliding.LEFT_BOX]
-    np.testing.assert_array_equal(sm.positions, data.dead_reckoning())
-    np.testing.assert_array_equal(sm.bias, 0.0)
+    model = TranslationalStaged(problem, data, window_box=data.dead_reckoning() + 50.0)
+    windows = staged.slide(model, problem.spec.solver.warm_start)
+    assert not windows.completed and windows.states is None  # the batch takes its own start
+    assert [st.status for st in windows.stages] == [staged.LEFT_BOX]
+    assert windows.stages[0].solved.sol.status == "Solve_Succeeded"  # IPOPT's own
 
 
 def test_coarse_to_fine_schedule_and_solve():
@@ -153,7 +160,7 @@ def test_warm_start_settings_are_validated():
         ],
     ).spec.solver.warm_start
     assert (timed.window_samples, timed.overlap_samples) == (20, 5)
-    # Defaults: window and overlap auto, resolved against the data (casmag.solver.sliding).
+    # Defaults: window and overlap auto, resolved against the data (staged.window_length).
     default = casmag.load_problem(BASE, []).spec.solver.warm_start
     assert (default.window, default.overlap, default.window_bias_prior) == (
         "auto",
@@ -186,12 +193,12 @@ def test_warm_start_settings_are_validated():
 
 
 def test_the_bias_prior_is_a_parameter_and_accumulates(drifting):
-    _, _, sm, builds = drifting
+    _, _, windows, builds = drifting
     assert builds == 1  # every window, with its own bias prior, re-solves one NLP
-    entries = sliding.window_nlp(sm.structure).p_layout.entries
+    entries = windows.stages[0].solved.nlp.p_layout.entries
     assert entries["bias_mean"].shape == (1, 2)
     assert entries["bias_precision"].shape == (2, 2)
-    sigma = np.array([w.bias_sigma for w in sm.windows])
+    sigma = np.array([st.handed["bias"] for st in windows.stages])
     assert sigma.shape == (16, 2) and np.all(np.isfinite(sigma)) and np.all(sigma > 0)
     # Each window's posterior contains the previous one's: the bias is known better at the
     # end than after the first window.
@@ -202,17 +209,19 @@ def test_auto_window_travels_the_documented_multiple_of_the_lengthscale():
     # The spiral steps 5 cm: l = 0.4 m is 8 steps, k = window_lengthscales of them plus one.
     problem = _spiral(0.003, 1.0e-4, 1, "solver.warm_start.window=auto")
     problem = problem.with_overrides(["solver.warm_start.overlap=auto"])
-    data = simulate_problem(problem)
     k = problem.spec.solver.warm_start.window_lengthscales
     n = round(k * 0.4 / 0.05) + 1
     assert windowing.AUTO_WINDOW[0] <= n <= windowing.AUTO_WINDOW[1]
-    assert sliding.auto_window(problem, data) == (n, n // 2) == (AUTO_SPIRAL, AUTO_SPIRAL // 2)
+    assert _window(problem) == (n, n // 2) == (AUTO_SPIRAL, AUTO_SPIRAL // 2)
     # base.yaml: l = 0.1 m is 2 steps, below the floor of the clamp.
-    base = casmag.load_problem(BASE, [])
-    assert sliding.auto_window(base, simulate_problem(base))[0] == windowing.AUTO_WINDOW[0]
+    assert _window(casmag.load_problem(BASE, []))[0] == windowing.AUTO_WINDOW[0]
     # A short recording: the window is the recording.
-    short = casmag.load_problem(BASE, ["simulation.trajectory.samples=7"])
-    assert sliding.auto_window(short, simulate_problem(short)) == (7, 3)
+    assert _window(casmag.load_problem(BASE, ["simulation.trajectory.samples=7"])) == (7, 3)
+
+
+def _window(problem):
+    model = TranslationalStaged(problem, simulate_problem(problem))
+    return staged.window_length(model, problem.spec.solver.warm_start)
 
 
 def test_without_the_bias_prior_short_windows_run_away():
@@ -231,9 +240,9 @@ def test_without_the_bias_prior_short_windows_run_away():
     err = {}
     for prior in ("none", "laplace"):
         p = problem.with_overrides([f"solver.warm_start.window_bias_prior={prior}"])
-        sm = sliding.fixed_lag_smoother(p, data)
-        assert sm.completed
-        err[prior] = np.abs(sm.bias - data.bias_true).max()
+        windows = staged.slide(TranslationalStaged(p, data), p.spec.solver.warm_start)
+        assert windows.completed
+        err[prior] = np.abs(windows.states["bias"].ravel() - data.bias_true).max()
     assert err["none"] > 1.0e-3 and err["laplace"] < 2.5e-4, err
 
 
