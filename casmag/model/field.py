@@ -274,7 +274,9 @@ class WindowField(ReducedRankField):
     0.5 (z - mu)^T Lambda (z - mu) on the unknowns z of shape ``prior_shape`` (the weights
     W (M, 3) when ``shared_prior``: the three columns share one precision; else the stacked
     [vec(W); c]), with the mean ``map_mean`` and precision ``map_precision`` carried from
-    earlier windows. Read through the pose's rotation (planar with heading), the unknowns are
+    earlier windows; its Hessian is the precision placed as it is (NLPBuilder.quadratic: a
+    symbolic Hessian of the dense form took minutes to build at the real field's box). Read
+    through the pose's rotation (planar with heading), the unknowns are
     the whitened weights and the constant field, z = [vec(V); c]
     (casmag.model.rotated.add_rotated_map)."""
 
@@ -299,9 +301,10 @@ class WindowField(ReducedRankField):
         mu = b.parameter("map_mean", (n_r, n_c))
         Lam = b.parameter("map_precision", (n_r, n_r))
         model = self._magnetometer(b, basis, pose, "window_magnetometer")
-        Z = W if self.shared_prior else ca.vertcat(ca.vec(W), *([c] if c is not None else []))
-        R = Z - mu
-        b.cost("map_prior", 0.5 * ca.sum1(ca.sum2(R * ca.mtimes(Lam, R))))
+        # z = [vec(W); c], x entries from W on; a shared precision serves each column of W.
+        z = ca.vertcat(ca.vec(W), *([c] if c is not None else []))
+        precision = ca.kron(ca.MX.eye(W.shape[1]), Lam) if self.shared_prior else Lam
+        b.quadratic("map_prior", "W", z, ca.vec(mu), precision)
         return self._hessian(solver, model, "window_mag_hessian")
 
 

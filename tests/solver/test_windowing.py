@@ -291,3 +291,56 @@ def test_lowest_cost_keeps_the_cheapest_successful_start():
     assert lowest_cost([sol(False, 1.0), sol(False, 0.5)]) is None
     assert lowest_cost([sol(True, 3.0), sol(True, 2.0)], costs=[1.0, 5.0]) == 0
     assert lowest_cost([sol(True, 2.0), sol(True, 2.0)]) == 0  # ties: the first
+
+
+@pytest.mark.parametrize(("kernel", "constant_field"), [("se", False), ("curl_free", True)])
+def test_the_window_map_prior_enters_the_hessian_as_its_precision(kernel, constant_field):
+    """The carried prior 0.5 (z - mu)^T Lambda (z - mu) enters the Hessian as the parameter
+    Lambda placed at the map's unknowns (NLPBuilder.quadratic; a shared SE precision once
+    per field column): with the magnetometer's weight made negligible the map block of the
+    Hessian is Lambda itself, so a wrong offset or column order fails here."""
+    from casmag.model.rrmap import make_basis
+    from casmag.model.translational import WindowStructure
+    from casmag.problem.spec import SolverSpec
+
+    Q = np.cumsum(np.full((6, 2), 0.1), axis=0)
+    hb = make_basis(kernel, Q, 0.5, 12, None)  # a curl-free map's box is 3-D
+    s = WindowStructure(
+        n=6,
+        dim=2,
+        kernel=kernel,
+        basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
+        knot_every=1,
+        constant_field=constant_field,
+        estimate_bias=True,
+        solver=SolverSpec().model_dump_json(),
+    )
+    assert s.shared_prior == (kernel == "se")
+    nlp = s.nlp()
+    rng = np.random.default_rng(3)
+    n_r, n_c = s.prior_shape
+    A = rng.normal(size=(n_r, n_r))
+    Lam = A @ A.T + n_r * np.eye(n_r)
+    params = {
+        "Q": Q,
+        "Y": rng.normal(size=(6, 3)),
+        "anchor": Q[:1],
+        "sigma_o": 0.01,
+        "sigma_anchor": 0.001,
+        "sigma_m": 1.0e8,
+        "bias_mean": np.zeros((1, 2)),
+        "bias_precision": np.eye(2),
+        "map_mean": rng.normal(size=(n_r, n_c)),
+        "map_precision": Lam,
+        "sigma_f": 1.0,
+        "lengthscale": 0.5,
+        "sigma_lin": 1.0,
+    }
+    entries = nlp.x_layout.entries
+    x = {name: rng.normal(size=e.shape) for name, e in entries.items()}
+    H = nlp.hessian(x, params).toarray()
+    first = entries["W"].offset
+    size = entries["W"].size + (entries["c"].size if constant_field else 0)
+    block = H[first : first + size, first : first + size]
+    expected = np.kron(np.eye(n_c), Lam)
+    np.testing.assert_allclose(block, expected, rtol=1e-9, atol=1e-9)
