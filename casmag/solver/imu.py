@@ -61,6 +61,7 @@ from casmag.solver.staged import (
     Solved,
     StagedModel,
     StagedRun,
+    Window,
     WindowPrior,
     heading_bias_starts,
     solve_starts,
@@ -1136,12 +1137,8 @@ class ImuStaged(StagedModel):
                 info = 0.5 * (info + info.T)
         return {**out, "anchor_info": info}
 
-    def solve_window(
-        self, a: int, k: int, start: dict[str, np.ndarray],
-        anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
-        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
-        prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
-    ) -> Solved:  # fmt: skip
+    def solve_window(self, w: Window) -> Solved:
+        a, k, start, bias, prior, solver = w.first, w.samples, w.start, w.bias, w.prior, w.solver
         problem, m = self.problem, self.problem.spec.model
         s = self._window_structure(k, solver)
         nlp = cached_imu_nlp(s)
@@ -1156,7 +1153,7 @@ class ImuStaged(StagedModel):
             "lengthscale": self.lengthscale,
             "map_mean": prior.mean.reshape(-1, 1),
             "map_precision": prior.Lam,
-            **self._anchor_prior(anchor, anchor_cov),
+            **self._anchor_prior(w.anchor, w.anchor_cov),
         }
         if s.bias == "random_walk":
             params["sigma_walk_w"], params["sigma_walk_a"] = problem.gyro_walk, problem.acc_walk

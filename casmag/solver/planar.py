@@ -44,6 +44,7 @@ from casmag.solver.sessions import (
 from casmag.solver.staged import (
     Solved,
     StagedModel,
+    Window,
     WindowPrior,
     heading_bias_starts,
     solve_staged,
@@ -428,16 +429,12 @@ class PlanarStaged(StagedModel):
             psi = np.concatenate([np.ravel(carried["psi"]), psr[1:]])
         return {"P": P, "psi": psi, "bias": np.zeros((1, 1))}
 
-    def solve_window(
-        self, a: int, k: int, start: dict[str, np.ndarray],
-        anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
-        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
-        prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
-    ) -> Solved:  # fmt: skip
+    def solve_window(self, w: Window) -> Solved:
         # The anchor prior takes the standard deviations (anchor_sigma), not anchor_cov.
+        a, k, start, bias, prior, solver = w.first, w.samples, w.start, w.bias, w.prior, w.solver
         s_k = self._window_structure(k, solver)
         nlp_k = cached_planar_nlp(s_k)
-        p0, psi0 = (self.p0, self.psi0) if anchor is None else _anchor_state(anchor)
+        p0, psi0 = (self.p0, self.psi0) if w.anchor is None else _anchor_state(w.anchor)
         params = {
             **self.params,
             "U": self._window_odometry(a, k, bias),
@@ -448,11 +445,11 @@ class PlanarStaged(StagedModel):
             "map_mean": prior.mean.reshape(-1, 1),
             "map_precision": prior.Lam,
         }
-        if bias_cov is not None:  # the marginal standard deviation
-            params["sigma_bias0"] = float(np.sqrt(bias_cov["bias"][0, 0]))
-        if anchor_sigma is not None:  # one standard deviation for both axes: the larger
-            params["sigma_anchor"] = float(np.max(anchor_sigma["P"]))
-            params["sigma_psi0"] = float(np.ravel(anchor_sigma["psi"])[0])
+        if w.bias_cov is not None:  # the marginal standard deviation
+            params["sigma_bias0"] = float(np.sqrt(w.bias_cov["bias"][0, 0]))
+        if w.anchor_sigma is not None:  # one standard deviation for both axes: the larger
+            params["sigma_anchor"] = float(np.max(w.anchor_sigma["P"]))
+            params["sigma_psi0"] = float(np.ravel(w.anchor_sigma["psi"])[0])
         basis = s_k.hilbert_basis()
         psi = np.ravel(start["psi"])
         J = rotated_design(

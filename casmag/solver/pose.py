@@ -41,6 +41,7 @@ from casmag.solver.sessions import (
 from casmag.solver.staged import (
     Solved,
     StagedModel,
+    Window,
     WindowPrior,
     heading_bias_starts,
     solve_staged,
@@ -454,16 +455,12 @@ class PoseStaged(StagedModel):
             P, Q = np.vstack([carried["P"], Pr[1:]]), np.vstack([carried["Q"], Qr[1:]])
         return {"P": P, "Q": Q, "bias_p": np.zeros(3), "bias_w": np.zeros(3)}
 
-    def solve_window(
-        self, a: int, k: int, start: dict[str, np.ndarray],
-        anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
-        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
-        prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
-    ) -> Solved:  # fmt: skip
+    def solve_window(self, w: Window) -> Solved:
         # The anchor prior takes the standard deviations (anchor_sigma), not anchor_cov.
+        a, k, start, bias, prior, solver = w.first, w.samples, w.start, w.bias, w.prior, w.solver
         s_k = self._window_structure(k, solver)
         nlp_k = cached_pose_nlp(s_k)
-        p0, q0 = self._anchor(anchor)
+        p0, q0 = self._anchor(w.anchor)
         P0, Q0 = start["P"], sd.quat_normalize(start["Q"])
         params = {
             **self.params, "U": self._window_odometry(a, k, bias),
@@ -473,11 +470,11 @@ class PoseStaged(StagedModel):
             **nominal_parameters(Q0),
         }  # fmt: skip
         for key, sigma in (("bias_p", "sigma_bp"), ("bias_w", "sigma_bw")):
-            if bias_cov is not None and key in bias_cov:  # one for every axis: the largest
-                params[sigma] = float(np.sqrt(np.max(np.diag(bias_cov[key]))))
-        if anchor_sigma is not None:
-            params["sigma_anchor"] = float(np.max(anchor_sigma["P"]))
-            params["sigma_att0"] = float(np.max(anchor_sigma["Q"]))
+            if w.bias_cov is not None and key in w.bias_cov:  # one for every axis: the largest
+                params[sigma] = float(np.sqrt(np.max(np.diag(w.bias_cov[key]))))
+        if w.anchor_sigma is not None:
+            params["sigma_anchor"] = float(np.max(w.anchor_sigma["P"]))
+            params["sigma_att0"] = float(np.max(w.anchor_sigma["Q"]))
         basis = s_k.hilbert_basis()
         J = rotated_design(
             basis, self.options.kernel, P0[:, : self.dim], sd.quat_to_rotmat(Q0),

@@ -142,20 +142,15 @@ class StagedModel(ABC):
         total ``bias`` removed, from ``anchor`` (the state at a; None: the model's start)."""
         raise NotImplementedError(f"{type(self).__name__} has no sliding windows")
 
-    def solve_window(
-        self, a: int, k: int, start: dict[str, np.ndarray],
-        anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
-        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
-        prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
-    ) -> Solved:  # fmt: skip
-        """The window [a, a + k) with the total ``bias`` removed from its odometry, its own
-        bias unknowns the increments on it (prior: zero mean, covariance ``bias_cov[name]``,
-        the previous window's Laplace marginal of each; None for the model's own prior), its
-        first state under a prior at ``anchor`` with standard deviations
-        ``anchor_sigma`` (None: the model's known start and its own priors), the map under
-        ``prior``; its states are those of :meth:`states` with the increments as biases.
-        ``anchor_cov``: the anchor's whole Laplace covariance (its states in the order of
-        :meth:`anchor_indices`), for a model whose prior takes the correlations."""
+    def solve_window(self, w: Window) -> Solved:
+        """The window ``w`` (:class:`Window`): its samples with the total ``w.bias`` removed
+        from their odometry, its own bias unknowns the increments on it (prior: zero mean,
+        covariance ``w.bias_cov[name]``, the previous window's Laplace marginal of each; None
+        for the model's own prior), its first state under a prior at ``w.anchor`` with
+        standard deviations ``w.anchor_sigma`` or the whole covariance ``w.anchor_cov`` (its
+        states in the order of :meth:`anchor_indices`; None: the model's known start and its
+        own priors), the map under ``w.prior``; its states are those of :meth:`states` with
+        the increments as biases."""
         raise NotImplementedError(f"{type(self).__name__} has no sliding windows")
 
     def anchor_indices(self, solved: Solved, j: int) -> dict[str, np.ndarray]:
@@ -180,6 +175,27 @@ class StagedModel(ABC):
         """The whole recording's states (as :meth:`states`) from the windows' per-sample
         states and the total ``bias``: the start of the full problem."""
         raise NotImplementedError(f"{type(self).__name__} has no sliding windows")
+
+
+@dataclass(frozen=True)
+class Window:
+    """What a window's solve is given (:meth:`StagedModel.solve_window`, :func:`slide`):
+    its samples [first, first + samples), the states it starts from, its anchor (the state
+    at its first sample; None for the first window) with that state's Laplace marginal
+    standard deviations and whole covariance from the previous window (None: none), the
+    total biases removed from its odometry with the covariance blocks of the previous
+    window's increments (None: none), the map's prior and the IPOPT settings."""
+
+    first: int
+    samples: int
+    start: dict[str, np.ndarray]
+    anchor: dict[str, np.ndarray] | None
+    anchor_sigma: dict[str, np.ndarray] | None
+    anchor_cov: np.ndarray | None
+    bias: dict[str, np.ndarray]
+    bias_cov: dict[str, np.ndarray] | None
+    prior: WindowPrior
+    solver: SolverSpec
 
 
 @dataclass
@@ -353,9 +369,9 @@ def slide(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> Windows:
     for i, a in enumerate(firsts):
         nxt = firsts[i + 1] if i + 1 < len(firsts) else n
         start = model.window_start(a, k, anchor, carried, total)
-        solved = model.solve_window(
-            a, k, start, anchor, anchor_sigma, total, bias_cov, prior, window_solver, anchor_cov
-        )
+        window = Window(a, k, start, anchor, anchor_sigma, anchor_cov, total, bias_cov, prior,
+                        window_solver)  # fmt: skip
+        solved = model.solve_window(window)
         stage = Stage("window", k, model.lengthscale, solved, first=a)
         stages.append(stage)
         if solved.sol.status not in ACCEPTED or not model.window_inside(solved):

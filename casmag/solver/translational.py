@@ -31,7 +31,14 @@ from casmag.model.translational import (
 )
 from casmag.nlp import NLP, Solution, lowest_cost
 from casmag.problem.spec import Problem, SolverSpec
-from casmag.solver.staged import Solved, Stage, StagedModel, WindowPrior, solve_strategy
+from casmag.solver.staged import (
+    Solved,
+    Stage,
+    StagedModel,
+    Window,
+    WindowPrior,
+    solve_strategy,
+)
 from casmag.solver.windowing import continued
 
 
@@ -380,23 +387,19 @@ class TranslationalStaged(StagedModel):
         P = Q if carried is None else continued(np.asarray(carried["P"]), Q)
         return {"P": P, "bias": np.zeros((1, self.data.dim))}
 
-    def solve_window(
-        self, a: int, k: int, start: dict[str, np.ndarray],
-        anchor: dict[str, np.ndarray] | None, anchor_sigma: dict[str, np.ndarray] | None,
-        bias: dict[str, np.ndarray], bias_cov: dict[str, np.ndarray] | None,
-        prior: WindowPrior, solver: SolverSpec, anchor_cov: np.ndarray | None = None,
-    ) -> Solved:  # fmt: skip
+    def solve_window(self, w: Window) -> Solved:
         # The anchor is held by the model's anchor prior (anchor_sigma and anchor_cov unused).
+        a, k, start, bias, prior, solver = w.first, w.samples, w.start, w.bias, w.prior, w.solver
         m, d = self.problem.spec.model, self.data.dim
         s = self._window_structure(k, solver)
         nlp = s.nlp()
         knots = s.knots
-        Q = self._window_odometry(a, k, anchor, bias)
+        Q = self._window_odometry(a, k, w.anchor, bias)
         C0 = knots.fit(Q, np.asarray(start["P"]))
         P0 = knots.positions(Q, C0)
         Y = self.data.Y[a : a + k]
-        if bias_cov and "bias" in bias_cov:
-            precision = np.linalg.inv(bias_cov["bias"])
+        if w.bias_cov and "bias" in w.bias_cov:
+            precision = np.linalg.inv(w.bias_cov["bias"])
         else:  # the first window: the model's prior on the total bias, zero mean
             sigma_b = m.odometry.bias_prior_sigma
             precision = np.eye(d) * (0.0 if sigma_b is None else sigma_b**-2)
