@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from casmag.data.simulate import Dataset
-from casmag.errors import DataError, ProblemError
+from casmag.errors import DataError
 from casmag.gp.fieldmap import map_grid
 from casmag.gp.savedmap import SavedMap
 from casmag.model.translational import WindowStructure
@@ -108,22 +108,6 @@ class Located:
     @property
     def iterations(self) -> int:
         return sum(st["iterations"] for st in self.stages)
-
-
-def window_length(problem: Problem, data: Dataset) -> tuple[int, int]:
-    """(window, overlap) in samples (casmag.solver.windowing.window_size, from the
-    odometry's step lengths and the map's lengthscale)."""
-    ws = problem.spec.solver.warm_start
-    steps = np.linalg.norm(data.U, axis=1)
-    n, overlap = window_size(ws, steps, problem.assumed_lengthscale, data.n_samples)
-    if overlap is None or not 1 <= overlap < n:
-        raise ProblemError(
-            problem.source,
-            "solver.warm_start.overlap",
-            f"overlap must be at least 1 sample and shorter than the window "
-            f"(got {overlap} of {n} samples)",
-        )
-    return n, overlap
 
 
 def locate_windows(
@@ -234,7 +218,8 @@ def localise(
     # 1. The windows, located against the map from the first on. Windows of a second or
     #    two cannot tell a bias from a shifted map position: the bias is left to the solve
     #    over the whole recording.
-    n, overlap = window_length(problem, data)
+    ws, steps = problem.spec.solver.warm_start, np.linalg.norm(data.U, axis=1)
+    n, overlap = window_size(ws, steps, problem.assumed_lengthscale, N)
     windows = replace(_structure(problem, data, saved, n), estimate_bias=False)
     sm = locate_windows(problem, data, windows, overlap, saved.mean.reshape(-1, 1))
 

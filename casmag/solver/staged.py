@@ -307,13 +307,7 @@ def solve_strategy(
 def window_length(model: StagedModel, ws: WarmStartSpec) -> tuple[int, int]:
     """(window, overlap) in samples (casmag.solver.windowing.window_size, from the model's
     odometry step lengths and assumed lengthscale)."""
-    k, overlap = window_size(ws, model.step_lengths(), model.lengthscale, model.n)
-    if overlap is None or not 1 <= overlap < k:
-        raise ValueError(
-            f"solver.warm_start.overlap: at least 1 sample and shorter than the window "
-            f"(got {overlap} of {k} samples)"
-        )
-    return k, overlap
+    return window_size(ws, model.step_lengths(), model.lengthscale, model.n)
 
 
 def _rows(states: dict[str, np.ndarray], keys: tuple[str, ...], rows: slice) -> dict:

@@ -47,13 +47,13 @@ On problems/paper/base.yaml (l = 0.1 m, 2 steps per lengthscale) 8-sample window
 neither: hence the floor of 12. The ceiling of 40 is not measured."""
 
 
-def window_size(ws: Any, steps: np.ndarray, lengthscale: float, n: int) -> tuple[int, int | None]:
+def window_size(ws: Any, steps: np.ndarray, lengthscale: float, n: int) -> tuple[int, int]:
     """(window, overlap) in samples for the warm start ``ws`` (a WarmStartSpec) on ``n``
     samples whose odometry steps have the lengths ``steps`` [m]. ``window: auto``: the
     samples the dead reckoning needs to travel ``window_lengthscales`` assumed lengthscales
     at its median step, round(k l / median |u|) + 1, clamped to :data:`AUTO_WINDOW` (and to
-    the recording); ``overlap: auto``: half the window. The overlap is None or outside
-    [1, window) when the settings do not fit the recording (the caller says so)."""
+    the recording); ``overlap: auto``: half the window. Raises ValueError, naming the key,
+    when the overlap does not fit the window the recording allows."""
     k = ws.window_samples
     if k is None:
         step = float(np.median(steps)) if np.size(steps) else 0.0
@@ -61,7 +61,13 @@ def window_size(ws: Any, steps: np.ndarray, lengthscale: float, n: int) -> tuple
         k = AUTO_WINDOW[1] if step <= 0 else round(travel / step) + 1
         k = int(np.clip(k, *AUTO_WINDOW))
     k = min(k, n)
-    return k, max(1, k // 2) if ws.overlap == "auto" else ws.overlap_samples
+    overlap = max(1, k // 2) if ws.overlap == "auto" else ws.overlap_samples
+    if overlap is None or not 1 <= overlap < k:
+        raise ValueError(
+            f"solver.warm_start.overlap: at least 1 sample and shorter than the window "
+            f"(got {overlap} of {k} samples)"
+        )
+    return k, overlap
 
 
 def window_starts(n: int, window: int, overlap: int) -> list[int]:
