@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -161,6 +161,9 @@ imu: $(STAMP) ## Solve every IMU problem; writes results/imu/<name>/ (about 10 m
 
 bench-imu: $(STAMP) ## Every IMU scenario over SEEDS seeds (resumable) -> results/bench/imu/imu.json, imu.md
 	$(PY) -m casmag.experiments.imubench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu
+
+bench-imu-recordings: $(STAMP) ## Every IMU scenario written as a recording and solved by casmag slam's defaults beside casmag imu, SEEDS seeds -> results/bench/imu-recordings/
+	$(PY) -m casmag.experiments.imurecbench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu-recordings
 
 bench-imu-strategies: $(STAMP) ## Every IMU scenario with each warm-start strategy (none, coarse-to-fine, sliding) over SEEDS seeds -> results/bench/imu-<strategy>/
 	@for s in none coarse-to-fine sliding; do \

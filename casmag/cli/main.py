@@ -267,7 +267,10 @@ def slam(
     odometry noise 2 % of the median step, one trajectory knot per second (per 5 s above
     20,000 samples), growing warm starts. Writes result.json, trajectory.csv,
     trajectory.png, cost.png and map.png. A planar recording (dfwd,dleft,dyaw) is solved
-    with the planar heading model instead (--set model.KEY=VALUE, casmag.problem.imu).
+    with the planar heading model instead (--set model.KEY=VALUE, casmag.problem.imu), a
+    pose recording (dpx..dqz) with the pose model, and an IMU recording (dqw..dqz,
+    dvx..dvz; at rest for its first 0.5 s) with the IMU model, the sensors' noise taken
+    from that rest (casmag.solver.imurec).
 
     Several recordings of the same field (translational, planar or pose, one kind, each with
     its first position, and a planar or pose one's heading or orientation, in the common
@@ -292,7 +295,7 @@ def slam(
                 recording, problem, overrides, progress, not no_field_check, anchor, mag_lag,
                 map_file, out_dir, align, no_figures, quiet,
             )  # fmt: skip
-        elif len(recordings) == 1:  # translational or planar (casmag.solver.recslam.slam)
+        elif len(recordings) == 1:  # any motion input (casmag.solver.recslam.slam)
             result = run_slam(
                 recording,
                 problem,

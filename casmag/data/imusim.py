@@ -182,12 +182,13 @@ def handwriting_path(word: str, height: float, passes: int, lift: float) -> np.n
 @dataclass(frozen=True)
 class Truth:
     """The true motion sampled at the IMU rate: t (N,) [s]; P, V (N, 3) [m, m/s] in the
-    local frame; Q (N, 4) orientation q^{LS} (w first)."""
+    local frame; Q (N, 4) orientation q^{LS} (w first). A recording's truth
+    (casmag.data.imurec) has no velocity and may lack P or Q (None)."""
 
     t: np.ndarray
-    P: np.ndarray
-    V: np.ndarray
-    Q: np.ndarray
+    P: np.ndarray | None
+    V: np.ndarray | None
+    Q: np.ndarray | None
 
 
 def _window(u: np.ndarray, ramp: float) -> np.ndarray:

@@ -407,6 +407,17 @@ class ImuMotionSpec(Strict):
     kind: Literal["imu"] = "imu"
 
 
+def auto_warm_start(data: Any) -> Any:
+    """An IMU document with its model's default warm start, the schedule ladder (``auto``),
+    also when it gives a solver section without a strategy."""
+    solver = data.get("solver") if isinstance(data, dict) else None
+    if isinstance(solver, dict):
+        ws = solver.get("warm_start", {})
+        if isinstance(ws, dict) and "strategy" not in ws:
+            data = {**data, "solver": {**solver, "warm_start": {**ws, "strategy": "auto"}}}
+    return data
+
+
 class ImuProblemSpec(Strict):
     seed: Annotated[int, Field(ge=0, le=2**32 - 1)]  # numpy's generators: 0 .. 2^32 - 1
     name: str | None = None
@@ -416,37 +427,11 @@ class ImuProblemSpec(Strict):
     model: ImuProblemModelSpec = ImuProblemModelSpec()
     solver: SolverSpec = SolverSpec(warm_start=WarmStartSpec(strategy="auto"))
 
-    @model_validator(mode="before")
-    @classmethod
-    def _auto_warm_start(cls, data: Any) -> Any:
-        # The IMU model's default warm start is its own schedule ladder (``auto``), also
-        # when the file gives a solver section without a strategy.
-        solver = data.get("solver") if isinstance(data, dict) else None
-        if isinstance(solver, dict):
-            ws = solver.get("warm_start", {})
-            if isinstance(ws, dict) and "strategy" not in ws:
-                data = {**data, "solver": {**solver, "warm_start": {**ws, "strategy": "auto"}}}
-        return data
+    _auto = model_validator(mode="before")(auto_warm_start)
 
     @model_validator(mode="after")
     def _consistent(self) -> ImuProblemSpec:
-        if self.solver.warm_start.strategy == "sliding":
-            if self.model.gp.form != "reduced_rank":
-                raise ValueError(
-                    "solver.warm_start.strategy: sliding windows carry a reduced-rank map; "
-                    f"set model.gp.form to reduced_rank (got {self.model.gp.form})"
-                )
-            if self.model.starts > 1:
-                raise ValueError(
-                    "model.starts: the IMU model's sliding windows start from the IMU-only "
-                    "adjustment alone; set model.starts to 1 or choose another strategy"
-                )
-        if self.model.starts > 1 and self.solver.warm_start.strategy == "auto":
-            raise ValueError(
-                "model.starts: each start runs solver.warm_start's strategy, and auto (the "
-                "schedule ladder) runs once; set solver.warm_start.strategy to none, growing "
-                "or coarse-to-fine"
-            )
+        check_imu_settings(self.model, self.solver)
         sim = self.simulation
         if sim.imu.levelling_seconds > sim.scenario.static:
             raise ValueError(
@@ -461,18 +446,96 @@ class ImuProblemSpec(Strict):
                 f"({self.simulation.imu.rate:g}"
                 f" Hz) a whole number of times, got {self.model.keyframe_rate:g} Hz"
             )
-        samples = self.model.magnetometer.samples
-        if samples > round(ratio) + 1:
+        check_magnetometer_samples(self.model, self.simulation.imu.rate, round(ratio))
+        return self
+
+
+def check_imu_settings(model: ImuProblemModelSpec, solver: SolverSpec) -> None:
+    """The IMU model's settings that only make sense together (ValueError naming the key):
+    sliding windows carry one reduced-rank map from the IMU-only adjustment alone; several
+    starts each run a strategy other than the schedule ladder; the numpy Hessians need the
+    reduced-rank map."""
+    if solver.warm_start.strategy == "sliding":
+        if model.gp.form != "reduced_rank":
             raise ValueError(
-                "model.magnetometer.samples: at most one keyframe interval's samples plus one "
-                f"({round(ratio) + 1} at {self.simulation.imu.rate:g} Hz and "
-                f"{self.model.keyframe_rate:g} Hz keyframes; neighbouring keyframes would "
-                f"share noise), got {samples}"
+                "solver.warm_start.strategy: sliding windows carry a reduced-rank map; "
+                f"set model.gp.form to reduced_rank (got {model.gp.form})"
             )
-        if self.solver.hessian in NUMPY_HESSIANS and self.model.gp.form != "reduced_rank":
+        if model.starts > 1:
             raise ValueError(
-                f"solver.hessian: {self.solver.hessian} needs model.gp.form: reduced_rank"
+                "model.starts: the IMU model's sliding windows start from the IMU-only "
+                "adjustment alone; set model.starts to 1 or choose another strategy"
             )
+    if model.starts > 1 and solver.warm_start.strategy == "auto":
+        raise ValueError(
+            "model.starts: each start runs solver.warm_start's strategy, and auto (the "
+            "schedule ladder) runs once; set solver.warm_start.strategy to none, growing "
+            "or coarse-to-fine"
+        )
+    if solver.hessian in NUMPY_HESSIANS and model.gp.form != "reduced_rank":
+        raise ValueError(f"solver.hessian: {solver.hessian} needs model.gp.form: reduced_rank")
+
+
+def check_magnetometer_samples(model: ImuProblemModelSpec, rate: float, substeps: int) -> None:
+    """``model.magnetometer.samples`` spans at most one keyframe interval's IMU samples plus
+    one (``substeps`` intervals at ``rate`` Hz), so that neighbouring keyframes do not share
+    noise (ValueError naming the key)."""
+    samples = model.magnetometer.samples
+    if samples > substeps + 1:
+        raise ValueError(
+            "model.magnetometer.samples: at most one keyframe interval's samples plus one "
+            f"({substeps + 1} at {rate:g} Hz and {rate / substeps:g} Hz keyframes; "
+            f"neighbouring keyframes would share noise), got {samples}"
+        )
+
+
+class RecordingInitialSpec(InitialStateSpec):
+    """The first keyframe's priors (:class:`InitialStateSpec`) and ``rest_seconds`` [s]: how
+    long a recording lies still at its start. Those samples level the initial attitude and
+    give the noise the model assumes when ``model.imu`` or ``model.magnetometer`` leave it
+    null (casmag.data.imurec.rest_noise)."""
+
+    rest_seconds: PositiveFloat = 0.5
+
+
+class ImuRecordingModelSpec(ImuProblemModelSpec):
+    """The IMU model of a recording (``casmag slam`` on ``dqw..dvz`` columns): the keys of an
+    IMU problem's ``model``, with these differences. Noise densities and
+    ``magnetometer.sigma_m`` left null are estimated from the rest at the start (there is no
+    simulation to take them from). The biases are ``constant`` by default: random-walk
+    strengths cannot be estimated in the joint MAP (:class:`ImuModelSpec`), so
+    ``bias: random_walk`` needs ``gyro_bias_walk`` and ``acc_bias_walk`` (the datasheet's
+    bias instability). Keyframes at 5 Hz, as in every measured IMU problem file
+    (problems/imu/README.md)."""
+
+    keyframe_rate: PositiveFloat = 5.0
+    imu: ImuModelSpec = ImuModelSpec(bias="constant")
+    initial: RecordingInitialSpec = RecordingInitialSpec()
+
+
+#: Solver settings of IMU recordings that differ from SolverSpec's defaults: those of every
+#: IMU problem file, under which problems/imu/README.md's figures were measured.
+IMU_RECORDING_SOLVER: dict[str, Any] = {
+    "max_iter": 150,
+    "tol": 1.0e-5,
+    "warm_start": {"strategy": "auto"},
+}
+
+
+class ImuRecordingSpec(Strict):
+    """A problem file for an IMU recording: ``model`` (:class:`ImuRecordingModelSpec`) and
+    ``solver`` (the IMU model's default warm start, its schedule ladder ``auto``, with the
+    tolerance and iteration limit every measured IMU problem file gives:
+    :data:`IMU_RECORDING_SOLVER`)."""
+
+    model: ImuRecordingModelSpec = ImuRecordingModelSpec()
+    solver: SolverSpec = SolverSpec(**IMU_RECORDING_SOLVER)
+
+    _auto = model_validator(mode="before")(auto_warm_start)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ImuRecordingSpec:
+        check_imu_settings(self.model, self.solver)
         return self
 
 
@@ -480,23 +543,41 @@ class ImuProblemSpec(Strict):
 @dataclass(frozen=True)
 class ImuProblem:
     """A validated IMU problem and where it came from, with model values resolved (SI units:
-    rad, rad/s, m/s^2)."""
+    rad, rad/s, m/s^2). ``spec``: a simulated problem (:class:`ImuProblemSpec`) or a
+    recording's model and solver (:class:`ImuRecordingSpec`, with the recording's IMU
+    ``rate`` [Hz]: :func:`recording_imu_problem`)."""
 
-    spec: ImuProblemSpec
+    spec: ImuProblemSpec | ImuRecordingSpec
     source: str = "<dict>"
+    rate: float | None = None
 
     @property
     def name(self) -> str:
-        return problem_name(self.spec.name, self.source, "imu")
+        return problem_name(getattr(self.spec, "name", None), self.source, "imu")
+
+    @property
+    def simulation(self) -> ImuSimulationSpec | None:
+        """The simulation the data come from (None for a recording)."""
+        return getattr(self.spec, "simulation", None)
+
+    @property
+    def imu_rate(self) -> float:
+        """The IMU's sample rate [Hz]: the simulation's, or the recording's."""
+        sim = self.simulation
+        return float(sim.imu.rate if sim is not None else self.rate)
 
     @property
     def substeps(self) -> int:
         """IMU intervals per keyframe interval."""
-        return round(self.spec.simulation.imu.rate / self.spec.model.keyframe_rate)
+        return max(1, round(self.imu_rate / self.spec.model.keyframe_rate))
 
-    def _resolve(self, value: float | None, truth: float, field: str) -> float:
+    def _resolve(self, value: float | None, section: str, key: str, field: str) -> float:
         if value is not None:
             return value
+        sim = self.simulation
+        if sim is None:
+            raise ProblemError(self.source, field, "needs a value for a recording (no simulation)")
+        truth = getattr(getattr(sim, section), key)
         if truth <= 0:
             raise ProblemError(
                 self.source,
@@ -508,42 +589,41 @@ class ImuProblem:
     @property
     def gyro_density(self) -> float:
         """Assumed gyroscope noise density [rad/s/sqrt(Hz)]."""
-        m, s = self.spec.model.imu, self.spec.simulation.imu
+        m = self.spec.model.imu
         v = self._resolve(
-            m.gyro_noise_density, s.gyro_noise_density, "model.imu.gyro_noise_density"
+            m.gyro_noise_density, "imu", "gyro_noise_density", "model.imu.gyro_noise_density"
         )
         return float(np.radians(v))
 
     @property
     def acc_density(self) -> float:
-        m, s = self.spec.model.imu, self.spec.simulation.imu
+        m = self.spec.model.imu
         return self._resolve(
-            m.acc_noise_density, s.acc_noise_density, "model.imu.acc_noise_density"
+            m.acc_noise_density, "imu", "acc_noise_density", "model.imu.acc_noise_density"
         )
 
     @property
     def gyro_walk(self) -> float:
         """Assumed gyroscope bias random walk [rad/s/sqrt(s)]."""
-        m, s = self.spec.model.imu, self.spec.simulation.imu
+        m = self.spec.model.imu
         if m.bias == "constant":
             return 0.0
-        v = self._resolve(m.gyro_bias_walk, s.gyro_bias_walk, "model.imu.gyro_bias_walk")
+        v = self._resolve(m.gyro_bias_walk, "imu", "gyro_bias_walk", "model.imu.gyro_bias_walk")
         return float(np.radians(v))
 
     @property
     def acc_walk(self) -> float:
-        m, s = self.spec.model.imu, self.spec.simulation.imu
+        m = self.spec.model.imu
         if m.bias == "constant":
             return 0.0
-        return self._resolve(m.acc_bias_walk, s.acc_bias_walk, "model.imu.acc_bias_walk")
+        return self._resolve(m.acc_bias_walk, "imu", "acc_bias_walk", "model.imu.acc_bias_walk")
 
     @property
     def sigma_m(self) -> float:
         return self._resolve(
-            self.spec.model.magnetometer.sigma_m,
-            self.spec.simulation.magnetometer.noise,
+            self.spec.model.magnetometer.sigma_m, "magnetometer", "noise",
             "model.magnetometer.sigma_m",
-        )
+        )  # fmt: skip
 
     def resolve_all(self) -> None:
         """Resolve every defaulted value now, so a bad file fails before anything is built."""
@@ -551,6 +631,21 @@ class ImuProblem:
             getattr(self, name)
         if self.spec.model.gp.form != "none":
             self.sigma_m  # noqa: B018
+
+
+def recording_imu_problem(spec: ImuRecordingSpec, source: str, rate: float) -> ImuProblem:
+    """The IMU problem of a recording sampled at ``rate`` Hz, its values resolved: the
+    keyframes take the whole number of IMU intervals nearest to ``model.keyframe_rate``
+    (at least one), and ``model.magnetometer.samples`` must fit one keyframe interval
+    (ProblemError naming the key)."""
+    out = ImuProblem(spec=spec, source=source, rate=float(rate))
+    try:
+        check_magnetometer_samples(spec.model, out.imu_rate, out.substeps)
+    except ValueError as exc:
+        key, _, reason = str(exc).partition(": ")
+        raise ProblemError(source, key, reason) from None
+    out.resolve_all()
+    return out
 
 
 def load_imu_problem(

@@ -1272,6 +1272,8 @@ def _errors(P: np.ndarray | None, Q: np.ndarray | None, Pt: Any, Qt: Any) -> dic
     if P is None or Pt is None:
         return {"rmse": None, "max": None, "orientation_rms_deg": None, "orientation_max_deg": None}
     rmse, mx = rmse_and_max(P, Pt)
+    if Qt is None:  # a recording with true positions alone
+        return {"rmse": rmse, "max": mx, "orientation_rms_deg": None, "orientation_max_deg": None}
     ang = np.degrees(sd.quat_angle(Q, Qt))
     return {
         "rmse": rmse,
@@ -1289,12 +1291,14 @@ def solve_imu(
     ``success = False`` and IPOPT's status, never as a result: the errors of the failed stage
     and the stages after it are None."""
     problem = load_imu_problem(problem)
+    if data is None and problem.simulation is None:
+        raise ValueError(f"{problem.source}: a recording's IMU problem needs its data")
     data = simulate_imu(problem) if data is None else data
     res = solve_imu_stages(problem, data, progress)
     idx = res.keyframes.idx
     truth = data.truth
-    Pt = truth.P[idx] if truth is not None else None
-    Qt = truth.Q[idx] if truth is not None else None
+    Pt = truth.P[idx] if truth is not None and truth.P is not None else None
+    Qt = truth.Q[idx] if truth is not None and truth.Q is not None else None
     s1, s2 = res.imu_only, res.slam
     ok1 = s1.solution.success
     final = s2 if s2 is not None else s1
@@ -1365,10 +1369,10 @@ def solve_imu(
     info = {
         "name": problem.name,
         "source": problem.source,
-        "seed": spec.seed,
-        "scenario": spec.simulation.scenario.kind,
-        "imu_rate_hz": spec.simulation.imu.rate,
-        "keyframe_rate_hz": spec.model.keyframe_rate,
+        "seed": getattr(spec, "seed", None),
+        "scenario": None if problem.simulation is None else problem.simulation.scenario.kind,
+        "imu_rate_hz": problem.imu_rate,
+        "keyframe_rate_hz": problem.imu_rate / problem.substeps,
         "imu_samples": int(data.n_samples),
         "keyframes": int(idx.size),
         "duration_s": float((idx[-1]) * data.T),
@@ -1550,6 +1554,24 @@ def path_spread(P: np.ndarray, P_imu_only: np.ndarray) -> dict[str, Any] | None:
     }
 
 
+def _worse_than_imu_only(
+    before: float, after: float, why: str, evidence: dict[str, Any]
+) -> dict[str, Any] | None:
+    """The ``worse_than_imu_only`` flag when GP-SLAM's RMSE ``after`` is more than
+    WORSE_RATIO times the IMU-only adjustment's ``before`` (None otherwise); ``why``: what
+    follows the figures in its reason."""
+    if after <= WORSE_RATIO * before:
+        return None
+    return {
+        "name": "worse_than_imu_only",
+        "reason": (
+            f"GP-SLAM position RMSE {after:.4g} m is {after / before:.2f} times the IMU-only "
+            f"adjustment's {before:.4g} m, {why}"
+        ),
+        "evidence": evidence,
+    }
+
+
 def _estimate_flag(
     problem: ImuProblem,
     data: ImuData,
@@ -1565,12 +1587,20 @@ def _estimate_flag(
     the solve started from the truth tells them apart: ``wrong_basin`` when it reaches a MAP
     cost lower by more than one (a likelihood ratio of e) than the estimate's. When it does
     not, and the estimate is more than WORSE_RATIO worse than the IMU-only adjustment, the
-    optimum itself is worse than no map: ``worse_than_imu_only``."""
+    optimum itself is worse than no map: ``worse_than_imu_only``. A recording's truth
+    (positions and orientations, no velocities or biases) cannot start that solve: an
+    estimate more than WORSE_RATIO worse is flagged ``worse_than_imu_only`` without it."""
     before, after = errors["imu_only"]["rmse"], errors["gp_slam"]["rmse"]
     if before is None or after is None or after <= WRONG_BASIN_RATIO * before:
         return None
-    if data.truth is None or data.b_w is None or slam.sigma_m is None:
-        return None
+    if data.b_w is None or data.truth.V is None or data.truth.Q is None or slam.sigma_m is None:
+        # A recording's truth: no true velocities and biases to start a solve from.
+        evidence = {"rmse_imu_only": before, "rmse_gp_slam": after, "ratio": after / before}
+        why = (
+            "and the truth has no velocities and biases to start the solve from, so a wrong "
+            "optimum and a map that does not fit are not told apart"
+        )
+        return _worse_than_imu_only(before, after, why, evidence)
     cost = float(slam.solution.objective)
     truth_cost, truth_status = _truth_start_cost(problem, data, slam, res)
     mag = slam.solution.blocks_after.get("magnetometer")
@@ -1588,18 +1618,12 @@ def _estimate_flag(
         "log_bayes_factor": None if res.evidence is None else res.evidence.log_bayes_factor,
     }
     if not truth_cost < cost - 1.0:
-        if after <= WORSE_RATIO * before:
-            return None
-        return {
-            "name": "worse_than_imu_only",
-            "reason": (
-                f"GP-SLAM position RMSE {after:.4g} m is {after / before:.2f} times the IMU-only "
-                f"adjustment's {before:.4g} m, and the same problem started from the truth "
-                f"reaches no lower MAP cost ({truth_cost:.6g} against {cost:.6g}): the map "
-                f"model (hyperparameters {res.hyperparameters_source}) does not fit this field"
-            ),
-            "evidence": evidence,
-        }
+        why = (
+            f"and the same problem started from the truth reaches no lower MAP cost "
+            f"({truth_cost:.6g} against {cost:.6g}): the map model (hyperparameters "
+            f"{res.hyperparameters_source}) does not fit this field"
+        )
+        return _worse_than_imu_only(before, after, why, evidence)
     return {
         "name": "wrong_basin",
         "reason": (

@@ -35,6 +35,7 @@ from casmag.result.evaluation import anchor_info
 from casmag.result.verdict import revisit_pairs
 from casmag.solver.api import solve
 from casmag.solver.ekf import localise_filter, translational_filter_result
+from casmag.solver.imurec import slam_imu
 from casmag.solver.localize import localise
 from casmag.solver.multisession import (
     FIRST_PREFIX,
@@ -352,7 +353,8 @@ def slam(
     line to ``on_warning`` before the solve.
 
     A planar recording (``dfwd,dleft,dyaw``) is solved with the planar heading model, a
-    pose recording (``dpx,...,dqz``) with the pose model (:func:`slam_oriented`).
+    pose recording (``dpx,...,dqz``) with the pose model (:func:`slam_oriented`), an IMU
+    recording (``dqw,...,dvz``) with the IMU model (casmag.solver.imurec.slam_imu).
     ``sections``: settings as keyword arguments, e.g. ``model={"gp": {"lengthscale":
     0.3}}``, applied after ``overrides`` (:func:`casmag.problem.spec.section_overrides`).
 
@@ -396,6 +398,17 @@ def slam(
     rec = with_lag_removed(raw, None if auto else mag_lag)
     saved = None if map_file is None else load_map(map_file)
     given = None if saved is None else {"model": _map_model(saved)}
+    if rec.motion == "imu":
+        if saved is not None or method != "map":
+            raise DataError(
+                f"{recording}: an IMU recording is solved by the MAP estimate without a saved "
+                "map (--map and --method ekf are for other recordings)"
+            )
+        refuse_translational_options(recording, mag_lag, refit_noise, rec.motion)
+        return slam_imu(
+            rec, problem, overrides, progress, field_check, on_warning, anchor,
+            None if auto else mag_lag,
+        )  # fmt: skip
     if rec.motion in ("planar", "pose"):
         if saved is not None:
             raise DataError(f"{map_file}: a saved map locates translational recordings only")

@@ -1,0 +1,122 @@
+"""GP-SLAM on an IMU recording (``dqw,dqx,dqy,dqz,dvx,dvy,dvz`` columns): the IMU model
+of the IMU problem files (casmag.solver.imu: strapdown, the IMU-only adjustment, GP-SLAM
+with its warm starts), on the recording's data (casmag.data.imurec). ``casmag slam``
+(casmag.solver.recslam) takes this path for such recordings.
+
+Settings come from a problem file's ``model`` and ``solver`` sections
+(:class:`casmag.problem.imu.ImuRecordingSpec`) and ``--set`` overrides. What the model
+needs and a simulation would have given is taken from the recording: the sample rate
+(the keyframes take the nearest whole number of IMU intervals to ``model.keyframe_rate``),
+and the white noise of the gyroscope, the accelerometer and the magnetometer from the
+rest at the start when ``model.imu`` and ``model.magnetometer`` leave it null
+(casmag.data.imurec.rest_noise; ``info["defaults"]`` records the estimates and which were
+used). The GP hyperparameters are estimated as for IMU problems (``estimate``, the
+default). The bias random walks cannot be estimated: the biases are constant unless the
+file gives ``model.imu.bias: random_walk`` with both walks.
+
+Not done here: the magnetometer's lag behind the motion is neither estimated nor removed
+(``info["magnetometer_lag"]`` says so; ``--mag-lag SECONDS`` removes a known one), no
+filter baseline (``--method ekf``), no saved map, no Laplace covariance
+(casmag.solver.imu.IMU_NO_COVARIANCE)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from casmag.data.checks import warning_lines
+from casmag.data.imurec import imu_data, rest_noise, rest_warnings
+from casmag.data.recording import Recording
+from casmag.errors import DataError
+from casmag.problem.imu import (
+    IMU_SOLVER_KEYS,
+    ImuRecordingSpec,
+    load_recording_spec,
+    recording_imu_problem,
+    refuse_unused_solver_keys,
+)
+from casmag.problem.spec import as_overrides
+from casmag.result import Result
+from casmag.solver.imu import solve_imu
+from casmag.solver.oriented import constant_magnetometer, lag_record, refuse_constant_field
+
+#: The noise settings a recording's rest gives when the problem leaves them null:
+#: (section of ``model``, key, the estimate's field in casmag.data.imurec.RestNoise).
+REST_DEFAULTS = (
+    ("imu", "gyro_noise_density", "gyro_noise_density"),
+    ("imu", "acc_noise_density", "acc_noise_density"),
+    ("magnetometer", "sigma_m", "sigma_m"),
+)
+
+
+def _with_rest_noise(
+    spec: ImuRecordingSpec, rec: Recording, values: dict[str, float]
+) -> tuple[ImuRecordingSpec, list[str]]:
+    """``spec`` with the noise settings it leaves null set to the rest's estimates, and
+    their keys. An estimate of zero (a sensor that repeats one value at rest) is refused
+    naming the key: the noise must then be given."""
+    model, used = spec.model, []
+    for section, key, field in REST_DEFAULTS:
+        block = getattr(model, section)
+        if getattr(block, key) is not None:
+            continue
+        if section == "magnetometer" and model.gp.form == "none":
+            continue
+        if not values[field] > 0.0:
+            raise DataError(
+                f"{rec.path}: model.{section}.{key}: the sensor repeats one value over the "
+                "rest at the start, so its noise cannot be estimated there; give it"
+            )
+        block = block.model_copy(update={key: values[field]})
+        model = model.model_copy(update={section: block})
+        used.append(f"model.{section}.{key}")
+    return spec.model_copy(update={"model": model}), used
+
+
+def slam_imu(
+    rec: Recording,
+    problem: str | Path | Mapping[str, Any] | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+    field_check: bool = True,
+    on_warning: Callable[[str], None] | None = None,
+    anchor: str = "truth",
+    mag_lag: float | None = None,
+) -> Result:
+    """GP-SLAM on an IMU recording (module docstring). A constant magnetometer carries no
+    position information: the map is left out and the result is the IMU-only adjustment
+    (with ``field_check`` off, DataError). ``anchor``: ``truth`` starts at the first true
+    position and heading (when the recording has them; the errors are then against the
+    truth), ``origin`` at position 0 and heading 0 (no errors)."""
+    overrides = as_overrides(overrides)
+    refuse_unused_solver_keys(overrides, "casmag slam on an imu recording", IMU_SOLVER_KEYS)
+    spec = load_recording_spec(ImuRecordingSpec, problem, overrides)
+    source = str(problem) if isinstance(problem, (str, Path)) else "--set"
+    constant = constant_magnetometer(rec.Y)
+    if constant:
+        if not field_check:
+            refuse_constant_field(rec.path)
+        gp = spec.model.gp.model_copy(update={"form": "none"})
+        spec = spec.model_copy(update={"model": spec.model.model_copy(update={"gp": gp})})
+    rest_seconds = spec.model.initial.rest_seconds
+    data, n = imu_data(rec, rest_seconds, anchor)
+    noise = rest_noise(rec, data.T, n)
+    spec, used = _with_rest_noise(spec, rec, noise.to_dict())
+    prob = recording_imu_problem(spec, source, 1.0 / data.T)
+    found = [*rec.notes, *rest_warnings(noise, rest_seconds)]
+    for line in warning_lines(rec.path, found):
+        if on_warning is not None:
+            on_warning(line)
+    result = solve_imu(prob, data, progress)
+    result.info.update(
+        name=Path(rec.path).stem,
+        recording=str(rec.path),
+        defaults={"rest": noise.to_dict(), "from_rest": used},
+        magnetometer_lag={**lag_record(None, mag_lag), "not_estimated": "imu recordings"},
+    )
+    result.info["anchor"]["start"] = anchor  # truth: the first true pose; origin
+    if constant:
+        result.info["fallback"] = "constant magnetometer: the IMU-only adjustment, no map"
+    result.warnings = found + list(result.warnings or [])
+    return result

@@ -1,0 +1,194 @@
+"""``casmag slam`` on an IMU recording (dqw..dqz, dvx..dvz): the IMU model on the recording's
+data (casmag.data.imurec, casmag.solver.imurec), its noise from the rest at the start."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from small_problems import tiny_imu
+
+from casmag import strapdown as sd
+from casmag.cli.main import main
+from casmag.data.imurec import imu_data, quantisation_floor, rest_noise, rest_warnings
+from casmag.data.imusim import simulate_imu
+from casmag.data.recording import read_recording, write_recording
+from casmag.errors import DataError, ProblemError
+from casmag.problem.imu import load_imu_problem
+from casmag.solver.imu import _estimate_flag, solve_imu
+from casmag.solver.recslam import slam
+
+#: The tiny desk rectangle (tests/small_problems.tiny_imu) with given hyperparameters,
+#: constant biases and one batch: a 3-second solve.
+GP = {"sigma_f": 0.3, "lengthscale": 0.2, "num_basis": 200}
+
+
+def _problem() -> dict:
+    d = tiny_imu(gp=GP, imu={"bias": "constant"})
+    d["solver"]["warm_start"] = {"strategy": "none"}
+    return d
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """The problem, its simulated data and the data written as an IMU recording."""
+    prob = load_imu_problem(_problem())
+    data = simulate_imu(prob)
+    path = tmp_path_factory.mktemp("imu") / "desk.csv"
+    tr = data.truth
+    write_recording(path, tr.t, data.Y, imu=np.hstack([data.dq, data.dv]), P_true=tr.P, q_true=tr.Q)
+    return prob, data, path
+
+
+def _true_noise_model(prob) -> dict:
+    """The problem's model section with the simulation's noise written out."""
+    sim = prob.spec.simulation
+    model = _problem()["model"]
+    model["imu"] |= {
+        "gyro_noise_density": sim.imu.gyro_noise_density,
+        "acc_noise_density": sim.imu.acc_noise_density,
+    }
+    model["magnetometer"] = {"sigma_m": sim.magnetometer.noise}
+    return model
+
+
+def test_a_recording_is_solved_as_its_problem_file(recording):
+    """The simulated data written as a recording and solved by ``slam`` with the same
+    model give the estimate of the problem file (casmag imu), to round-off: the same
+    start (first true pose, levelled attitude), rate, keyframes and noise."""
+    prob, data, path = recording
+    r1 = solve_imu(prob, data)
+    r2 = slam(path, {"model": _true_noise_model(prob), "solver": _problem()["solver"]})
+    assert r1.success and r2.success, (r1.status, r2.status)
+    assert r2.motion == "imu" and r2.info["recording"] == str(path)
+    assert r2.info["imu_rate_hz"] == pytest.approx(100.0) and r2.info["scenario"] is None
+    assert r2.info["keyframe_rate_hz"] == pytest.approx(5.0)
+    assert r2.info["defaults"]["from_rest"] == []
+    a1, a2 = r1.arrays, r2.arrays
+    np.testing.assert_allclose(a2["P_estimate"], a1["P_estimate"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a2["P_true"], a1["P_true"], rtol=0, atol=0)
+    assert r2.rmse_after == pytest.approx(r1.rmse_after, abs=1e-9)
+    assert r2.details["errors"]["gp_slam"]["orientation_rms_deg"] is not None
+
+
+def test_the_rest_at_the_start_gives_the_sensors_noise(recording):
+    """At rest each sample's spread about the mean is the sensor's white noise: the
+    densities and sigma_m come within 15 % of the simulation's (50 samples, 0.5 s)."""
+    prob, data, path = recording
+    rec = read_recording(path)
+    sim = prob.spec.simulation
+    noise = rest_noise(rec, data.T, 50)
+    assert noise.gyro_noise_density == pytest.approx(sim.imu.gyro_noise_density, rel=0.15)
+    assert noise.acc_noise_density == pytest.approx(sim.imu.acc_noise_density, rel=0.15)
+    assert noise.sigma_m == pytest.approx(sim.magnetometer.noise, rel=0.15)
+    assert noise.specific_force == pytest.approx(sd.GRAVITY, rel=0.01)
+    assert noise.turned_deg < 0.5 and rest_warnings(noise, 0.5) == []
+    moving = rest_noise(rec, data.T, 150)  # 1 s past the rest: the walk has begun
+    assert [w["check"] for w in rest_warnings(moving, 1.5)] == ["not_at_rest"]
+
+
+def test_a_quantised_magnetometer_is_at_least_its_rounding_noise():
+    Y = np.round(np.random.default_rng(3).normal(size=(200, 3)), 2)
+    assert quantisation_floor(Y) == pytest.approx(0.01 / np.sqrt(12.0), rel=1e-6)
+
+
+def _cli(args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def test_casmag_slam_solves_an_imu_recording_with_noise_from_the_rest(tmp_path, recording):
+    """No noise given: the rest's estimates are used and recorded, the solve succeeds and
+    GP-SLAM improves on the IMU-only adjustment; result.json and trajectory.csv are
+    written."""
+    _, _, path = recording
+    out = tmp_path / "out"
+    sets = [f"model.gp.{k}={v}" for k, v in GP.items()] + ["solver.warm_start.strategy=none"]
+    res = _cli(["slam", path, "--out", out, "-q", *[a for s in sets for a in ("--set", s)]])
+    assert res.exit_code == 0, res.output
+    r = json.loads((out / "result.json").read_text())
+    assert r["motion"] == "imu" and r["success"] is True
+    used = r["info"]["defaults"]["from_rest"]
+    assert used == [
+        "model.imu.gyro_noise_density",
+        "model.imu.acc_noise_density",
+        "model.magnetometer.sigma_m",
+    ]
+    assert r["info"]["anchor"]["start"] == "truth"
+    assert r["rmse_after"] < 0.25 * r["rmse_before"]
+    assert (out / "trajectory.csv").exists()
+
+
+def _rewritten(path, tmp_path, **change):
+    """The recording at ``path`` written again with some of its arrays changed."""
+    rec = read_recording(path)
+    arrays = {"t": rec.t, "Y": rec.Y, "imu": rec.increments, "P_true": rec.P_true}
+    arrays |= {"q_true": rec.q_true, **change}
+    out = tmp_path / "changed.csv"
+    write_recording(out, arrays.pop("t"), arrays.pop("Y"), **arrays)
+    return out
+
+
+def test_jittered_time_stamps_are_refused_with_the_row(tmp_path, recording):
+    _, _, path = recording
+    t = read_recording(path).t.copy()
+    t[40:] += 0.002  # row 41's interval is 12 ms against 10 ms
+    with pytest.raises(DataError, match=r"row 42: .*uniform sample times") as err:
+        slam(_rewritten(path, tmp_path, t=t))
+    assert "\n" not in str(err.value)
+
+
+def test_a_sensor_constant_at_rest_must_be_given_its_noise(tmp_path, recording):
+    _, _, path = recording
+    inc = read_recording(path).increments.copy()
+    inc[:60, :4] = [1.0, 0.0, 0.0, 0.0]  # the gyroscope reads exactly zero at rest
+    with pytest.raises(DataError, match=r"model\.imu\.gyro_noise_density: .*give it"):
+        slam(_rewritten(path, tmp_path, imu=inc))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "needle"),
+    [
+        ({"overrides": ["model.initial.rest_seconds=0.05"]}, DataError, "rest_seconds"),
+        ({"overrides": ["model.imu.bias=random_walk"]}, ProblemError, "gyro_bias_walk"),
+        ({"overrides": ["model.magnetometer.samples=23"]}, ProblemError, "samples"),
+        ({"method": "ekf"}, DataError, "--method ekf"),
+        ({"mag_lag": "auto"}, DataError, "--mag-lag auto"),
+        ({"overrides": ["solver.uncertainty=true"]}, ProblemError, "solver.uncertainty"),
+    ],
+)
+def test_what_an_imu_recording_cannot_take_is_refused_in_one_line(recording, kwargs, error, needle):
+    _, _, path = recording
+    with pytest.raises(error) as err:
+        slam(path, **kwargs)
+    assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+def test_planar_truth_positions_are_refused_and_origin_drops_the_truth(recording):
+    _, data, path = recording
+    rec = read_recording(path)
+    with pytest.raises(DataError, match="z_true"):
+        imu_data(dataclasses.replace(rec, P_true=rec.P_true[:, :2]), 0.5)
+    at_origin, n = imu_data(rec, 0.5, anchor="origin")
+    assert n == 50 and at_origin.truth is None
+    np.testing.assert_array_equal(at_origin.p0, np.zeros(3))
+    assert sd.euler_from_quat(at_origin.q0)[2] == pytest.approx(0.0, abs=1e-12)
+    at_truth, _ = imu_data(rec, 0.5)
+    np.testing.assert_allclose(at_truth.q0, data.q0, atol=1e-12)
+    np.testing.assert_array_equal(at_truth.p0, data.p0)
+
+
+def test_a_recording_estimate_worse_than_imu_only_is_flagged_without_a_truth_start(recording):
+    """A recording's truth has no velocities or biases to start a solve from: an estimate
+    more than 5 % worse than the IMU-only adjustment is flagged all the same, and one
+    between the wrong-basin ratio and that is not."""
+    _, _, path = recording
+    rec_data, _ = imu_data(read_recording(path), 0.5)
+    assert rec_data.truth.V is None and rec_data.b_w is None
+
+    def errors(after):
+        return {"imu_only": {"rmse": 0.1}, "gp_slam": {"rmse": after}}
+
+    flag = _estimate_flag(None, rec_data, errors(0.2), None, None)
+    assert flag["name"] == "worse_than_imu_only" and flag["evidence"]["ratio"] == 2.0
+    assert _estimate_flag(None, rec_data, errors(0.104), None, None) is None
