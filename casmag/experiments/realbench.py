@@ -46,10 +46,9 @@ from casmag.data.recording import read_recording, write_recording
 from casmag.errors import CasmagError, DataError
 from casmag.problem.spec import Strict, validate_spec
 from casmag.result.evaluation import evaluate_result
-from casmag.result.metrics import rmse_and_max
 from casmag.result.outdir import write_text_atomic
 from casmag.solver.recslam import recording_problem, slam, slam_sessions
-from casmag.solver.translational import solve_translational
+from casmag.solver.recslam import truth_start as solve_truth_start
 
 DATA_HINT = "../shared/data/magnetic-data/invensense (see ../shared/data/README.md)"
 
@@ -191,12 +190,12 @@ def solve_problem(
 
 
 def truth_start(recording: Path, problem: Path | None, result: Any) -> dict[str, Any] | None:
-    """A diagnostic that uses the truth: the same MAP problem (``casmag slam``'s defaults,
-    one batch) solved from the true trajectory. When it ends at a higher cost than
-    ``result`` (``cost_above_result`` > 0) the model prefers the estimate to the
-    neighbourhood of the truth, and no start or solver setting can fix the error; when it
-    ends lower, the solve missed a better optimum. Translational recordings only (None
-    otherwise)."""
+    """The truth-start diagnostic of a translational recording's result
+    (casmag.solver.recslam.truth_start: ``casmag slam``'s problem, one batch, from the true
+    trajectory), the one ``slam`` made itself when it flagged the estimate, else made here.
+    None for other recordings or without truth."""
+    if result.info.get("truth_start") is not None:
+        return result.info["truth_start"]
     rec = read_recording(recording)
     if rec.motion != "translation":
         return None
@@ -204,20 +203,10 @@ def truth_start(recording: Path, problem: Path | None, result: Any) -> dict[str,
     if data.P_true is None:
         return None
     prob, _ = recording_problem(data, rec.t, recording.stem, problem, ())
-    batch = prob.with_overrides(["solver.warm_start.strategy=none"])
-    t0 = time.perf_counter()
-    sol, *_ = solve_translational(batch, data, initial_positions=data.P_true)
-    out: dict[str, Any] = {
-        "status": sol.status,
-        "success": sol.success,
-        "iterations": sol.iterations,
-        "seconds": time.perf_counter() - t0,
-    }
-    if sol.success:
-        cost = float(sum(sol.blocks_after.values()))
-        ours = float(sum(b["after"] for b in result.cost_blocks.values()))
-        rmse, mx = rmse_and_max(sol.x["P"], data.P_true)
-        out.update(cost=cost, cost_above_result=cost - ours, rmse=rmse, max=mx)
+    out = solve_truth_start(prob, data, result)
+    if out is not None:
+        out.pop("solution", None)
+        out.pop("result_cost", None)
     return out
 
 
@@ -302,6 +291,8 @@ def row(
         "inside_95_uninflated": (u.get("uninflated") or {}).get("inside_95"),
         "inflation_factor_mean": (u.get("inflation") or {}).get("factor_mean"),
         "truth_start": result.info.get("truth_start"),
+        "trusted": (result.verdict or {}).get("trusted"),
+        "verdict_reasons": list((result.verdict or {}).get("reasons") or []),
         "two_starts": [
             {k: st.get(k) for k in ("start", "cost", "kept", "iterations", "solve_seconds")}
             for st in result.stages_named("start")
@@ -337,12 +328,23 @@ def _truth(r: dict[str, Any]) -> str:
     return f"{t['rmse']:.3f}, {t['cost_above_result']:+.1f}"
 
 
+def _verdict(r: dict[str, Any]) -> str:
+    """The verdict (casmag.result.verdict): trusted, or not and the checks that failed."""
+    if r.get("trusted") is None:
+        return "-"
+    if r["trusted"]:
+        return "yes"
+    names = sorted({reason.split(":")[0] for reason in r.get("verdict_reasons") or []})
+    return "no (" + "; ".join(names) + ")" if names else "no"
+
+
 def markdown(rows: list[dict[str, Any]]) -> str:
     head = (
         "| problem | motion | field | N | clock shift [s] | RMSE before [m] | max before [m] "
         "| RMSE after [m] | max after [m] | after/before | iterations | wall [s] "
         "| sigma_f | l [m] | sigma_m | mean NEES (expected; 95 % range if honest) | inside 95 % "
-        "| plain Laplace: mean NEES, inside 95 % | from the truth: RMSE [m], cost - ours | status |"
+        "| plain Laplace: mean NEES, inside 95 % | from the truth: RMSE [m], cost - ours "
+        "| trusted | status |"
     )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
@@ -376,6 +378,7 @@ def markdown(rows: list[dict[str, Any]]) -> str:
                     _fmt(r["inside_95"], ".2f"),
                     _plain(r),
                     _truth(r),
+                    _verdict(r),
                     r["status"] + (f" ({r['fallback']})" if r.get("fallback") else ""),
                 ]
             )

@@ -498,6 +498,13 @@ class RecordingInitialSpec(InitialStateSpec):
     rest_seconds: PositiveFloat = 0.5
 
 
+class RecordingImuSpec(ImuModelSpec):
+    """A recording's ``model.imu`` (:class:`ImuModelSpec`) with constant biases by default,
+    also when the section gives other keys."""
+
+    bias: Literal["random_walk", "constant"] = "constant"
+
+
 class ImuRecordingModelSpec(ImuProblemModelSpec):
     """The IMU model of a recording (``casmag slam`` on ``dqw..dvz`` columns): the keys of an
     IMU problem's ``model``, with these differences. Noise densities and
@@ -509,7 +516,7 @@ class ImuRecordingModelSpec(ImuProblemModelSpec):
     (problems/imu/README.md)."""
 
     keyframe_rate: PositiveFloat = 5.0
-    imu: ImuModelSpec = ImuModelSpec(bias="constant")
+    imu: RecordingImuSpec = RecordingImuSpec()
     initial: RecordingInitialSpec = RecordingInitialSpec()
 
 

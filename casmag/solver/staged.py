@@ -627,13 +627,14 @@ def solve_staged(
 
 
 def wrong_basin_flag(
-    sol: Any, true_start: Any, P_true: np.ndarray, ratio: float
+    cost: float, true_start: Any, P_true: np.ndarray, ratio: float
 ) -> dict[str, Any] | None:
-    """The ``wrong_basin`` flag (as the IMU model's) when the solve from the truth reaches a
-    MAP cost lower by more than one (a likelihood ratio of e) than the estimate's."""
+    """The ``wrong_basin`` flag (as the IMU model's) when the solve from the truth
+    (``true_start``, a Solution) reaches a MAP cost lower by more than one (a likelihood
+    ratio of e) than the estimate's ``cost``."""
     if true_start is None or not true_start.success:
         return None
-    cost, truth_cost = float(sol.objective), float(true_start.objective)
+    cost, truth_cost = float(cost), float(true_start.objective)
     if not truth_cost < cost - 1.0:
         return None
     rmse_truth = rmse_and_max(true_start.x["P"], P_true)[0]
@@ -675,7 +676,7 @@ def truth_check(
         return None
     start = {**model.states(final), **true_states}
     true_start = model.solve(model.n, start, model.solver, model.lengthscale).sol
-    return wrong_basin_flag(sol, true_start, P_true, ratio)
+    return wrong_basin_flag(sol.objective, true_start, P_true, ratio)
 
 
 def uncertainty(

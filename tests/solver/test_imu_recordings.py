@@ -15,7 +15,7 @@ from casmag.data.imurec import imu_data, quantisation_floor, rest_noise, rest_wa
 from casmag.data.imusim import simulate_imu
 from casmag.data.recording import read_recording, write_recording
 from casmag.errors import DataError, ProblemError
-from casmag.problem.imu import load_imu_problem
+from casmag.problem.imu import ImuRecordingSpec, load_imu_problem, load_recording_spec
 from casmag.solver.imu import _estimate_flag, solve_imu
 from casmag.solver.recslam import slam
 
@@ -192,3 +192,11 @@ def test_a_recording_estimate_worse_than_imu_only_is_flagged_without_a_truth_sta
     flag = _estimate_flag(None, rec_data, errors(0.2), None, None)
     assert flag["name"] == "worse_than_imu_only" and flag["evidence"]["ratio"] == 2.0
     assert _estimate_flag(None, rec_data, errors(0.104), None, None) is None
+
+
+def test_a_recording_model_keeps_constant_biases_when_its_imu_section_gives_other_keys():
+    spec = load_recording_spec(ImuRecordingSpec, {"model": {"imu": {"acc_bias_prior": 0.2}}})
+    assert spec.model.imu.bias == "constant" and spec.model.imu.acc_bias_prior == 0.2
+    given = load_recording_spec(ImuRecordingSpec, None, ["model.imu.gyro_noise_density=0.01"])
+    assert given.model.imu.bias == "constant" and given.model.keyframe_rate == 5.0
+    assert given.solver.max_iter == 150 and given.solver.warm_start.strategy == "auto"

@@ -1,5 +1,6 @@
 """`casmag slam` on recordings: defaults from the data, the staged (growing) solve, knots."""
 
+import copy
 import json
 from pathlib import Path
 
@@ -9,9 +10,10 @@ from click.testing import CliRunner
 
 import casmag
 from casmag.cli.main import main
-from casmag.data.recording import dataset_to_recording_arrays, write_recording
+from casmag.data.recording import dataset_to_recording_arrays, read_recording, write_recording
 from casmag.data.simulate import simulate_problem
 from casmag.model.knots import Knots
+from casmag.solver.recslam import recording_problem, truth_check, truth_start
 from casmag.solver.windowing import continued, stage_lengths
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -154,3 +156,31 @@ def test_estimate_in_a_recordings_problem_means_from_the_data(tmp_path):
     assert prob.spec.model.gp.sigma_f == est["sigma_f"]
     assert prob.spec.model.magnetometer.sigma_m == est["sigma_m"]
     assert prob.spec.model.gp.lengthscale == 0.4
+
+
+def test_a_worse_optimum_than_the_truths_is_flagged_wrong_basin(tmp_path):
+    """With truth (evaluation), an estimate above 1/4 of the dead reckoning's RMSE is solved
+    again from the true positions (as the planar and pose models are): a MAP cost lower
+    there flags ``wrong_basin`` and the verdict withholds trust. The walk's own estimate is
+    right (the solve from the truth ends at its cost); its RMSE and cost are then made to
+    look like a worse optimum's, and like a better one's."""
+    data = simulate_problem(_walk(samples=300))
+    path = tmp_path / "walk.csv"
+    write_recording(path, **dataset_to_recording_arrays(data, dt=0.1))
+    result = casmag.slam(path)
+    assert result.success and result.rmse_after <= 0.25 * result.rmse_before
+    assert "truth_start" not in result.info and result.verdict["trusted"]
+    rec = read_recording(path)
+    prob, _ = recording_problem(rec.to_dataset(), rec.t, "walk", None, ())
+    dataset = rec.to_dataset()
+    start = truth_start(prob, dataset, result)
+    assert start["success"] and abs(start["cost_above_result"]) < 1.0
+    for shift, flagged in ((1000.0, True), (-1000.0, False)):
+        r = copy.deepcopy(result)
+        r.rmse_after = 0.5 * r.rmse_before
+        r.cost_blocks["magnetometer"]["after"] += shift
+        truth_check(prob, dataset, r)
+        assert r.info["truth_start"]["cost_above_result"] == pytest.approx(-shift, abs=1.0)
+        names = [f["name"] for f in r.flags or []]
+        assert ("wrong_basin" in names) is flagged
+        assert r.verdict["trusted"] is not flagged
