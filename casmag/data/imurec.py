@@ -17,7 +17,7 @@ more than :data:`PERIOD_TOLERANCE` is refused with the row.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -54,7 +54,7 @@ class RestNoise:
     turned_deg: float
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return asdict(self)
 
 
 def sample_period(rec: Recording) -> float:
@@ -99,7 +99,7 @@ def rest_noise(rec: Recording, T: float, n: int) -> RestNoise:
     rate = sd.quat_log(dq) / T  # rad/s
     force = dv / T
     spread = lambda x: float(np.sqrt(np.mean(np.var(x, axis=0, ddof=1))))  # noqa: E731
-    turned = np.degrees(np.linalg.norm(sd.quat_log(_compose(dq))))
+    turned = np.degrees(np.linalg.norm(sd.quat_log(sd.compose_increments(dq, dv, T, n)[0][0])))
     return RestNoise(
         gyro_noise_density=float(np.degrees(spread(rate)) * np.sqrt(T)),
         acc_noise_density=spread(force) * float(np.sqrt(T)),
@@ -120,13 +120,6 @@ def quantisation_floor(Y: np.ndarray) -> float:
         gaps = np.diff(np.unique(column))
         steps.append(float(gaps.min()) if gaps.size else 0.0)
     return max(steps) / np.sqrt(12.0)
-
-
-def _compose(dq: np.ndarray) -> np.ndarray:
-    q = np.array([1.0, 0.0, 0.0, 0.0])
-    for d in dq:
-        q = sd.quat_mul(q, d)
-    return q
 
 
 def rest_warnings(noise: RestNoise, rest_seconds: float) -> list[dict[str, str]]:

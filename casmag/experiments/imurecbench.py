@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 import traceback
 from pathlib import Path
@@ -39,6 +38,7 @@ from casmag.data.imusim import simulate_imu
 from casmag.data.recording import write_recording
 from casmag.experiments.imubench import source_digest
 from casmag.problem.imu import load_imu_problem
+from casmag.result.outdir import write_text_atomic
 from casmag.solver.imu import solve_imu
 from casmag.solver.recslam import slam
 from casmag.versions import versions
@@ -114,12 +114,6 @@ def table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("problems", nargs="+", type=Path)
@@ -152,12 +146,14 @@ def main(argv: list[str] | None = None) -> int:
                 traceback.print_exc()
                 run = {"scenario": path.stem, "seed": seed, "error": f"{type(exc).__name__}: {exc}"}
             run.update(key)
-            _write(saved, json.dumps(run, indent=2))
+            write_text_atomic(saved, json.dumps(run, indent=2))
             runs.append(run)
             print(f"{path.stem} seed {seed}: done", flush=True)
-    _write(args.out / "imu-recordings.json", json.dumps({"runs": runs, "versions": vers}, indent=2))
+    write_text_atomic(
+        args.out / "imu-recordings.json", json.dumps({"runs": runs, "versions": vers}, indent=2)
+    )
     head = f"Problem files with {', '.join(args.overrides)}.\n\n" if args.overrides else ""
-    _write(args.out / "imu-recordings.md", head + table(runs, vers))
+    write_text_atomic(args.out / "imu-recordings.md", head + table(runs, vers))
     return 0
 
 

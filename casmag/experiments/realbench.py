@@ -203,11 +203,8 @@ def truth_start(recording: Path, problem: Path | None, result: Any) -> dict[str,
     if data.P_true is None:
         return None
     prob, _ = recording_problem(data, rec.t, recording.stem, problem, ())
-    out = solve_truth_start(prob, data, result)
-    if out is not None:
-        out.pop("solution", None)
-        out.pop("result_cost", None)
-    return out
+    made = solve_truth_start(prob, data, result)
+    return None if made is None else made[0]
 
 
 def session_table_rows(

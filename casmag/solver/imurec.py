@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from casmag.data.checks import warning_lines
-from casmag.data.imurec import imu_data, rest_noise, rest_warnings
+from casmag.data.imurec import RestNoise, imu_data, rest_noise, rest_warnings
 from casmag.data.recording import Recording
 from casmag.errors import DataError
 from casmag.problem.imu import (
@@ -41,34 +41,35 @@ from casmag.result import Result
 from casmag.solver.imu import solve_imu
 from casmag.solver.oriented import constant_magnetometer, lag_record, refuse_constant_field
 
-#: The noise settings a recording's rest gives when the problem leaves them null:
-#: (section of ``model``, key, the estimate's field in casmag.data.imurec.RestNoise).
+#: The noise settings a recording's rest gives when the problem leaves them null: (section
+#: of ``model``, key; the estimate's field of casmag.data.imurec.RestNoise has the key's name).
 REST_DEFAULTS = (
-    ("imu", "gyro_noise_density", "gyro_noise_density"),
-    ("imu", "acc_noise_density", "acc_noise_density"),
-    ("magnetometer", "sigma_m", "sigma_m"),
+    ("imu", "gyro_noise_density"),
+    ("imu", "acc_noise_density"),
+    ("magnetometer", "sigma_m"),
 )
 
 
 def _with_rest_noise(
-    spec: ImuRecordingSpec, rec: Recording, values: dict[str, float]
+    spec: ImuRecordingSpec, rec: Recording, noise: RestNoise
 ) -> tuple[ImuRecordingSpec, list[str]]:
     """``spec`` with the noise settings it leaves null set to the rest's estimates, and
     their keys. An estimate of zero (a sensor that repeats one value at rest) is refused
     naming the key: the noise must then be given."""
     model, used = spec.model, []
-    for section, key, field in REST_DEFAULTS:
+    for section, key in REST_DEFAULTS:
         block = getattr(model, section)
         if getattr(block, key) is not None:
             continue
         if section == "magnetometer" and model.gp.form == "none":
             continue
-        if not values[field] > 0.0:
+        value = getattr(noise, key)
+        if not value > 0.0:
             raise DataError(
                 f"{rec.path}: model.{section}.{key}: the sensor repeats one value over the "
                 "rest at the start, so its noise cannot be estimated there; give it"
             )
-        block = block.model_copy(update={key: values[field]})
+        block = block.model_copy(update={key: value})
         model = model.model_copy(update={section: block})
         used.append(f"model.{section}.{key}")
     return spec.model_copy(update={"model": model}), used
@@ -102,7 +103,7 @@ def slam_imu(
     rest_seconds = spec.model.initial.rest_seconds
     data, n = imu_data(rec, rest_seconds, anchor)
     noise = rest_noise(rec, data.T, n)
-    spec, used = _with_rest_noise(spec, rec, noise.to_dict())
+    spec, used = _with_rest_noise(spec, rec, noise)
     prob = recording_imu_problem(spec, source, 1.0 / data.T)
     found = [*rec.notes, *rest_warnings(noise, rest_seconds)]
     for line in warning_lines(rec.path, found):

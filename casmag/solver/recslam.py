@@ -457,13 +457,18 @@ def slam(
     return result
 
 
-def truth_start(prob: Problem, data: Dataset, result: Result) -> dict[str, Any] | None:
+def _map_cost(result: Result) -> float:
+    """A result's MAP cost: the sum of its cost blocks at the solution."""
+    return float(sum(b["after"] for b in result.cost_blocks.values()))
+
+
+def truth_start(prob: Problem, data: Dataset, result: Result) -> tuple[dict[str, Any], Any] | None:
     """A diagnostic that uses the truth (None without it, or when ``result`` failed): the
-    same MAP problem, one batch, solved from the true positions: its status, iterations,
-    seconds and, when it succeeded, its MAP cost, ``cost_above_result`` (its cost minus the
-    result's: above 0 the model prefers the estimate to the neighbourhood of the truth, and
-    no start or solver setting can fix the error; below, the solve missed a better optimum)
-    and its RMSE and max error against the truth."""
+    same MAP problem, one batch, solved from the true positions. Returns its record (status,
+    iterations, seconds and, when it succeeded, its MAP cost, ``cost_above_result``: its
+    cost minus the result's, above 0 the model prefers the estimate to the neighbourhood of
+    the truth and no start or solver setting can fix the error, below 0 the solve missed a
+    better optimum; its RMSE and max error against the truth) and its Solution."""
     if data.P_true is None or not result.success or not result.cost_blocks:
         return None
     batch = prob.with_overrides(["solver.warm_start.strategy=none"])
@@ -476,11 +481,10 @@ def truth_start(prob: Problem, data: Dataset, result: Result) -> dict[str, Any] 
         "seconds": time.perf_counter() - t0,
     }
     if sol.success:
-        ours = float(sum(b["after"] for b in result.cost_blocks.values()))
         rmse, mx = rmse_and_max(sol.x["P"], data.P_true)
-        out.update(cost=float(sol.objective), cost_above_result=float(sol.objective) - ours,
-                   rmse=rmse, max=mx, solution=sol, result_cost=ours)  # fmt: skip
-    return out
+        cost = float(sol.objective)
+        out.update(cost=cost, cost_above_result=cost - _map_cost(result), rmse=rmse, max=mx)
+    return out, sol
 
 
 def truth_check(prob: Problem, data: Dataset, result: Result) -> None:
@@ -496,12 +500,11 @@ def truth_check(prob: Problem, data: Dataset, result: Result) -> None:
     before, after = result.rmse_before, result.rmse_after
     if before is None or after is None or after <= TRUTH_START_RATIO * max(before, 1e-12):
         return
-    start = truth_start(prob, data, result)
-    if start is None:
+    made = truth_start(prob, data, result)
+    if made is None:
         return
-    sol, ours = start.pop("solution", None), start.pop("result_cost", None)
-    result.info["truth_start"] = start
-    flag = None if sol is None else wrong_basin_flag(ours, sol, data.P_true, after / before)
+    result.info["truth_start"], sol = made
+    flag = wrong_basin_flag(_map_cost(result), sol, data.P_true, after / before)
     if flag is not None:
         result.flags = [*(result.flags or []), flag]
         result.judge()

@@ -173,7 +173,7 @@ def test_a_worse_optimum_than_the_truths_is_flagged_wrong_basin(tmp_path):
     rec = read_recording(path)
     prob, _ = recording_problem(rec.to_dataset(), rec.t, "walk", None, ())
     dataset = rec.to_dataset()
-    start = truth_start(prob, dataset, result)
+    start, _ = truth_start(prob, dataset, result)
     assert start["success"] and abs(start["cost_above_result"]) < 1.0
     for shift, flagged in ((1000.0, True), (-1000.0, False)):
         r = copy.deepcopy(result)
