@@ -316,10 +316,64 @@ class ImuData:
     b_w: np.ndarray | None = None
     b_a: np.ndarray | None = None
     M: np.ndarray | None = None
+    #: Several sessions of one field (:func:`stack_sessions`): the first sample of each;
+    #: the increment row before a later session's first sample is not read.
+    starts: tuple[int, ...] = (0,)
+    #: Each session's known initial state, rows (p0, v0, q0) (S, 10); None: one session
+    #: from (p0, v0, q0).
+    initial: np.ndarray | None = None
 
     @property
     def n_samples(self) -> int:
         return self.Y.shape[0]
+
+    def initial_states(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each session's initial position (S, 3), velocity (S, 3) and attitude (S, 4)."""
+        if self.initial is None:
+            row = np.concatenate([self.p0, self.v0, self.q0]).reshape(1, 10)
+        else:
+            row = np.asarray(self.initial, dtype=float).reshape(-1, 10)
+        return row[:, 0:3], row[:, 3:6], row[:, 6:10]
+
+
+def _stacked(parts: list[np.ndarray | None]) -> np.ndarray | None:
+    """The arrays one under the other, or None when any is missing."""
+    return None if any(v is None for v in parts) else np.vstack(parts)
+
+
+def stack_sessions(sessions: list[ImuData]) -> ImuData:
+    """Several IMU recordings of one field, in one frame, stacked end to end as one
+    ImuData with ``starts`` (the first sample of each) and each one's initial state in
+    ``initial``: one IMU interval T (ValueError otherwise), a no-motion increment row
+    (identity rotation, zero velocity change; not read) before each later session, the
+    truth's times shifted to follow on, truth arrays kept when every session has them."""
+    first = sessions[0]
+    for d in sessions[1:]:
+        if abs(d.T - first.T) > 1e-9 * first.T:
+            raise ValueError(f"sessions: one IMU interval, got {first.T} and {d.T} s")
+    gap_q, gap_v = np.array([[1.0, 0.0, 0.0, 0.0]]), np.zeros((1, 3))
+    dq = np.vstack([v for d in sessions for v in (d.dq, gap_q)][:-1])
+    dv = np.vstack([v for d in sessions for v in (d.dv, gap_v)][:-1])
+    starts = tuple(int(a) for a in np.cumsum([0] + [d.n_samples for d in sessions[:-1]]))
+    initial = np.vstack([np.hstack(d.initial_states()) for d in sessions])
+    truth = None
+    if all(d.truth is not None for d in sessions):
+        times, offset = [], 0.0
+        for d in sessions:
+            times.append(d.truth.t - d.truth.t[0] + offset)  # type: ignore[union-attr]
+            offset = times[-1][-1] + first.T
+        truth = Truth(
+            t=np.concatenate(times),
+            P=_stacked([d.truth.P for d in sessions]),  # type: ignore[union-attr]
+            V=_stacked([d.truth.V for d in sessions]),  # type: ignore[union-attr]
+            Q=_stacked([d.truth.Q for d in sessions]),  # type: ignore[union-attr]
+        )
+    return ImuData(
+        T=first.T, dq=dq, dv=dv, Y=np.vstack([d.Y for d in sessions]),
+        p0=first.p0, v0=first.v0, q0=first.q0, truth=truth,
+        b_w=_stacked([d.b_w for d in sessions]), b_a=_stacked([d.b_a for d in sessions]),
+        M=_stacked([d.M for d in sessions]), starts=starts, initial=initial,
+    )  # fmt: skip
 
 
 def levelled_attitude(dv: np.ndarray, T: float, n: int, yaw: float) -> np.ndarray:

@@ -83,6 +83,11 @@ class ImuStructure:
     zero_centre: str = "start"  # or "free": the zero-position sphere's centre is estimated
     closures: tuple[tuple[int, int], ...] = ()  # form none: loop-closure pairs (LoopClosures)
     window: bool = False  # a sliding window: anchored first state, map under a carried prior
+    #: The first keyframe of each session (ImuMotion ``starts``), cut to those below K.
+    starts: tuple[int, ...] = (0,)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "starts", tuple(int(a) for a in self.starts if a < self.K))
 
     def hilbert_basis(self) -> HilbertBasis:
         return cached_basis(self.basis)
@@ -172,8 +177,8 @@ def imu_nominal_terms(
     Rt = np.transpose(R[:-1], (0, 2, 1))
     yv = np.einsum("kij,kj->ki", Rt, V[1:] - V[:-1] - dt * g)
     yp = np.einsum("kij,kj->ki", Rt, P[1:] - P[:-1] - dt * V[:-1] - 0.5 * dt**2 * g)
-    bw = BW[:-1] if BW.shape[0] == K else np.repeat(BW, K - 1, 0)
-    ba = BA[:-1] if BA.shape[0] == K else np.repeat(BA, K - 1, 0)
+    bw = per_keyframe(BW, kf.starts, K)[:-1]
+    ba = per_keyframe(BA, kf.starts, K)[:-1]
     f = imu_nominal_function(n, T).map(K - 1, "serial")
     Dq, Dv, Dp, J = (np.asarray(v).T for v in f(bw.T, ba.T, kf.DQ.T, kf.DV.T))
     qrel = sd.quat_mul(sd.quat_conj(Q[:-1]), Q[1:])
@@ -186,7 +191,25 @@ def imu_nominal_terms(
         "QRES": sd.quat_mul(sd.quat_conj(Dq), qrel),
         "RREL_T": rrel_t.reshape(K - 1, 9),
         "RNOM": R.transpose(0, 2, 1).reshape(K, 9),
+        "QNOM0": Q[list(kf.starts)],
     }
+
+
+def per_keyframe(b: np.ndarray, starts: tuple[int, ...], K: int) -> np.ndarray:
+    """Biases (rows of 3) at each of K keyframes: ``b`` has one row per keyframe (a random
+    walk) or one per session (constant biases; ``starts``: each session's first keyframe,
+    every session at least 2 keyframes long, so the two cannot be confused)."""
+    b = np.asarray(b, dtype=float).reshape(-1, 3)
+    if b.shape[0] == K:
+        return b
+    if b.shape[0] != len(starts):
+        raise ValueError(f"biases: {K} or {len(starts)} rows, got {b.shape[0]}")
+    return np.repeat(b, np.diff([*starts, K]), axis=0)
+
+
+def session_of(starts: tuple[int, ...], rows: Any) -> list[int]:
+    """The session of each keyframe (or interval from it) in ``rows``."""
+    return [int(v) for v in np.searchsorted(np.asarray(starts), np.asarray(rows), "right") - 1]
 
 
 #: IPOPT's ``tiny_step_tol`` for the IMU model's solves (IPOPT's default is ten machine
@@ -212,6 +235,12 @@ class ImuMotion(MotionModel):
     ``imu_hessian: exact``), ``bias_walk``, ``bias_prior``, ``initial_state`` and
     ``zero_position``; the field is read in the body frame R = Rnom R(1, D / 2).
 
+    ``starts``: several sessions of one field (the first keyframe of each), one map: no
+    ``imu`` residual or bias walk from a session's last keyframe to the next one's first,
+    and each session has its own initial state (rows of ``p0``, ``v0``, ``q0``, ``QNOM0``),
+    constant biases (rows of BW, BA) or the bias prior on its first keyframe's, and its own
+    zero-position centre (its ``p0``; ``zero_centre`` ``free`` needs one session).
+
     ``anchored`` (a window of the sliding windows, casmag.solver.imu.ImuStaged): the first
     state's prior is 0.5 r^T I r on its position, velocity and (world-frame) rotation errors
     r with the precision ``anchor_info`` (9 x 9: the inverse of the previous window's
@@ -226,6 +255,7 @@ class ImuMotion(MotionModel):
     zero_centre: str = "start"
     imu_hessian: str = "gauss-newton"
     anchored: bool = False
+    starts: tuple[int, ...] = (0,)
     name = "imu"
 
     def solver(self, solver: SolverSpec) -> SolverSpec:
@@ -235,11 +265,18 @@ class ImuMotion(MotionModel):
         return solver.model_copy(update={"ipopt": {**solver.ipopt, "tiny_step_tol": IMU_TINY_STEP}})
 
     def declare(self, b: NLPBuilder) -> Pose:
-        K, n = self.K, self.n
+        K, n, starts = self.K, self.n, self.starts
+        S = len(starts)
+        if S > 1 and (self.anchored or (self.zero_position and self.zero_centre == "free")):
+            raise ValueError("sliding windows and a free zero-position centre: one session")
+        # The intervals within a session: [lo[i], hi[i]] (all of them for one session).
+        inner = [k for k in range(K - 1) if k + 1 not in starts]
+        lo: Any = slice(0, K - 1) if S == 1 else inner
+        hi: Any = slice(1, K) if S == 1 else [k + 1 for k in inner]
         dP = b.variable("dP", (K, 3))
         dV = b.variable("dV", (K, 3))
         D = b.variable("D", (K, 3))
-        Kb = K if self.bias == "random_walk" else 1
+        Kb = K if self.bias == "random_walk" else S
         BW = b.variable("BW", (Kb, 3))
         BA = b.variable("BA", (Kb, 3))
         # The nominal trajectory and what the residual needs of it (imu_nominal_terms).
@@ -253,21 +290,25 @@ class ImuMotion(MotionModel):
             )
         }  # fmt: skip
         LINV = b.parameter("LINV", (K - 1, 81))
-        p0, v0 = b.parameter("p0", (1, 3)), b.parameter("v0", (1, 3))
+        p0, v0 = b.parameter("p0", (S, 3)), b.parameter("v0", (S, 3))
         if self.anchored:  # the first state's precision: anchor_info
             sig = {k: b.parameter(k, (1, 1)) for k in ("sigma_bw0", "sigma_ba0")}
         else:
             names = ("sigma_p0", "sigma_v0", "sigma_tilt", "sigma_yaw", "sigma_bw0", "sigma_ba0")
             sig = {k: b.parameter(k, (1, 1)) for k in names}
         if self.bias == "random_walk":
-            BWi, BAi = BW[:-1, :], BA[:-1, :]
-        else:
+            BWi, BAi = BW[lo, :], BA[lo, :]
+        elif S == 1:
             BWi, BAi = ca.repmat(BW, K - 1, 1), ca.repmat(BA, K - 1, 1)
-        resid = imu_residual_function().map(K - 1, "serial")
+        else:
+            own = session_of(starts, inner)
+            BWi, BAi = BW[own, :], BA[own, :]
+        resid = imu_residual_function().map(K - 1 if S == 1 else len(inner), "serial")
         E = resid(
-            dP[:-1, :].T, dV[:-1, :].T, D[:-1, :].T, dP[1:, :].T, dV[1:, :].T, D[1:, :].T,
-            BWi.T, BAi.T, nom["BBAR"].T, nom["IMU_Y"].T, nom["IMU_E0"].T, nom["IMU_J"].T,
-            nom["QRES"].T, nom["RREL_T"].T, RNOM[:-1, :].T, LINV.T, n * self.T,
+            dP[lo, :].T, dV[lo, :].T, D[lo, :].T, dP[hi, :].T, dV[hi, :].T, D[hi, :].T,
+            BWi.T, BAi.T, nom["BBAR"][lo, :].T, nom["IMU_Y"][lo, :].T, nom["IMU_E0"][lo, :].T,
+            nom["IMU_J"][lo, :].T, nom["QRES"][lo, :].T, nom["RREL_T"][lo, :].T,
+            RNOM[lo, :].T, LINV[lo, :].T, n * self.T,
         )  # fmt: skip
         P = PNOM + dP  # absolute positions for the map and the priors (weakly curved there)
         if self.imu_hessian == "exact":
@@ -279,42 +320,55 @@ class ImuMotion(MotionModel):
             dt = n * self.T
             b.cost(
                 "bias_walk",
-                0.5 * ca.sumsqr((BW[1:, :] - BW[:-1, :]) / (rw_w * np.sqrt(dt)))
-                + 0.5 * ca.sumsqr((BA[1:, :] - BA[:-1, :]) / (rw_a * np.sqrt(dt))),
+                0.5 * ca.sumsqr((BW[hi, :] - BW[lo, :]) / (rw_w * np.sqrt(dt)))
+                + 0.5 * ca.sumsqr((BA[hi, :] - BA[lo, :]) / (rw_a * np.sqrt(dt))),
             )
+        # Each session's first biases (one row per session when constant).
+        first: Any = (
+            0 if S == 1 else (list(starts) if self.bias == "random_walk" else list(range(S)))
+        )
         b.cost(
             "bias_prior",
-            0.5 * ca.sumsqr(BW[0, :] / sig["sigma_bw0"])
-            + 0.5 * ca.sumsqr(BA[0, :] / sig["sigma_ba0"]),
+            0.5 * ca.sumsqr(BW[first, :] / sig["sigma_bw0"])
+            + 0.5 * ca.sumsqr(BA[first, :] / sig["sigma_ba0"]),
         )
-        # Error of the first orientation against the known one, as a small rotation in the
-        # local (world) frame (tilt: x, y; yaw: z): of qnom_0 (1, d_0 / 2) q0^-1. Against q0
-        # itself, not the nominal, which moves to each stage's estimate.
-        QNOM0, Q0 = b.parameter("QNOM0", (1, 4)), b.parameter("q0", (1, 4))
-        eps = sd.ca_rotation_residual(
-            sd.ca_quat_mul(sd.ca_quat_mul(QNOM0.T, sd.ca_gibbs(D[0, :].T)), sd.ca_quat_conj(Q0.T))
-        )
-        if self.anchored:  # r = (position, velocity, rotation) error, 0.5 r^T Info r
-            info = b.parameter("anchor_info", (9, 9))
-            r = ca.vertcat((dP[0, :] + (PNOM[0, :] - p0)).T, (dV[0, :] + (VNOM[0, :] - v0)).T, eps)
-            b.cost("initial_state", 0.5 * ca.dot(r, ca.mtimes(info, r)))
-        else:
-            b.cost(
-                "initial_state",
-                0.5 * ca.sumsqr((dP[0, :] + (PNOM[0, :] - p0)) / sig["sigma_p0"])
-                + 0.5 * ca.sumsqr((dV[0, :] + (VNOM[0, :] - v0)) / sig["sigma_v0"])
-                + 0.5 * ca.sumsqr(eps[0:2] / sig["sigma_tilt"])
-                + 0.5 * (eps[2] / sig["sigma_yaw"]) ** 2,
+        # Error of each session's first orientation against the known one, as a small
+        # rotation in the local (world) frame (tilt: x, y; yaw: z): of qnom_a (1, d_a / 2)
+        # q0^-1. Against q0 itself, not the nominal, which moves to each stage's estimate.
+        QNOM0, Q0 = b.parameter("QNOM0", (S, 4)), b.parameter("q0", (S, 4))
+        initial = 0
+        for s, a in enumerate(starts):
+            eps = sd.ca_rotation_residual(
+                sd.ca_quat_mul(
+                    sd.ca_quat_mul(QNOM0[s, :].T, sd.ca_gibbs(D[a, :].T)),
+                    sd.ca_quat_conj(Q0[s, :].T),
+                )
             )
+            ep = (dP[a, :] + (PNOM[a, :] - p0[s, :])).T
+            ev = (dV[a, :] + (VNOM[a, :] - v0[s, :])).T
+            if self.anchored:  # r = (position, velocity, rotation) error, 0.5 r^T Info r
+                info = b.parameter("anchor_info", (9, 9))
+                r = ca.vertcat(ep, ev, eps)
+                initial += 0.5 * ca.dot(r, ca.mtimes(info, r))
+            else:
+                initial += (
+                    0.5 * ca.sumsqr(ep / sig["sigma_p0"])
+                    + 0.5 * ca.sumsqr(ev / sig["sigma_v0"])
+                    + 0.5 * ca.sumsqr(eps[0:2] / sig["sigma_tilt"])
+                    + 0.5 * (eps[2] / sig["sigma_yaw"]) ** 2
+                )
+        b.cost("initial_state", initial)
         if self.zero_position:
             sz = b.parameter("sigma_zero", (1, 1))
             if self.anchored:
-                centre = b.parameter("centre", (1, 3))
+                centre = ca.repmat(b.parameter("centre", (1, 3)), K, 1)
             elif self.zero_centre == "free":
-                centre = b.variable("zero_centre", (1, 3))
-            else:
-                centre = p0
-            b.cost("zero_position", 0.5 * ca.sumsqr((P - ca.repmat(centre, K, 1)) / sz))
+                centre = ca.repmat(b.variable("zero_centre", (1, 3)), K, 1)
+            elif S == 1:
+                centre = ca.repmat(p0, K, 1)
+            else:  # each keyframe about its session's start
+                centre = p0[session_of(starts, range(K)), :]
+            b.cost("zero_position", 0.5 * ca.sumsqr((P - centre) / sz))
         rotation = Rotation(imu_rotation_function(), D, "D", RNOM, "RNOM")
         return Pose(P, K, 3, "dP", "PNOM", Knots(K, 1), rotation)
 
@@ -336,8 +390,9 @@ def imu_field(s: ImuStructure) -> FieldModel:
 def cached_imu_nlp(s: ImuStructure) -> NLP:
     """The built NLP for a structure, built once per process."""
     motion = ImuMotion(
-        s.K, s.n, s.T, s.bias, s.zero_position, s.zero_centre, s.imu_hessian, s.window
-    )
+        s.K, s.n, s.T, s.bias, s.zero_position, s.zero_centre, s.imu_hessian, s.window,
+        s.starts,
+    )  # fmt: skip
     return cached_slam(motion, imu_field(s), s.solver)
 
 
@@ -347,7 +402,10 @@ class Keyframes:
     """The data at keyframe rate: indices (K,) of the keyframe samples, DQ (K-1, 4n),
     DV (K-1, 3n) increments per interval, LINV (K-1, 81) whitening of the composed
     increments, Y (K, 3) magnetometer at keyframes (in the keyframe's body frame, averaged
-    over ``samples`` samples: noise sigma_m * sigma_scale)."""
+    over ``samples`` samples: noise sigma_m * sigma_scale). Several sessions (``starts``: the
+    first keyframe of each): the interval from a session's last keyframe to the next one's
+    first is a stand-in (no rotation, no velocity change, unit whitening) the model does
+    not read."""
 
     idx: np.ndarray
     DQ: np.ndarray
@@ -355,6 +413,7 @@ class Keyframes:
     LINV: np.ndarray
     Y: np.ndarray
     samples: int = 1
+    starts: tuple[int, ...] = (0,)
 
     @property
     def sigma_scale(self) -> float:
@@ -367,21 +426,56 @@ def keyframes(
 ) -> Keyframes:
     """Group the increments n at a time (whole groups only) and whiten their composition;
     the magnetometer at each keyframe averaged over ``samples`` (odd) samples centred on it
-    (``averaged_magnetometer``)."""
-    K = (data.dq.shape[0]) // n + 1
+    (``averaged_magnetometer``). Several sessions (``data.starts``): each one's keyframes
+    from its own first sample, each at least 2 (ValueError)."""
+    ends = [*data.starts[1:], data.n_samples]
+    parts = [
+        _session_keyframes(data, a, e, n, gyro_density, acc_density, samples)
+        for a, e in zip(data.starts, ends, strict=True)
+    ]
+    if len(parts) == 1:
+        return parts[0]
+    gap = {  # the stand-in interval between sessions (not read)
+        "DQ": np.tile([1.0, 0.0, 0.0, 0.0], (1, n)),
+        "DV": np.zeros((1, 3 * n)),
+        "LINV": np.eye(9).reshape(1, 81),
+    }
+    rows = {
+        key: np.vstack([v for kf in parts for v in (getattr(kf, key), gap[key])][:-1])
+        for key in gap
+    }
+    sizes = [kf.idx.size for kf in parts]
+    return Keyframes(
+        idx=np.concatenate([kf.idx for kf in parts]),
+        Y=np.vstack([kf.Y for kf in parts]),
+        samples=samples,
+        starts=tuple(int(a) for a in np.cumsum([0, *sizes[:-1]])),
+        **rows,
+    )
+
+
+def _session_keyframes(
+    data: ImuData, a: int, e: int, n: int, gyro_density: float, acc_density: float,
+    samples: int,
+) -> Keyframes:  # fmt: skip
+    """The keyframes of the samples [a, e) (indices into the whole data)."""
+    K = (e - 1 - a) // n + 1
+    if K < 2:
+        raise ValueError(f"the session from sample {a}: {e - a} samples, under 2 keyframes")
     m = (K - 1) * n
-    dq, dv = data.dq[:m], data.dv[:m]
+    dq, dv = data.dq[a : a + m], data.dv[a : a + m]
     S = sd.preintegration_covariance(dq, dv, data.T, n, gyro_density, acc_density)
     Lc = np.linalg.cholesky(S)
     eye = np.eye(9)
     Linv = np.stack([scipy.linalg.solve_triangular(L, eye, lower=True) for L in Lc])
     idx = np.arange(K) * n
+    Y = averaged_magnetometer(data.Y[a:e], data.dq[a : e - 1], idx, samples)
     return Keyframes(
-        idx=idx,
+        idx=idx + a,
         DQ=dq.reshape(K - 1, 4 * n),
         DV=dv.reshape(K - 1, 3 * n),
         LINV=Linv.transpose(0, 2, 1).reshape(K - 1, 81),  # column-major 9x9
-        Y=averaged_magnetometer(data.Y, data.dq, idx, samples),
+        Y=Y,
         samples=samples,
     )
 
@@ -417,7 +511,7 @@ def prefix_keyframes(kf: Keyframes, K: int) -> Keyframes:
 
 
 def window_keyframes(kf: Keyframes, a: int, K: int) -> Keyframes:
-    """The data of the K keyframes from keyframe a."""
+    """The data of the K keyframes from keyframe a (the sessions that start there)."""
     return Keyframes(
         idx=kf.idx[a : a + K],
         DQ=kf.DQ[a : a + K - 1],
@@ -425,4 +519,5 @@ def window_keyframes(kf: Keyframes, a: int, K: int) -> Keyframes:
         LINV=kf.LINV[a : a + K - 1],
         Y=kf.Y[a : a + K],
         samples=kf.samples,
+        starts=(0, *(s - a for s in kf.starts if a < s < a + K)),
     )

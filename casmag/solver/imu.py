@@ -41,6 +41,7 @@ from casmag.model.imu import (
     cached_imu_nlp,
     imu_nominal_terms,
     keyframes,
+    per_keyframe,
     prefix_keyframes,
     window_keyframes,
 )
@@ -58,12 +59,14 @@ from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.closures import magnetic_closures
 from casmag.solver.staged import (
+    SessionsRun,
     Solved,
     StagedModel,
     StagedRun,
     Window,
     WindowPrior,
     heading_bias_starts,
+    solve_sessions,
     solve_starts,
 )
 from casmag.solver.windowing import continues, grow
@@ -155,12 +158,13 @@ class ImuSolveStage:
     field_model: dict[str, Any] | None = None
 
 
-def _stage_estimates(sol: Solution, nominal: dict[str, Any], K: int) -> dict[str, np.ndarray]:
-    """Absolute estimates of a solve about the nominal trajectory ``nominal`` (P, V, Q)."""
+def _stage_estimates(
+    sol: Solution, nominal: dict[str, Any], K: int, starts: tuple[int, ...] = (0,)
+) -> dict[str, np.ndarray]:
+    """Absolute estimates of a solve about the nominal trajectory ``nominal`` (P, V, Q);
+    biases at every keyframe (``starts``: each session's first keyframe)."""
     Q = sd.quat_mul(nominal["Q"], sd.gibbs_quat(sol.x["D"]))
-    bw, ba = sol.x["BW"], sol.x["BA"]
-    if bw.shape[0] != K:
-        bw, ba = np.repeat(bw, K, 0), np.repeat(ba, K, 0)
+    bw, ba = per_keyframe(sol.x["BW"], starts, K), per_keyframe(sol.x["BA"], starts, K)
     P, V = nominal["P"] + sol.x["dP"], nominal["V"] + sol.x["dV"]
     return {"P": P, "V": V, "Q": Q, "b_w": bw, "b_a": ba}
 
@@ -177,11 +181,13 @@ def _solve_recentred(
     terms: Callable[[dict[str, Any]], dict[str, Any]],
     progress: Progress | None,
     fixed: tuple[str, ...] = (),
+    starts: tuple[int, ...] = (0,),
 ) -> tuple[Solution, dict[str, Any]]:
     """Solve an IMU NLP from ``start`` (P, V, Q, BW, BA, zero_centre and the variables named
     in ``carry``) in error state about a nominal that starts there (dP = dV = D = 0);
     ``terms(nominal)`` gives the nominal's parameters (:func:`imu_nominal_terms`); the
-    variables named in ``fixed`` are held at their start.
+    variables named in ``fixed`` are held at their start; ``starts``: each session's first
+    keyframe.
 
     The nominal moves to the estimate and IPOPT starts again from zero corrections (a
     Gauss-Newton relinearisation, as in factor-graph smoothers) when (a) a converged solve
@@ -202,7 +208,6 @@ def _solve_recentred(
             **terms(nominal),
             "PNOM": nominal["P"],
             "VNOM": nominal["V"],
-            "QNOM0": nominal["Q"][0],
         }
         x0 = {
             "dP": np.zeros((K, 3)),
@@ -221,7 +226,7 @@ def _solve_recentred(
         if not (sol.status == STALLED or (sol.success and moved and not confirmed)):
             break
         confirmed = confirmed or sol.success
-        est = _stage_estimates(sol, nominal, K)
+        est = _stage_estimates(sol, nominal, K, starts)
         nominal = {
             "P": est["P"],
             "V": est["V"],
@@ -260,11 +265,12 @@ def _imu_params(
     """The parameters of an IMU solve but the nominal trajectory and what depends on it
     (:func:`_solve_recentred`)."""
     m = problem.spec.model
+    P0, V0, Q0 = (v[: len(s.starts)] for v in data.initial_states())
     params: dict[str, Any] = {
         "LINV": kf.LINV,
-        "p0": data.p0.reshape(1, 3),
-        "v0": data.v0.reshape(1, 3),
-        "q0": np.asarray(data.q0, dtype=float).reshape(1, 4),
+        "p0": P0,
+        "v0": V0,
+        "q0": Q0,
         "sigma_p0": m.initial.position_sigma,
         "sigma_v0": m.initial.velocity_sigma,
         "sigma_tilt": np.radians(m.initial.tilt_sigma_deg),
@@ -334,12 +340,16 @@ class ImuSolution:
     closure_stage: ImuSolveStage | None = None  # GP-SLAM's start when closures were used
 
 
-def structure_base(problem: ImuProblem, data: ImuData, K: int) -> dict[str, Any]:
+def structure_base(
+    problem: ImuProblem, data: ImuData, K: int, starts: tuple[int, ...] = (0,)
+) -> dict[str, Any]:
     """The fields of an ImuStructure every stage of a problem shares (all but the map's
-    form and basis, the IMU block's Hessian and the closures)."""
+    form and basis, the IMU block's Hessian and the closures); ``starts``: each session's
+    first keyframe (cut to the keyframes of a prefix by the structure)."""
     m = problem.spec.model
     return dict(
         K=K,
+        starts=starts,
         n=problem.substeps,
         T=float(data.T),
         bias=m.imu.bias,
@@ -349,6 +359,23 @@ def structure_base(problem: ImuProblem, data: ImuData, K: int) -> dict[str, Any]
         jitter=m.gp.jitter,
         solver=problem.spec.solver.model_dump_json(),
     )
+
+
+def strapdown_keyframes(data: ImuData, kf: Keyframes, n: int) -> dict[str, np.ndarray]:
+    """Plain strapdown integration at the keyframes, no bias removed (the initial
+    trajectory): each session from its own initial state."""
+    K = kf.idx.size
+    P0, V0, Q0 = data.initial_states()
+    out: dict[str, list[np.ndarray]] = {"P": [], "V": [], "Q": []}
+    for s, (a, e) in enumerate(zip(kf.starts, [*kf.starts[1:], K], strict=True)):
+        i0, m = int(kf.idx[a]), (e - a - 1) * n
+        Ps, Vs, Qs = sd.strapdown(
+            P0[s], V0[s], Q0[s], data.dq[i0 : i0 + m], data.dv[i0 : i0 + m], data.T
+        )
+        rows = kf.idx[a:e] - i0
+        for key, v in (("P", Ps), ("V", Vs), ("Q", Qs)):
+            out[key].append(v[rows])
+    return {key: np.vstack(v) for key, v in out.items()}
 
 
 def solve_imu_stages(
@@ -362,19 +389,27 @@ def solve_imu_stages(
     when hyperparameters are estimated, ``model.gp.refine`` more passes with them
     re-estimated on the previous pass's trajectory. ``slam`` is the last pass,
     ``slam_passes`` all of them. A failed solve stops the pipeline (``slam`` is None when
-    the IMU-only stage failed, else the failed pass)."""
+    the IMU-only stage failed, else the failed pass).
+
+    Several sessions of one field (``data.starts``): each one's strapdown and IMU-only
+    adjustment from its own initial state, with its own biases, in one NLP (casmag.model.imu
+    ``starts``); then the same ladder on all of them together, one map (no loop-closure
+    start: not measured across sessions), or with a strategy of ``solver.warm_start`` the
+    sessions added one at a time (:func:`_strategy_pass`). Measured on the rectangle
+    scenario, seeds 1 + 2 and 3 + 4 as two sessions: the ladder together reached 3.8 and
+    3.9 mm, 3.0 and 2.9 mm (each alone: 4.5 and 10.4 mm, 4.2 and 6.5 mm), while sessions
+    added one at a time, each a batch, stopped at the iteration limit."""
     spec = problem.spec
     m = spec.model
     n = problem.substeps
     kf = keyframes(data, n, problem.gyro_density, problem.acc_density, m.magnetometer.samples)
     K = kf.idx.size
-    # Plain strapdown integration, no bias removed: the initial trajectory.
-    Ps, Vs, Qs = sd.strapdown(
-        data.p0, data.v0, data.q0, data.dq[: (K - 1) * n], data.dv[: (K - 1) * n], data.T
-    )
-    strap = {"P": Ps[kf.idx], "V": Vs[kf.idx], "Q": Qs[kf.idx]}
-    Kb = K if m.imu.bias == "random_walk" else 1
-    base = structure_base(problem, data, K)
+    S = len(kf.starts)
+    if S > 1 and m.zero_position.sigma is not None and m.zero_position.centre == "free":
+        raise ValueError("model.zero_position.centre free: one session at a time, not several")
+    strap = strapdown_keyframes(data, kf, n)
+    Kb = K if m.imu.bias == "random_walk" else S
+    base = structure_base(problem, data, K, kf.starts)
     s1 = ImuStructure(form="none", basis=None, **base)
     nlp1 = cached_imu_nlp(s1)
     start = {
@@ -384,8 +419,10 @@ def solve_imu_stages(
         "zero_centre": data.p0.reshape(1, 3),
     }
     params = _imu_params(problem, data, kf, s1)
-    sol1, nominal = _solve_recentred(nlp1, params, start, (), _terms_of(kf, n, data.T), progress)
-    st1 = ImuSolveStage(solution=sol1, nlp=nlp1, **_stage_estimates(sol1, nominal, K))
+    sol1, nominal = _solve_recentred(
+        nlp1, params, start, (), _terms_of(kf, n, data.T), progress, starts=kf.starts
+    )
+    st1 = ImuSolveStage(solution=sol1, nlp=nlp1, **_stage_estimates(sol1, nominal, K, kf.starts))
     hyper = {"sigma_f": float("nan"), "lengthscale": float("nan"), "sigma_m": float("nan")}
     if not sol1.success or m.gp.form == "none":
         return ImuSolution(s1, kf, strap, st1, None, hyper, "none", None)
@@ -415,7 +452,7 @@ def solve_imu_stages(
     s2, size = s1, None
     first, imu_only_hyper = st1, (hyper, source, windows)
     closure_record, closed = None, None
-    if m.gp.closures:
+    if m.gp.closures and S == 1:  # several sessions: not measured with closures
         closed, closure_record = closure_start(problem, data, kf, base, st1, hyper, progress)
         if closed is not None:
             first = closed
@@ -427,7 +464,7 @@ def solve_imu_stages(
             )
     kept_hyper = (hyper, source, windows)
     ladder: list[tuple[str, Any, ImuSolveStage, tuple]] = []
-    if spec.solver.warm_start.strategy != "auto":  # a strategy of casmag.solver.staged
+    if spec.solver.warm_start.strategy != "auto":  # casmag.solver.staged
         passes, s2, size, record = _strategy_pass(problem, data, kf, base, first, hyper, progress)
         schedules.append(record)
     else:
@@ -789,7 +826,7 @@ def _slam_solve(
         x0["c"] = c0.reshape(3, 1)
     carry = ("W", "c") if m.gp.form == "reduced_rank" else ("M", "c")
     terms = _terms_of(kf, base["n"], base["T"])
-    sol2, nominal = _solve_recentred(nlp2, params, x0, carry, terms, progress)
+    sol2, nominal = _solve_recentred(nlp2, params, x0, carry, terms, progress, starts=s2.starts)
     field_model = None
     if m.gp.form == "reduced_rank":
         field_model = {
@@ -806,7 +843,7 @@ def _slam_solve(
         nlp=nlp2,
         sigma_m=sigma_m,
         field_model=field_model,
-        **_stage_estimates(sol2, nominal, K),
+        **_stage_estimates(sol2, nominal, K, s2.starts),
     )
     return st2, s2
 
@@ -859,8 +896,9 @@ def grow_sizes(K: int, fractions: list[float]) -> list[int]:
 
 
 def continue_start(
-    start: dict[str, Any], prefix: ImuSolveStage, ref: ImuSolveStage, K: int
-) -> dict[str, Any]:
+    start: dict[str, Any], prefix: ImuSolveStage, ref: ImuSolveStage, K: int,
+    starts: tuple[int, ...] = (0,),
+) -> dict[str, Any]:  # fmt: skip
     """The start of a longer prefix (K keyframes): the prefix's solution for its keyframes,
     then the reference (IMU-only) trajectory continued from the prefix's last state:
     positions and velocities shifted to join it, orientations turned by its orientation
@@ -875,34 +913,59 @@ def continue_start(
         "zero_centre": sol.x.get("zero_centre", start["zero_centre"]),
     }
     return {
-        **extend_states(states, ref, K),
+        **extend_states(states, ref, K, starts=starts),
         **{name: sol.x[name] for name in ("W", "c") if name in sol.x},
     }
 
 
+def cut_states(states: dict[str, Any], k: int, starts: tuple[int, ...]) -> dict[str, Any]:
+    """States of K keyframes (P, V, Q; biases per keyframe, or per session when constant;
+    zero_centre) cut to the first k keyframes and the sessions they reach (``starts``: each
+    session's first keyframe)."""
+    K = states["P"].shape[0]
+    S = sum(1 for a in starts if a < k)
+    out = {}
+    for key, v in states.items():
+        per_row = key in ("P", "V", "Q") or (key in ("BW", "BA") and v.shape[0] == K)
+        out[key] = v[:k] if per_row else (v[:S] if key in ("BW", "BA") else v)
+    return out
+
+
 def extend_states(
-    states: dict[str, Any], ref: ImuSolveStage, K: int, first: int = 0
-) -> dict[str, Any]:
+    states: dict[str, Any], ref: ImuSolveStage, K: int, first: int = 0,
+    starts: tuple[int, ...] = (0,),
+) -> dict[str, Any]:  # fmt: skip
     """The states of a prefix (P, V, Q at its keyframes, BW, BA, zero_centre) continued to K
     keyframes by the reference trajectory ``ref`` from the prefix's last state: positions
     and velocities shifted to join it, orientations turned by its orientation correction
     there, biases the prefix's last (a random walk's repeated). ``first``: the keyframe of
-    ``ref`` the states' first row is (a window's first keyframe)."""
+    ``ref`` the states' first row is (a window's first keyframe). ``starts``: each
+    session's first keyframe (with ``first`` 0); a session the prefix does not reach is the
+    reference's own, with its biases."""
     P, V, Q = states["P"], states["V"], states["Q"]
     Kp = P.shape[0]
+    if Kp == K:
+        return dict(states)
+    reached = sum(1 for a in starts if a < Kp)
+    per_row = {b: states[b].shape[0] == Kp and Kp > reached for b in ("BW", "BA")}
+    new = [a for a in starts if Kp <= a < K]  # sessions the prefix does not reach
+    end = new[0] if new else K  # the last reached session continued up to here
     j, r = Kp - 1, first + Kp - 1  # the last row, and where it is in ref
-    rows = slice(first + Kp, first + K)
+    rows = slice(first + Kp, first + end)
     corr = sd.quat_mul(Q[j : j + 1], sd.quat_conj(ref.Q[r : r + 1]))
-    Qn = sd.quat_mul(np.repeat(corr, K - Kp, 0), ref.Q[rows])
+    Qn = sd.quat_mul(np.repeat(corr, end - Kp, 0), ref.Q[rows])
     out = {
-        "P": np.vstack([P, ref.P[rows] + (P[j] - ref.P[r])]),
-        "V": np.vstack([V, ref.V[rows] + (V[j] - ref.V[r])]),
-        "Q": np.vstack([Q, Qn]),
+        "P": np.vstack([P, ref.P[rows] + (P[j] - ref.P[r]), ref.P[end:K]]),
+        "V": np.vstack([V, ref.V[rows] + (V[j] - ref.V[r]), ref.V[end:K]]),
+        "Q": np.vstack([Q, Qn, ref.Q[end:K]]),
         "zero_centre": states["zero_centre"],
     }
-    for b in ("BW", "BA"):
+    for b, own in (("BW", ref.b_w), ("BA", ref.b_a)):
         v = states[b]
-        out[b] = v if v.shape[0] == 1 else np.vstack([v, np.repeat(v[-1:], K - Kp, 0)])
+        if per_row[b]:
+            out[b] = np.vstack([v, np.repeat(v[-1:], end - Kp, 0), own[end:K]])
+        else:  # one row per session: the new sessions' the reference's
+            out[b] = np.vstack([v, own[new]]) if new else v
     return out
 
 
@@ -927,18 +990,16 @@ def _grown_pass(
     basis_key, mode = _slam_setup(problem, prev.P, hyper)
     K = kf.idx.size
     full = _start_from(prev, data)
+    starts = kf.starts
     records: list[dict[str, Any]] = []
 
     def stage(
         k: int, before: tuple[ImuSolveStage, Any, dict[str, Any]] | None, last_prefix: bool
     ) -> tuple[Solution, tuple[ImuSolveStage, Any, dict[str, Any]]]:
         if before is None:
-            start = {
-                name: (v[:k] if name in ("P", "V", "Q") or v.shape[0] == K else v)
-                for name, v in full.items()
-            }
+            start = cut_states(full, k, starts)
         else:
-            start = continue_start(before[2], before[0], prev, k)
+            start = continue_start(before[2], before[0], prev, k, starts)
         st: ImuSolveStage | None = None
         for i, factor in enumerate(factors):
             if i > 0:  # the same basis: the map weights carry over (reduced rank)
@@ -1000,6 +1061,7 @@ class ImuStaged(StagedModel):
         self.lengthscale = hyper["lengthscale"]
         self.sigma_m = float(problem.sigma_m * kf.sigma_scale)
         self._window_map: tuple[tuple | None, str] | None = None
+        self.session_starts = kf.starts
 
     def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
         """The reference stage's first k keyframes, turned about the vertical by a
@@ -1012,18 +1074,13 @@ class ImuStaged(StagedModel):
 
     def states_of(self, st: ImuSolveStage, k: int) -> dict[str, np.ndarray]:
         """A stage's first k keyframes' states."""
-        out = _start_from(st, self.data)
-        rows = out["BW"].shape[0] > 1
-        return {
-            key: v[:k] if key in ("P", "V", "Q") or (rows and key in ("BW", "BA")) else v
-            for key, v in out.items()
-        }
+        return cut_states(_start_from(st, self.data), k, self.session_starts)
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
         return self.states_of(solved.nominal, solved.nominal.P.shape[0])
 
     def extend(self, states: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
-        return extend_states(states, self.ref, k)
+        return extend_states(states, self.ref, k, starts=self.session_starts)
 
     def solve(
         self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float
@@ -1202,16 +1259,38 @@ def _strategy_pass(
     ``model.starts``, from it turned by heading-rate biases (the lowest MAP cost kept): the
     kept final solve as the one pass (with its start's records in ``grow``: every solve,
     the last the full problem's), its structure and map size, and the schedule record (with
-    every start's solves under ``starts`` when there are several)."""
+    every start's solves under ``starts`` when there are several).
+
+    Several sessions (``kf.starts``) are added one at a time
+    (casmag.solver.staged.solve_sessions): the first runs the strategy from each start,
+    each later one joins from the estimate so far continued by the reference's own
+    trajectory of it; every solve is in ``grow``, with its session."""
     m = problem.spec.model
     model = ImuStaged(problem, data, kf, base, ref, hyper, progress)
-    duration = float(kf.idx[-1] * data.T)
+    ws = problem.spec.solver.warm_start
+    sessions = len(kf.starts) > 1
+    first_end = kf.starts[1] if sessions else kf.idx.size
+    duration = float((kf.idx[first_end - 1] - kf.idx[0]) * data.T)
     biases = heading_bias_starts(m.starts, m.start_heading_deg, duration)
-    run = solve_starts(model, problem.spec.solver.warm_start, biases)
+    run: StagedRun | SessionsRun
+    if sessions:
+        run = solve_sessions(model, ws, biases)
+        records = run.records()
+        stages = [st for r in run.first.runs for st in r]
+        stages += [st for tried in run.added for _, r in tried for st in r]
+        kept = list(zip(records, stages, strict=True))
+    else:
+        run = solve_starts(model, ws, biases)
+        records = run.records()
+        kept = [
+            (r, stage)
+            for r, i, stage in zip(
+                records, _start_of(run), [st for r in run.runs for st in r], strict=True
+            )
+            if i == run.kept
+        ]
     final = run.final
     st: ImuSolveStage = final.nominal
-    records = run.records()
-    kept = [r for r, i in zip(records, _start_of(run), strict=True) if i == run.kept]
     st.grow = [
         {
             "keyframes": r["samples"],
@@ -1225,19 +1304,19 @@ def _strategy_pass(
             "solve_seconds": r["solve_seconds"],
             "build_seconds": stage.solved.nlp.build_seconds,
             "cost": r["cost"],
-            **({"first": r["first"]} if "first" in r else {}),
+            **{key: r[key] for key in ("first", "session", "start", "chosen") if key in r},
         }
-        for r, stage in zip(kept, run.runs[run.kept], strict=True)
+        for r, stage in kept
     ]
     size = (
         final.structure.hilbert_basis().num_basis
         if final.structure.form == "reduced_rank"
         else None
     )
-    record = _schedule_record(problem.spec.solver.warm_start.strategy, [st], kf.idx.size)
+    record = _schedule_record("sessions" if sessions else ws.strategy, [st], kf.idx.size)
     # Every start's solves count in the time (the iterations are the kept start's).
     record["solve_seconds"] = float(sum(r["solve_seconds"] for r in records))
-    if len(biases) > 1:
+    if len(biases) > 1 and not sessions:
         record["starts"] = records
     return [st], final.structure, size, record
 
@@ -1387,7 +1466,11 @@ def solve_imu(
         "kernel": spec.model.gp.kernel,
         "num_basis": res.basis_size,
         "map_decision": decision,
-        "warm_start": spec.solver.warm_start.strategy,
+        "warm_start": (  # several sessions added one at a time: solve_sessions
+            "sessions"
+            if len(res.keyframes.starts) > 1 and spec.solver.warm_start.strategy != "auto"
+            else spec.solver.warm_start.strategy
+        ),
         "hessian": "gauss-newton" if spec.solver.hessian == "auto" else spec.solver.hessian,
         "casmag": __version__,
         "casadi": ca.__version__,
@@ -1421,6 +1504,8 @@ def solve_imu(
         arrays.update(_map_arrays(slam_map))
     if arrays["P_estimate"] is None and spec.model.gp.form == "none":
         arrays["P_estimate"], arrays["Q_estimate"] = arrays["P_imu_only"], arrays["Q_imu_only"]
+    if len(res.keyframes.starts) > 1:
+        info["sessions"] = session_rows(res.keyframes, arrays, _session_biases(est, res))
     passes = [
         {
             "name": "gp_slam",
@@ -1500,17 +1585,62 @@ def solve_imu(
     )
 
 
+def _session_biases(
+    est: ImuSolveStage | None, res: ImuSolution
+) -> list[dict[str, list[float]]] | None:
+    """Each session's mean gyroscope [deg/s] and accelerometer [m/s^2] bias estimate."""
+    if est is None:
+        return None
+    kf = res.keyframes
+    cuts = [*kf.starts[1:], kf.idx.size]
+    return [
+        {
+            "gyro": [float(v) for v in np.degrees(est.b_w[a:e]).mean(axis=0)],
+            "acc": [float(v) for v in est.b_a[a:e].mean(axis=0)],
+        }
+        for a, e in zip(kf.starts, cuts, strict=True)
+    ]
+
+
+def session_rows(
+    kf: Keyframes, arrays: dict[str, Any], biases: list[dict[str, list[float]]] | None
+) -> list[dict[str, Any]]:
+    """``info["sessions"]`` of several sessions: each one's first keyframe and sample,
+    keyframes, and with truth the RMSE and max error of the strapdown, the IMU-only
+    adjustment (``before``) and GP-SLAM (``after``) over its keyframes; its biases."""
+    Pt = arrays.get("P_true")
+    rows = []
+    for s, (a, e) in enumerate(zip(kf.starts, [*kf.starts[1:], kf.idx.size], strict=True)):
+        row: dict[str, Any] = {
+            "name": f"session {s + 1}",
+            "first_keyframe": int(a),
+            "first_sample": int(kf.idx[a]),
+            "keyframes": int(e - a),
+        }
+        for key, label in (("strapdown", "P_strapdown"), ("before", "P_imu_only"),
+                           ("after", "P_estimate")):  # fmt: skip
+            P = arrays.get(label)
+            if Pt is not None and P is not None:
+                row[f"rmse_{key}"], row[f"max_{key}"] = rmse_and_max(P[a:e], Pt[a:e])
+        if biases is not None:
+            row["biases"] = biases[s]
+        rows.append(row)
+    return rows
+
+
 def _truth_start_cost(
     problem: ImuProblem, data: ImuData, slam: ImuSolveStage, res: ImuSolution
 ) -> tuple[float, str]:
     """The last GP-SLAM solve again (same map basis, sigma_m and Hessian mode), started from
     the true trajectory and biases: its MAP cost and IPOPT status."""
-    idx = res.keyframes.idx
+    idx, starts = res.keyframes.idx, res.keyframes.starts
     tr = data.truth
     K = idx.size
     bw, ba = data.b_w[idx], data.b_a[idx]
-    if problem.spec.model.imu.bias != "random_walk":
-        bw, ba = bw.mean(axis=0, keepdims=True), ba.mean(axis=0, keepdims=True)
+    if problem.spec.model.imu.bias != "random_walk":  # each session's mean
+        cuts = [*starts[1:], K]
+        bw = np.vstack([bw[a:e].mean(axis=0) for a, e in zip(starts, cuts, strict=True)])
+        ba = np.vstack([ba[a:e].mean(axis=0) for a, e in zip(starts, cuts, strict=True)])
     start = {
         "P": tr.P[idx],
         "V": tr.V[idx],
@@ -1522,8 +1652,11 @@ def _truth_start_cost(
     _, mode = _slam_setup(problem, slam.P, res.hyperparameters)
     base = {
         k: getattr(res.structure, k)
-        for k in ("n", "T", "bias", "zero_position", "zero_centre", "kernel", "jitter", "solver")
-    }
+        for k in (
+            "n", "T", "bias", "zero_position", "zero_centre", "kernel", "jitter", "solver",
+            "starts",
+        )
+    }  # fmt: skip
     st, _ = _slam_solve(
         problem, data, res.keyframes, {**base, "K": K}, res.structure.basis, mode,
         res.hyperparameters, float(slam.sigma_m), start, None,

@@ -14,6 +14,10 @@ used). The GP hyperparameters are estimated as for IMU problems (``estimate``, t
 default). The bias random walks cannot be estimated: the biases are constant unless the
 file gives ``model.imu.bias: random_walk`` with both walks.
 
+Several IMU recordings of one field share one map (:func:`slam_imu_sessions`, ``casmag slam
+A.csv B.csv``): each starts from its own first true pose and rest, keeps its own biases, and
+the sessions are added one at a time in the given order (casmag.solver.imu).
+
 Not done here: the magnetometer's lag behind the motion is neither estimated nor removed
 (``info["magnetometer_lag"]`` says so; ``--mag-lag SECONDS`` removes a known one), no
 filter baseline (``--method ekf``), no saved map, no Laplace covariance
@@ -21,12 +25,16 @@ filter baseline (``--method ekf``), no saved map, no Laplace covariance
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from casmag.data.checks import warning_lines
 from casmag.data.imurec import RestNoise, imu_data, rest_noise, rest_warnings
+from casmag.data.imusim import ImuData, stack_sessions
 from casmag.data.recording import Recording
 from casmag.errors import DataError
 from casmag.problem.imu import (
@@ -40,6 +48,7 @@ from casmag.problem.spec import as_overrides
 from casmag.result import Result
 from casmag.solver.imu import solve_imu
 from casmag.solver.oriented import constant_magnetometer, lag_record, refuse_constant_field
+from casmag.solver.sessions import require_first_poses
 
 #: The noise settings a recording's rest gives when the problem leaves them null: (section
 #: of ``model``, key; the estimate's field of casmag.data.imurec.RestNoise has the key's name).
@@ -120,4 +129,87 @@ def slam_imu(
     if constant:
         result.info["fallback"] = "constant magnetometer: the IMU-only adjustment, no map"
     result.warnings = found + list(result.warnings or [])
+    return result
+
+
+def _pooled(noises: Sequence[RestNoise]) -> RestNoise:
+    """The rests' noise estimates pooled over several recordings: each density and sigma_m
+    the root mean square of the recordings' (each a per-sample deviation), the samples
+    summed, the largest specific force and turn."""
+    rms = lambda key: float(np.sqrt(np.mean([getattr(v, key) ** 2 for v in noises])))  # noqa: E731
+    return RestNoise(
+        gyro_noise_density=rms("gyro_noise_density"),
+        acc_noise_density=rms("acc_noise_density"),
+        sigma_m=rms("sigma_m"),
+        samples=sum(v.samples for v in noises),
+        specific_force=max(v.specific_force for v in noises),
+        turned_deg=max(v.turned_deg for v in noises),
+    )
+
+
+def slam_imu_sessions(
+    recs: Sequence[Recording],
+    problem: str | Path | Mapping[str, Any] | None = None,
+    overrides: str | Sequence[str] | Mapping[str, Any] = (),
+    progress: Callable[[int, float, float, float], None] | None = None,
+    on_warning: Callable[[str], None] | None = None,
+) -> Result:
+    """GP-SLAM on several IMU recordings of one field with one map: each recording's data
+    as :func:`slam_imu` makes it from its own rest and first true pose (truth columns
+    with the orientation are needed: the sessions' common frame), one IMU rate (DataError
+    naming the recording otherwise), the noise left null in the settings estimated over
+    every rest (the root mean square of each rest's estimate), the sessions stacked in the
+    given order (casmag.data.imusim.stack_sessions) and solved by casmag.solver.imu, added
+    one at a time. ``info["sessions"]`` has each recording's rows under its name; a constant
+    magnetometer is refused (it has no field to share a map of)."""
+    require_first_poses(recs, "imu", "x_true, y_true, z_true, qw_true..qz_true")
+    overrides = as_overrides(overrides)
+    refuse_unused_solver_keys(overrides, "casmag slam on imu recordings", IMU_SOLVER_KEYS)
+    spec = load_recording_spec(ImuRecordingSpec, problem, overrides)
+    source = str(problem) if isinstance(problem, (str, Path)) else "--set"
+    rest_seconds = spec.model.initial.rest_seconds
+    datas: list[ImuData] = []
+    noises: list[RestNoise] = []
+    found: list[dict[str, Any]] = []
+    for rec in recs:
+        if constant_magnetometer(rec.Y):
+            raise DataError(
+                f"{rec.path}: mx, my, mz: the magnetometer is constant (every row the same), "
+                "so it has no field to share a map of; solve it alone or leave it out"
+            )
+        data, n = imu_data(rec, rest_seconds, "truth")
+        if datas and abs(data.T - datas[0].T) > 1e-6 * datas[0].T:
+            raise DataError(
+                f"{rec.path}: t: sample interval {data.T:.6g} s beside {datas[0].T:.6g} s in "
+                f"{recs[0].path}: the sessions of one map share one IMU rate"
+            )
+        noise = rest_noise(rec, data.T, n)
+        _with_rest_noise(spec, rec, noise)  # a sensor without noise at rest: refused here
+        own = [*rec.notes, *rest_warnings(noise, rest_seconds)]
+        for line in warning_lines(rec.path, own):
+            if on_warning is not None:
+                on_warning(line)
+        found.extend({**w, "recording": str(rec.path)} for w in own)
+        datas.append(dataclasses.replace(data, T=datas[0].T if datas else data.T))
+        noises.append(noise)
+    pooled = _pooled(noises)
+    spec, used = _with_rest_noise(spec, recs[0], pooled)
+    prob = recording_imu_problem(spec, source, 1.0 / datas[0].T)
+    result = solve_imu(prob, stack_sessions(datas), progress)
+    names = [Path(r.path).stem for r in recs]
+    for row, name in zip(result.info["sessions"], names, strict=True):
+        row["name"] = name
+    result.info.update(
+        name="+".join(names),
+        recordings=[str(r.path) for r in recs],
+        defaults={
+            "rest": pooled.to_dict(),
+            "rest_per_recording": [v.to_dict() for v in noises],
+            "from_rest": used,
+        },
+        magnetometer_lag={**lag_record(None, None), "not_estimated": "imu recordings"},
+    )
+    result.info["anchor"]["start"] = "truth"  # each session's first true pose
+    result.warnings = found + list(result.warnings or [])
+    result.judge()  # again, with each session's rows
     return result

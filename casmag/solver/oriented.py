@@ -268,8 +268,8 @@ def slam_oriented_sessions(
     """Several planar or pose recordings of one field with one map
     (casmag.solver.planar.solve_planar_sessions, casmag.solver.pose.solve_pose_sessions),
     with :func:`slam_oriented`'s settings and each recording's plausibility warnings
-    (``recording`` in each). Recordings of different motion inputs, IMU recordings and a
-    constant magnetometer are refused (such a recording has no field to share a map of;
+    (``recording`` in each). Recordings of different motion inputs and a constant
+    magnetometer are refused (such a recording has no field to share a map of;
     solved alone, its result is the odometry)."""
     motion = recs[0].motion
     for rec in recs:

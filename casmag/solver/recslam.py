@@ -37,7 +37,7 @@ from casmag.result.metrics import rmse_and_max
 from casmag.result.verdict import revisit_pairs
 from casmag.solver.api import solve
 from casmag.solver.ekf import localise_filter, translational_filter_result
-from casmag.solver.imurec import slam_imu
+from casmag.solver.imurec import slam_imu, slam_imu_sessions
 from casmag.solver.localize import localise
 from casmag.solver.multisession import (
     FIRST_PREFIX,
@@ -657,12 +657,15 @@ def slam_sessions(
     result's RMSE is over all samples; ``info["sessions"]`` has each session's. The
     plausibility checks of :func:`slam` run on every recording (``recording`` in each
     warning). Planar and pose recordings are solved with their models' sessions
-    (casmag.solver.oriented.slam_oriented_sessions); recordings of different motion kinds
+    (casmag.solver.oriented.slam_oriented_sessions), IMU recordings with the IMU model's
+    (casmag.solver.imurec.slam_imu_sessions); recordings of different motion kinds
     together are refused."""
     overrides = as_overrides(overrides)
     check_recording_overrides(overrides)
 
     recs = [read_recording(r) for r in recordings]
+    if all(r.motion == "imu" for r in recs):
+        return slam_imu_sessions(recs, problem, overrides, progress, on_warning)
     if any(r.motion != "translation" for r in recs):
         return slam_oriented_sessions(recs, problem, overrides, progress, on_warning)
     datasets = [r.to_dataset() for r in recs]

@@ -161,7 +161,10 @@ def test_sessions_need_each_ones_first_pose(tmp_path, room_sessions):
         solve_planar_sessions([room_sessions[0], bare])
 
 
-def test_imu_recordings_are_refused_as_sessions(tmp_path):
+def test_imu_recordings_without_their_first_poses_are_refused_as_sessions(tmp_path):
+    """IMU recordings go to the IMU model's sessions (tests/solver/test_imu_sessions.py),
+    which need each one's first true pose: without truth columns, one line naming the
+    first recording."""
     t = np.arange(20) * 0.1
     inc = np.tile([1.0, 0.0, 0.0, 0.0, 0.1, 0.0, 0.0], (19, 1))
     Y = np.column_stack([0.2 + 0.01 * np.sin(t), 0.0 * t, 0.4 + 0.0 * t])
@@ -171,7 +174,7 @@ def test_imu_recordings_are_refused_as_sessions(tmp_path):
         write_recording(paths[-1], t, Y, imu=inc)
     res = CliRunner().invoke(main, ["slam", *map(str, paths), "--out", str(tmp_path / "o")])
     assert res.exit_code != 0
-    assert "the imu model solves one recording at a time" in res.output
+    assert "i1.csv: several sessions need each one's first position and heading" in res.output
 
 
 def test_a_session_is_also_added_in_growing_prefixes_with_a_random_walk_bias(room_sessions):
