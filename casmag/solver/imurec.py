@@ -159,8 +159,10 @@ def slam_imu_sessions(
     with the orientation are needed: the sessions' common frame), one IMU rate (DataError
     naming the recording otherwise), the noise left null in the settings estimated over
     every rest (the root mean square of each rest's estimate), the sessions stacked in the
-    given order (casmag.data.imusim.stack_sessions) and solved by casmag.solver.imu, added
-    one at a time. ``info["sessions"]`` has each recording's rows under its name; a constant
+    given order (casmag.data.imusim.stack_sessions) and solved by casmag.solver.imu: all
+    sessions together by the schedule ladder (the default, ``auto``), or added one at a time
+    with a ``solver.warm_start`` strategy (casmag.solver.staged.solve_sessions).
+    ``info["sessions"]`` has each recording's rows under its name; a constant
     magnetometer is refused (it has no field to share a map of)."""
     require_first_poses(recs, "imu", "x_true, y_true, z_true, qw_true..qz_true")
     overrides = as_overrides(overrides)

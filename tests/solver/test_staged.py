@@ -1,9 +1,10 @@
 """casmag.solver.staged: the warm-start strategies written once over the staged motion
-models (planar, pose): their bookkeeping on a stand-in model, and each strategy with each
-model at tiny size."""
+models (planar, pose): their bookkeeping on a stand-in model, each strategy with each
+model at tiny size, and which test solves each pair of motion model and strategy."""
 
 from __future__ import annotations
 
+import ast
 import itertools
 from pathlib import Path
 from types import SimpleNamespace
@@ -167,10 +168,7 @@ def _pose(strategy: str, *more: str):
     return r, rec.P_true.shape[0]
 
 
-#: The (model, strategy) pairs solved here; the others are solved elsewhere: planar none
-#: (tests/cli/test_planar_cli.py::test_planar_starts_keep_the_lowest_cost), planar growing
-#: (tests/cli/test_planar_cli.py, first_samples 50), pose none
-#: (tests/solver/test_pose.py::test_slam_on_a_pose_recording_map_ekf_and_both).
+#: The (model, strategy) pairs solved here, by test_every_strategy_solves_every_staged_model.
 PAIRS = [
     ("planar", "coarse-to-fine"),
     ("planar", "sliding"),
@@ -179,17 +177,91 @@ PAIRS = [
     ("pose", "sliding"),
 ]
 
+#: Every warm-start strategy a motion model can run: the four of solver.warm_start, several
+#: starts kept by the lowest MAP cost, and several sessions of one field (one map).
+STRATEGIES = (*STAGED_STRATEGIES, "starts", "sessions")
+
+#: The tests that solve each (motion model, strategy) pair at tiny size: (file under
+#: tests/, test function, the pairs it solves).
+SOLVED_BY = [
+    (
+        "solver/test_slam.py",
+        "test_growing_warm_start_recovers_drift_a_batch_does_not",
+        [("translational", "none"), ("translational", "growing")],
+    ),
+    (
+        "solver/test_windowing.py",
+        "test_coarse_to_fine_schedule_and_solve",
+        [("translational", "coarse-to-fine")],
+    ),
+    (
+        "solver/test_windowing.py",
+        "test_sliding_start_reaches_the_basin_from_a_drifting_start",
+        [("translational", "sliding")],
+    ),
+    (
+        "data/test_realdata.py",
+        "test_slam_keeps_the_lower_cost_of_two_starts",
+        [("translational", "starts")],
+    ),
+    (
+        "solver/test_multisession.py",
+        "test_cli_solves_several_recordings",
+        [("translational", "sessions")],
+    ),
+    (
+        "solver/test_imu.py",
+        "test_planar_starts_keep_the_lowest_cost",
+        [("planar", "none"), ("planar", "starts")],
+    ),
+    (
+        "cli/test_planar_cli.py",
+        "test_growing_prefixes_on_a_planar_recording",
+        [("planar", "growing")],
+    ),
+    (
+        "solver/test_oriented_sessions.py",
+        "test_slam_solves_planar_sessions_and_refuses_mixed_kinds",
+        [("planar", "sessions")],
+    ),
+    (
+        "solver/test_pose.py",
+        "test_slam_on_a_pose_recording_map_ekf_and_both",
+        [("pose", "none")],
+    ),
+    (
+        "solver/test_staged.py",
+        "test_pose_starts_are_turned_dead_reckonings_and_the_lowest_cost_is_kept",
+        [("pose", "starts")],
+    ),
+    (
+        "solver/test_oriented_sessions.py",
+        "test_pose_sessions_share_one_map",
+        [("pose", "sessions")],
+    ),
+    (
+        "solver/test_imu_strategies.py",
+        "test_each_strategy_returns_the_truth_on_a_noise_free_rectangle",
+        [("imu", s) for s in (*STAGED_STRATEGIES, "starts")],
+    ),
+    (
+        "solver/test_imu_sessions.py",
+        "test_two_recordings_of_the_rectangle_share_one_map",
+        [("imu", "sessions")],
+    ),
+    ("solver/test_staged.py", "test_every_strategy_solves_every_staged_model", PAIRS),
+]
+
 
 def test_every_pair_is_solved_somewhere() -> None:
-    """Every motion model with every strategy: solved here or elsewhere (the IMU model's in
-    tests/solver/test_imu_strategies.py; the translational model's growing prefixes in
-    tests/solver/test_slam.py, coarse-to-fine and sliding windows in
-    tests/solver/test_windowing.py, none everywhere)."""
-    solved_elsewhere = {("planar", "none"), ("planar", "growing"), ("pose", "none")}
-    solved_elsewhere |= {("imu", s) for s in ("none", "growing", "coarse-to-fine", "sliding")}
-    solved_elsewhere |= {("translational", s) for s in STAGED_STRATEGIES}
-    every = {(m, s) for m in MOTIONS for s in STAGED_STRATEGIES}
-    assert every == solved_elsewhere | set(PAIRS)
+    """Every motion model with every warm-start strategy is solved by a named test, and
+    every test named exists (a renamed or removed test fails here, not silently)."""
+    solved = {pair for _, _, pairs in SOLVED_BY for pair in pairs}
+    assert solved == {(m, s) for m in MOTIONS for s in STRATEGIES}
+    for path, name, _ in SOLVED_BY:
+        tree = ast.parse((ROOT / "tests" / path).read_text())
+        defined = {n.name for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)}
+        assert name in defined, f"{path}::{name}"
 
 
 def test_pose_starts_are_turned_dead_reckonings_and_the_lowest_cost_is_kept() -> None:
