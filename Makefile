@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-lag bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -73,6 +73,9 @@ test-latest: ## Run the test suite on the newest versions pyproject.toml allows 
 # The paper's Tables 1-5 (problems/paper/table*.yaml): SEEDS seeds per row, runs saved under
 # $(PAPER)/runs/ (resumable: finished runs are skipped), tables and figures in $(PAPER)/.
 SEEDS  ?= 20
+# make bench-imu-lag: the magnetometer's lag put into the recordings [s], and seeds per scenario.
+LAG    ?= 0.2
+LAG_SEEDS ?= 1
 PAPER  ?= results/paper
 TABLES := table1 table2 table3 table4 table5
 SWEEP  := $(VENV)/bin/casmag sweep --seeds $(SEEDS)
@@ -164,6 +167,9 @@ bench-imu: $(STAMP) ## Every IMU scenario over SEEDS seeds (resumable) -> result
 
 bench-imu-recordings: $(STAMP) ## Every IMU scenario written as a recording and solved by casmag slam's defaults beside casmag imu, SEEDS seeds -> results/bench/imu-recordings/
 	$(PY) -m casmag.experiments.imurecbench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu-recordings
+
+bench-imu-lag: $(STAMP) ## The handwriting, rectangle and spiral recordings with the magnetometer LAG s late (default 0.2), casmag slam with and without --mag-lag auto, LAG_SEEDS seeds -> results/bench/imu-lag/ (hours: a lag slows the solve)
+	$(PY) -m casmag.experiments.imurecbench problems/imu/handwriting.yaml problems/imu/rectangle.yaml problems/imu/spiral.yaml --seeds $(LAG_SEEDS) --lag $(LAG) --out results/bench/imu-lag
 
 bench-imu-strategies: $(STAMP) ## Every IMU scenario with each warm-start strategy (none, coarse-to-fine, sliding) over SEEDS seeds -> results/bench/imu-<strategy>/
 	@for s in none coarse-to-fine sliding; do \

@@ -184,6 +184,17 @@ def strapdown(
     return P, V, Q
 
 
+def quat_prefix(dq: np.ndarray) -> np.ndarray:
+    """Prefix products of the quaternions dq (n, 4): row k is dq_0 dq_1 ... dq_k,
+    normalised, taken in log2(n) vectorised steps."""
+    Q = quat_normalize(np.array(dq, dtype=float))
+    shift = 1
+    while shift < Q.shape[0]:
+        Q[shift:] = quat_normalize(quat_mul(Q[:-shift], Q[shift:]))
+        shift *= 2
+    return Q
+
+
 def compose_increments(
     dq: np.ndarray, dv: np.ndarray, T: float, n: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

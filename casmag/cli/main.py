@@ -217,8 +217,8 @@ def _warn(line: str) -> None:
     default=None,
     metavar="SECONDS|auto",
     help="Remove this magnetometer lag behind the motion first; 'auto' removes the one "
-    "casmag estimates when it is clear (translational recordings). Without it casmag "
-    "estimates the lag and warns (result.json info.magnetometer_lag).",
+    "casmag estimates when it is clear (translational and IMU recordings). Without it "
+    "casmag estimates the lag and warns (result.json info.magnetometer_lag).",
 )
 @click.option(
     "--refit-noise",

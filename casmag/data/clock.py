@@ -24,8 +24,9 @@ to come from where the path returns (casmag.solver.recslam.refit_sigma_m).
 ``casmag slam`` records the estimate in ``info["magnetometer_lag"]`` and warns when it is a
 sample or more; ``--mag-lag SECONDS`` (``casmag.slam(..., mag_lag=...)``) removes a given
 lag, ``--mag-lag auto`` the estimated one when it is significant (translational
-recordings; with ``--refit-noise``, see casmag.solver.recslam.refit_sigma_m, for the reasons it
-is not the default).
+recordings, with ``--refit-noise``, see casmag.solver.recslam.refit_sigma_m, for the reasons it
+is not the default; IMU recordings estimate it on the path solved instead of a dead
+reckoning, casmag.solver.imurec.imu_lag).
 """
 
 from __future__ import annotations
@@ -56,7 +57,9 @@ HYPER_WINDOW = (30, 16)
 class LagEstimate:
     """lag_seconds: the magnetometer's lag [s] (positive: its sample of time t is the field
     at the position of time t - lag); gain: log-likelihood gain over no lag; significant:
-    gain >= MIN_GAIN and |lag| at least one sample interval; windows: windows summed."""
+    gain >= MIN_GAIN, |lag| at least one sample interval and inside the range searched (a
+    maximum at the end of the range is no estimate: the likelihood still rises there, as
+    it does when the path drifts within a window); windows: windows summed."""
 
     lag_seconds: float
     gain: float
@@ -102,7 +105,11 @@ def estimate_lag(
     return LagEstimate(
         lag_seconds=lag,
         gain=gain,
-        significant=bool(gain >= MIN_GAIN and abs(lag) >= dt * (1.0 - 1e-9)),
+        significant=bool(
+            gain >= MIN_GAIN
+            and abs(lag) >= dt * (1.0 - 1e-9)
+            and 0 < best < shifts.size - 1  # not at the end of the range searched
+        ),
         windows=len(starts),
         window_seconds=W * dt,
         sample_interval=dt,
@@ -116,8 +123,9 @@ def shift_magnetometer(t: np.ndarray, Y: np.ndarray, lag: float) -> np.ndarray:
     return np.column_stack([np.interp(t + lag, t, Y[:, q]) for q in range(Y.shape[1])])
 
 
-def lag_warning(est: LagEstimate | None) -> list[dict[str, str]]:
-    """A casmag.data.checks warning when the estimated lag is significant."""
+def lag_warning(est: LagEstimate | None, path: str = "the dead reckoning") -> list[dict[str, str]]:
+    """A casmag.data.checks warning when the estimated lag is significant (``path``: what
+    the lag was estimated against)."""
     if est is None or not est.significant:
         return []
     return [
@@ -127,7 +135,7 @@ def lag_warning(est: LagEstimate | None) -> list[dict[str, str]]:
             "reason": (
                 f"the magnetometer appears to lag the motion by {est.lag_seconds:.2f} s "
                 f"(log-likelihood gain {est.gain:.0f} on {est.windows} windows of "
-                f"{est.window_seconds:.0f} s of the dead reckoning); --mag-lag "
+                f"{est.window_seconds:.0f} s of {path}); --mag-lag "
                 f"{est.lag_seconds:.2f} removes it"
             ),
         }

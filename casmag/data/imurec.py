@@ -10,9 +10,10 @@ field plus noise, so each sample's spread about the mean is the sensor's own noi
 heading of the first keyframe defines the map frame: the true heading when the recording
 has a true orientation and the estimate starts at the truth (``anchor`` ``truth``), else 0.
 
-The IMU model takes one sample interval T (the velocity update adds gravity times T), so
-the recording's time stamps must be uniform: an interval that differs from the median by
-more than :data:`PERIOD_TOLERANCE` is refused with the row.
+The IMU model takes one sample interval T (the velocity update adds gravity times T):
+casmag.data.recording resamples a recording whose intervals are not uniform onto a uniform
+grid when it reads it, so the intervals here are within :data:`PERIOD_TOLERANCE` of the
+median (:func:`sample_period` refuses others, naming the row).
 """
 
 from __future__ import annotations
@@ -24,13 +25,12 @@ import numpy as np
 
 from casmag import strapdown as sd
 from casmag.data.imusim import ImuData, Truth, levelled_attitude
-from casmag.data.recording import Recording
+from casmag.data.recording import IMU_PERIOD_TOLERANCE, Recording
 from casmag.errors import DataError, one_line
 
-#: Largest relative difference of a sample interval from the median interval: a 1 %
-#: error in one interval's T puts 0.1 m/s^2 of gravity into that interval's velocity
-#: update, about a hundred times a MEMS accelerometer's white noise at 100 Hz.
-PERIOD_TOLERANCE = 0.01
+#: Largest relative difference of a sample interval from the median interval
+#: (casmag.data.recording.IMU_PERIOD_TOLERANCE, where it is explained).
+PERIOD_TOLERANCE = IMU_PERIOD_TOLERANCE
 #: Fewest samples at rest for the levelling and the noise estimate.
 MIN_REST_SAMPLES = 10
 #: A start that does not look at rest (warning): the mean specific force further than this

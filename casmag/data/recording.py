@@ -33,7 +33,13 @@ heading; pose: orientations interpolated by slerp, displacements in the earlier 
 frame); truth is interpolated the same way (quaternion truth must be on every
 magnetometer row); magnetometer rows after the last motion row are dropped. The reader
 says what it did in ``Recording.notes`` (warnings in result.json). IMU recordings take
-complete rows only.
+complete rows only; their sample times must be uniform for the IMU model (one interval T),
+so when an interval differs from the median by more than :data:`IMU_PERIOD_TOLERANCE`
+(clock jitter, a dropped sample, a gap) the recording is resampled onto a uniform grid
+over its span (:func:`_imu_to_uniform_rows`): the increments integrated at the recorded
+times (velocity sums and orientations, as strapdown integration composes them), interpolated
+to the grid (linearly; orientations by slerp) and turned back into increments between
+grid times; the magnetometer and the truth interpolated the same way.
 
 Every problem with a file raises :class:`~casmag.errors.DataError` as one line naming the
 file, the row (header = row 1, first data row = row 2) or column, and the reason.
@@ -58,7 +64,15 @@ import numpy as np
 
 from casmag.data.simulate import Dataset
 from casmag.errors import DataError, one_line
-from casmag.strapdown import quat_conj, quat_exp, quat_log, quat_mul, quat_normalize, rotate
+from casmag.strapdown import (
+    quat_conj,
+    quat_exp,
+    quat_log,
+    quat_mul,
+    quat_normalize,
+    quat_prefix,
+    rotate,
+)
 
 MOTION_COLUMNS: dict[str, tuple[str, ...]] = {
     "translation2": ("dx", "dy"),
@@ -97,6 +111,11 @@ _KNOWN_COLUMNS: tuple[str, ...] = (
     *QUATERNION_TRUTH_COLUMNS,
 )
 _MIN_ROWS = 2
+#: Largest relative difference of an IMU recording's sample interval from the median
+#: before it is resampled onto a uniform grid: the IMU model takes one T, and a 1 % error
+#: in one interval's T puts 0.1 m/s^2 of gravity into that interval's velocity update,
+#: about a hundred times a MEMS accelerometer's white noise at 100 Hz.
+IMU_PERIOD_TOLERANCE = 0.01
 MAX_ABS_VALUE = 1e100
 """Largest magnitude a recording's value may have: sums over a million rows and their
 squares (distances, residuals) must stay finite in float64 (about 1.8e308)."""
@@ -642,6 +661,9 @@ def _regularise(
                 f"into it (motion increments {how}, magnetometer and truth averaged)",
             }
         )
+    if motion == "imu":  # complete rows (checked above): one interval T
+        A, note = _imu_to_uniform_rows(A, absent, col, mi)
+        return A, notes + ([note] if note else [])
     if has_motion.all() and has_mag.all():
         return A, notes
     return _to_magnetometer_rows(path, A, absent, col, motion, mi, yi, has_motion, has_mag, notes)
@@ -708,12 +730,8 @@ def _compose_pose_rows(
 def _integrate_pose(U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Positions (n, 3) and orientations (n, 4) of pose increments U (n, 7) whose first row
     is the start (dp = 0, dq = 1): q_k = q_{k-1} dq_k, p_k = p_{k-1} + R(q_{k-1}) dp_k. The
-    orientations are a prefix product, taken in log2(n) vectorised steps."""
-    Q = quat_normalize(U[:, 3:])
-    shift = 1
-    while shift < Q.shape[0]:
-        Q[shift:] = quat_normalize(quat_mul(Q[:-shift], Q[shift:]))
-        shift *= 2
+    orientations are a prefix product (casmag.strapdown.quat_prefix)."""
+    Q = quat_prefix(U[:, 3:])
     steps = np.vstack([np.zeros((1, 3)), rotate(Q[:-1], U[1:, :3])])
     return np.cumsum(steps, axis=0), Q
 
@@ -725,6 +743,64 @@ def _slerp(tk: np.ndarray, tm: np.ndarray, Q: np.ndarray) -> np.ndarray:
     s = (tk - tm[j]) / (tm[j + 1] - tm[j])
     d = quat_mul(quat_conj(Q[j]), Q[j + 1])  # quat_log takes the shortest arc
     return quat_normalize(quat_mul(Q[j], quat_exp(s[:, None] * quat_log(d))))
+
+
+def _imu_to_uniform_rows(
+    A: np.ndarray, absent: np.ndarray, col: dict[str, int], mi: list[int]
+) -> tuple[np.ndarray, dict[str, str] | None]:
+    """An IMU recording's rows on a uniform time grid (module docstring), and the note
+    that says so; the rows as they are (note None) when every interval is within
+    :data:`IMU_PERIOD_TOLERANCE` of the median. The grid spans the first to the last time
+    stamp; each recorded interval counts as the whole number of median intervals nearest to
+    it, at least one (jitter: one each, the row count kept; a dropped sample: two).
+    Velocity sums v_k = v_{k-1} + R(q_{k-1}) dv_k and orientations q_k = q_{k-1} dq_k are
+    integrated at
+    the recorded rows, interpolated to the grid (v linearly, q by slerp), and the grid's
+    increments are dq = q_a^-1 q_b and dv = R(q_a)^T (v_b - v_a)."""
+    it = col[TIME_COLUMN]
+    t = A[:, it]
+    dt = np.diff(t)
+    median = float(np.median(dt))
+    off = np.abs(dt - median) > IMU_PERIOD_TOLERANCE * median
+    if not off.any():
+        return A, None
+    span = float(t[-1] - t[0])
+    m = int(np.maximum(1, np.round(dt / median)).sum())  # a dropped sample: 2 intervals
+    tk = t[0] + (span / m) * np.arange(m + 1)
+    U = np.empty((A.shape[0], 7))
+    U[:, :3], U[:, 3:] = A[:, mi[4:]], A[:, mi[:4]]  # (dv, dq) composes as (dp, dq)
+    U[0] = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    V, Q = _integrate_pose(U)
+    q = _slerp(tk, t, Q)
+    v = np.column_stack([np.interp(tk, t, V[:, j]) for j in range(3)])
+    out = np.full((tk.size, A.shape[1]), np.nan)
+    out[:, it] = tk
+    out[1:, mi[:4]] = quat_normalize(quat_mul(quat_conj(q[:-1]), q[1:]))
+    out[1:, mi[4:]] = rotate(quat_conj(q[:-1]), np.diff(v, axis=0))
+    quaternion = [col[c] for c in QUATERNION_TRUTH_COLUMNS if c in col]
+    for j in range(A.shape[1]):
+        have = ~absent[:, j]
+        if j in (it, *mi, *quaternion) or not have.any():
+            continue
+        values = np.unwrap(A[have, j]) if j == col.get(YAW_TRUTH_COLUMN) else A[have, j]
+        out[:, j] = np.interp(tk, t[have], values)
+    if quaternion:
+        have = ~absent[:, quaternion].any(axis=1)
+        if have.sum() >= 2:
+            out[:, quaternion] = _slerp(tk, t[have], quat_normalize(A[have][:, quaternion]))
+    i = int(np.argmax(np.abs(dt - median)))
+    note = {
+        "check": "resampled",
+        "column": TIME_COLUMN,
+        "reason": (
+            f"{int(off.sum())} of {dt.size} sample intervals differ from the median "
+            f"{median:.6g} s by more than {IMU_PERIOD_TOLERANCE:.0%} (the largest: "
+            f"{dt[i]:.6g} s before row {i + 3}): the IMU increments, the magnetometer and "
+            f"the truth were resampled onto a uniform grid of {span / m:.6g} s "
+            f"({tk.size} rows from {A.shape[0]})"
+        ),
+    }
+    return out, note
 
 
 def _to_magnetometer_rows(

@@ -21,6 +21,12 @@ package versions and source is not solved again); ``imu-recordings.json`` gather
 ``imu-recordings.md`` is the table: position RMSE of the IMU-only adjustment and GP-SLAM
 both ways, IPOPT's status, the iterations of the last solve, the wall time and the rest's
 noise estimates against the simulation's values.
+
+With ``--lag SECONDS`` (``make bench-imu-lag``) the recording's magnetometer is written
+that late (row k reads the field of time t_k - lag) and solved by ``casmag slam REC`` twice
+instead: as it is (the lag estimated on the path solved and reported) and with ``--mag-lag
+auto`` (the estimated lag removed); each row has the estimate, what was removed, GP-SLAM's
+RMSE and the wall time (``runs/<scenario>-<seed>-lag<SECONDS>.json``).
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from casmag.data.clock import shift_magnetometer
 from casmag.data.imusim import simulate_imu
 from casmag.data.recording import write_recording
 from casmag.experiments.imubench import source_digest
@@ -87,10 +94,73 @@ def run_one(
     return out
 
 
-def table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
-    def f(v: Any, fmt: str = ".3g") -> str:
-        return "-" if v is None else format(v, fmt)
+def _lag_row(r: Any, seconds: float) -> dict[str, Any]:
+    m = r.info["magnetometer_lag"]
+    est = m.get("estimate") or {}
+    return {
+        **_row(r, seconds),
+        "lag_estimate": est.get("lag_seconds"),
+        "lag_gain": est.get("gain"),
+        "lag_significant": est.get("significant"),
+        "lag_removed": m.get("removed_seconds"),
+        "lag_steps": m.get("steps"),
+    }
 
+
+def run_lag(
+    path: Path, seed: int, folder: Path, lag: float, overrides: list[str] | None = None
+) -> dict[str, Any]:
+    """One scenario and seed with the magnetometer written ``lag`` seconds late, solved as a
+    recording with and without ``--mag-lag auto`` (module docstring)."""
+    prob = load_imu_problem(path, [*(overrides or []), f"seed={seed}"])
+    data = simulate_imu(prob)
+    tr = data.truth
+    Y = shift_magnetometer(tr.t, data.Y, -lag)  # row k: the field of time t_k - lag
+    rec = folder / f"{path.stem}-{seed}-lag{lag:g}.csv"
+    write_recording(rec, tr.t, Y, imu=np.hstack([data.dq, data.dv]), P_true=tr.P, q_true=tr.Q)
+    out: dict[str, Any] = {"scenario": path.stem, "seed": seed, "lag": lag}
+    for key, mag_lag in (("as_is", None), ("auto", "auto")):
+        t0 = time.perf_counter()
+        r = slam(rec, mag_lag=mag_lag)
+        out[key] = _lag_row(r, time.perf_counter() - t0)
+    return out
+
+
+def cell(v: Any, fmt: str = ".3g") -> str:
+    """A table cell: ``v`` formatted, ``-`` for None."""
+    return "-" if v is None else format(v, fmt)
+
+
+def _with_versions(lines: list[str], vers: dict[str, Any]) -> str:
+    """The table's lines and the package versions under them."""
+    names = ("casadi", "ipopt", "numpy", "scipy")
+    lines += ["", "Versions: " + ", ".join(f"{k} {vers.get(k)}" for k in names if k in vers)]
+    return "\n".join(lines) + "\n"
+
+
+def lag_table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
+    lines = [
+        "| scenario | seed | lag put in [s] | as it is: estimate [s], GP-SLAM RMSE, status, s "
+        "| --mag-lag auto: removed [s], left [s], GP-SLAM RMSE, status, s |",
+        "|---|---|---|---|---|",
+    ]
+    for run in runs:
+        if "error" in run:
+            lines.append(f"| {run['scenario']} | {run['seed']} | {run['lag']:g} | error: "
+                         f"{run['error']} ||")  # fmt: skip
+            continue
+        a, b = run["as_is"], run["auto"]
+        lines.append(
+            f"| {run['scenario']} | {run['seed']} | {run['lag']:g} "
+            f"| {cell(a['lag_estimate'], '+.2f')}, {cell(a['rmse_gp_slam'])}, {a['status']}, "
+            f"{cell(a['seconds'], '.0f')} "
+            f"| {cell(b['lag_removed'], '+.2f')}, {cell(b['lag_estimate'], '+.2f')}, "
+            f"{cell(b['rmse_gp_slam'])}, {b['status']}, {cell(b['seconds'], '.0f')} |"
+        )
+    return _with_versions(lines, vers)
+
+
+def table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
     lines = [
         "| scenario | seed | IMU-only RMSE: imu, slam | casmag imu: GP-SLAM RMSE, status, it, s "
         "| casmag slam: GP-SLAM RMSE, status, it, s | rest / truth: gyro, acc, sigma_m |",
@@ -103,15 +173,15 @@ def table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
         a, b, q = run["problem"], run["recording"], run["rest_over_truth"]
         lines.append(
             f"| {run['scenario']} | {run['seed']} "
-            f"| {f(a['rmse_imu_only'])}, {f(b['rmse_imu_only'])} "
-            f"| {f(a['rmse_gp_slam'])}, {a['status']}, {a['iterations']}, {f(a['seconds'], '.0f')} "
-            f"| {f(b['rmse_gp_slam'])}, {b['status']}, {b['iterations']}, {f(b['seconds'], '.0f')} "
-            f"| {f(q['gyro_noise_density'], '.2f')}, {f(q['acc_noise_density'], '.2f')}, "
-            f"{f(q['sigma_m'], '.2f')} |"
+            f"| {cell(a['rmse_imu_only'])}, {cell(b['rmse_imu_only'])} "
+            f"| {cell(a['rmse_gp_slam'])}, {a['status']}, {a['iterations']}, "
+            f"{cell(a['seconds'], '.0f')} "
+            f"| {cell(b['rmse_gp_slam'])}, {b['status']}, {b['iterations']}, "
+            f"{cell(b['seconds'], '.0f')} "
+            f"| {cell(q['gyro_noise_density'], '.2f')}, {cell(q['acc_noise_density'], '.2f')}, "
+            f"{cell(q['sigma_m'], '.2f')} |"
         )
-    names = ("casadi", "ipopt", "numpy", "scipy")
-    lines += ["", "Versions: " + ", ".join(f"{k} {vers.get(k)}" for k in names if k in vers)]
-    return "\n".join(lines) + "\n"
+    return _with_versions(lines, vers)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -126,6 +196,13 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="KEY=VALUE for every problem file (e.g. simulation.imu.rate=200)",
     )
+    ap.add_argument(
+        "--lag",
+        type=float,
+        default=None,
+        help="write the magnetometer this many seconds late and solve the recording with "
+        "and without --mag-lag auto",
+    )
     args = ap.parse_args(argv)
     vers = versions()
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
@@ -133,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     runs = []
     for path in args.problems:
         for seed in range(1, args.seeds + 1):
-            saved = args.out / "runs" / f"{path.stem}-{seed}.json"
+            stem = f"{path.stem}-{seed}" + ("" if args.lag is None else f"-lag{args.lag:g}")
+            saved = args.out / "runs" / f"{stem}.json"
             key = {"versions": vers, "source": source_digest(path), "overrides": args.overrides}
             if saved.exists():
                 old = json.loads(saved.read_text(encoding="utf-8"))
@@ -141,19 +219,26 @@ def main(argv: list[str] | None = None) -> int:
                     runs.append(old)
                     continue
             try:
-                run = run_one(path, seed, args.out / "recordings", args.overrides)
+                folder = args.out / "recordings"
+                if args.lag is None:
+                    run = run_one(path, seed, folder, args.overrides)
+                else:
+                    run = run_lag(path, seed, folder, args.lag, args.overrides)
             except Exception as exc:  # a failed run is a row of the table, not the end
                 traceback.print_exc()
-                run = {"scenario": path.stem, "seed": seed, "error": f"{type(exc).__name__}: {exc}"}
+                run = {"scenario": path.stem, "seed": seed, "lag": args.lag}
+                run["error"] = f"{type(exc).__name__}: {exc}"
             run.update(key)
             write_text_atomic(saved, json.dumps(run, indent=2))
             runs.append(run)
             print(f"{path.stem} seed {seed}: done", flush=True)
+    name = "imu-recordings" if args.lag is None else f"imu-lag{args.lag:g}"
     write_text_atomic(
-        args.out / "imu-recordings.json", json.dumps({"runs": runs, "versions": vers}, indent=2)
+        args.out / f"{name}.json", json.dumps({"runs": runs, "versions": vers}, indent=2)
     )
     head = f"Problem files with {', '.join(args.overrides)}.\n\n" if args.overrides else ""
-    write_text_atomic(args.out / "imu-recordings.md", head + table(runs, vers))
+    body = table(runs, vers) if args.lag is None else lag_table(runs, vers)
+    write_text_atomic(args.out / f"{name}.md", head + body)
     return 0
 
 

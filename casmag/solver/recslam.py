@@ -370,8 +370,9 @@ def slam(
     The magnetometer's lag behind the motion is estimated from the dead reckoning
     (casmag.data.clock) and recorded in ``info["magnetometer_lag"]``, with a warning when it is a
     sample or more; ``mag_lag`` [s] removes a lag (``casmag slam --mag-lag``) before
-    anything else, and ``mag_lag="auto"`` (translational recordings) removes the estimated
-    one when it is ``significant``, the problem made again on the shifted data.
+    anything else, and ``mag_lag="auto"`` (translational and IMU recordings) removes the
+    estimated one when it is ``significant``, the problem made again on the shifted data
+    (IMU recordings: estimated on the IMU-only adjustment, casmag.solver.imurec.imu_lag).
     ``refit_noise`` (translational recordings, sigma_m estimated): estimate sigma_m again
     where the path returns and solve again with it when that is clearly larger
     (:func:`refit_sigma_m`). Neither is the default: together they brought the right
@@ -408,11 +409,8 @@ def slam(
                 f"{recording}: an IMU recording is solved by the MAP estimate without a saved "
                 "map (--map and --method ekf are for other recordings)"
             )
-        refuse_translational_options(recording, mag_lag, refit_noise, rec.motion)
-        return slam_imu(
-            rec, problem, overrides, progress, field_check, on_warning, anchor,
-            None if auto else mag_lag,
-        )  # fmt: skip
+        refuse_translational_options(recording, None, refit_noise, rec.motion)
+        return slam_imu(rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag)
     if rec.motion in ("planar", "pose"):
         if saved is not None:
             raise DataError(f"{map_file}: a saved map locates translational recordings only")
@@ -525,12 +523,17 @@ def _map_model(saved: SavedMap) -> dict[str, Any]:
 def refuse_translational_options(
     recording: str | Path, mag_lag: float | str | None, refit_noise: bool, motion: str = "planar"
 ) -> None:
-    """DataError for ``mag_lag="auto"`` or ``refit_noise`` on a planar or pose recording
-    (they are made for translational ones)."""
-    if mag_lag == "auto" or refit_noise:
+    """DataError for ``refit_noise`` on a recording that is not translational, and for
+    ``mag_lag="auto"`` on a planar or pose recording (translational and IMU recordings take
+    it)."""
+    if refit_noise:
         raise DataError(
-            f"{recording}: --mag-lag auto and --refit-noise are for translational "
-            f"recordings; this one is {motion}"
+            f"{recording}: --refit-noise is for translational recordings; this one is {motion}"
+        )
+    if mag_lag == "auto":
+        raise DataError(
+            f"{recording}: --mag-lag auto is for translational and IMU recordings; this one "
+            f"is {motion}"
         )
 
 

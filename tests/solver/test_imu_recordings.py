@@ -11,17 +11,22 @@ from small_problems import tiny_imu
 
 from casmag import strapdown as sd
 from casmag.cli.main import main
+from casmag.data.clock import LagEstimate, shift_magnetometer
 from casmag.data.imurec import imu_data, quantisation_floor, rest_noise, rest_warnings
 from casmag.data.imusim import simulate_imu
 from casmag.data.recording import read_recording, write_recording
 from casmag.errors import DataError, ProblemError
 from casmag.problem.imu import ImuRecordingSpec, load_imu_problem, load_recording_spec
+from casmag.solver import imurec
 from casmag.solver.imu import _estimate_flag, solve_imu
-from casmag.solver.recslam import slam
+from casmag.solver.imurec import imu_lag
+from casmag.solver.recslam import slam, slam_sessions
 
 #: The tiny desk rectangle (tests/small_problems.tiny_imu) with given hyperparameters,
 #: constant biases and one batch: a 3-second solve.
 GP = {"sigma_f": 0.3, "lengthscale": 0.2, "num_basis": 200}
+#: No map: the IMU-only adjustment alone (all the lag estimate reads), a solve of seconds.
+NO_MAP = ["model.gp.form=none"]
 
 
 def _problem() -> dict:
@@ -129,13 +134,55 @@ def _rewritten(path, tmp_path, **change):
     return out
 
 
-def test_jittered_time_stamps_are_refused_with_the_row(tmp_path, recording):
+def test_a_dropped_sample_is_resampled_onto_the_uniform_grid(tmp_path, recording):
+    """Every 7th time stamp left out, its increments composed into the next row's (what
+    the IMU integrated over the longer interval): the reader puts the rows back on the
+    uniform grid, with a note. Rows away from a dropped stamp come back as they were;
+    the two rows either side of one compose to what was written (the integrated velocity
+    and orientation at the recorded times are kept exactly)."""
     _, _, path = recording
-    t = read_recording(path).t.copy()
-    t[40:] += 0.002  # row 41's interval is 12 ms against 10 ms
-    with pytest.raises(DataError, match=r"row 42: .*uniform sample times") as err:
-        slam(_rewritten(path, tmp_path, t=t))
-    assert "\n" not in str(err.value)
+    rec = read_recording(path)
+    t, inc = rec.t, rec.increments  # inc[i]: from t[i] to t[i + 1]
+    drop = np.arange(7, t.size - 1, 7)  # rows whose time stamp is left out
+    keep = np.setdiff1d(np.arange(t.size), drop)
+    joined = inc.copy()
+    for i in drop:  # the interval t[i-1] -> t[i+1]: dv = dv1 + R(dq1) dv2, dq = dq1 dq2
+        joined[i] = np.r_[
+            sd.quat_mul(inc[i - 1, :4], inc[i, :4]),
+            inc[i - 1, 4:] + sd.rotate(inc[i - 1, :4], inc[i, 4:]),
+        ]
+    rows = keep[1:] - 1  # the increment row that ends at each kept row
+    out = _rewritten(path, tmp_path, t=t[keep], Y=rec.Y[keep], P_true=rec.P_true[keep],
+                     q_true=rec.q_true[keep],
+                     imu=joined[rows])  # fmt: skip
+    back = read_recording(out)
+    (note,) = [n for n in back.notes if n["check"] == "resampled"]
+    assert "uniform grid of 0.01 s" in note["reason"]
+    np.testing.assert_allclose(back.t, t, atol=1e-12)
+    near = np.union1d(drop - 1, drop)  # the intervals either side of a dropped stamp
+    far = np.setdiff1d(np.arange(inc.shape[0]), near)
+    np.testing.assert_allclose(back.increments[far], inc[far], atol=1e-9)
+    for i in drop:
+        a, b = back.increments[i - 1], back.increments[i]
+        np.testing.assert_allclose(sd.quat_mul(a[:4], b[:4]), joined[i, :4], atol=1e-9)
+        np.testing.assert_allclose(a[4:] + sd.rotate(a[:4], b[4:]), joined[i, 4:], atol=1e-9)
+        # and each half is close to what the IMU measured over it (smooth motion)
+        np.testing.assert_allclose(back.increments[[i - 1, i], 4:], inc[[i - 1, i], 4:], atol=2e-3)
+
+
+def test_jittered_time_stamps_are_resampled_and_solved(tmp_path, recording):
+    """Time stamps jittered by up to a fifth of the interval: resampled with a note (the
+    warning names it), and the recording solved."""
+    _, _, path = recording
+    t = read_recording(path).t
+    rng = np.random.default_rng(3)
+    jittered = t + rng.uniform(-0.2, 0.2, t.size) * 0.01
+    jittered[0], jittered[-1] = t[0], t[-1]
+    lines = []
+    r = slam(_rewritten(path, tmp_path, t=jittered), overrides=NO_MAP, on_warning=lines.append)
+    assert r.success, r.status
+    assert any("resampled onto a uniform grid of 0.01 s" in line for line in lines)
+    assert r.info["imu_rate_hz"] == pytest.approx(100.0)
 
 
 def test_a_sensor_constant_at_rest_must_be_given_its_noise(tmp_path, recording):
@@ -153,7 +200,7 @@ def test_a_sensor_constant_at_rest_must_be_given_its_noise(tmp_path, recording):
         ({"overrides": ["model.imu.bias=random_walk"]}, ProblemError, "gyro_bias_walk"),
         ({"overrides": ["model.magnetometer.samples=23"]}, ProblemError, "samples"),
         ({"method": "ekf"}, DataError, "--method ekf"),
-        ({"mag_lag": "auto"}, DataError, "--mag-lag auto"),
+        ({"refit_noise": True}, DataError, "--refit-noise"),
         ({"overrides": ["solver.uncertainty=true"]}, ProblemError, "solver.uncertainty"),
     ],
 )
@@ -200,3 +247,91 @@ def test_a_recording_model_keeps_constant_biases_when_its_imu_section_gives_othe
     given = load_recording_spec(ImuRecordingSpec, None, ["model.imu.gyro_noise_density=0.01"])
     assert given.model.imu.bias == "constant" and given.model.keyframe_rate == 5.0
     assert given.solver.max_iter == 150 and given.solver.warm_start.strategy == "auto"
+
+
+@pytest.fixture(scope="module")
+def long_recording(tmp_path_factory):
+    """The desk rectangle traced 8 times (32 s: the lag is estimated on 10-s windows),
+    written as an IMU recording."""
+    d = _problem()
+    d["simulation"]["scenario"]["loops"] = 8
+    data = simulate_imu(load_imu_problem(d))
+    path = tmp_path_factory.mktemp("imu-long") / "desk8.csv"
+    tr = data.truth
+    write_recording(path, tr.t, data.Y, imu=np.hstack([data.dq, data.dv]), P_true=tr.P, q_true=tr.Q)
+    return path
+
+
+def _late(path, tmp_path, lag, name="late.csv"):
+    """The recording with its magnetometer ``lag`` seconds late: row k reads the field of
+    time t_k - lag."""
+    rec = read_recording(path)
+    Y = np.column_stack([np.interp(rec.t - lag, rec.t, rec.Y[:, j]) for j in range(3)])
+    return _rewritten(path, tmp_path, Y=Y).rename(tmp_path / name)
+
+
+@pytest.mark.parametrize("lag", [0.0, 0.15, -0.1])
+def test_the_lag_is_found_on_a_path_of_keyframe_poses(tmp_path, long_recording, lag):
+    """imu_lag on the true poses at the 5 Hz keyframes (as a result's arrays): the lag put
+    into the magnetometer is found within 0.03 s, significant when it is one."""
+    rec = read_recording(_late(long_recording, tmp_path, lag))
+    data, _ = imu_data(rec, 0.5)
+    kf = np.arange(0, rec.t.size, 20)
+    arrays = {"t": rec.t[kf], "P_estimate": rec.P_true[kf], "Q_estimate": rec.q_true[kf]}
+    est = imu_lag(rec.t, data, arrays)
+    assert est.lag_seconds == pytest.approx(lag, abs=0.03)
+    assert est.significant == (lag != 0.0)
+    assert imu_lag(rec.t, data, {**arrays, "P_estimate": None}) is None  # no such path
+
+
+def test_the_lag_left_on_the_path_solved_is_reported(tmp_path, long_recording, monkeypatch):
+    """Without --mag-lag the lag is estimated once, on the path solved (here the IMU-only
+    adjustment: no map) and reported, with a warning when significant; nothing removed.
+    --mag-lag auto removes a significant estimate (from the IMU-only adjustment first,
+    then on the path solved) and solves again; every step is recorded."""
+    path = _late(long_recording, tmp_path, 0.15)
+    found = [0.15, 0.02]  # what the estimates say, in turn (imu_lag stands in)
+    calls = []
+
+    def stand_in(t, data, arrays, key="estimate"):
+        calls.append((key, data.Y.copy()))
+        lag = found[min(len(calls), len(found)) - 1]
+        return LagEstimate(lag, 500.0, abs(lag) >= 0.05, 3, 10.0, 0.05)
+
+    monkeypatch.setattr(imurec, "imu_lag", stand_in)
+    lines = []
+    r = slam(path, overrides=NO_MAP, on_warning=lines.append)
+    m = r.info["magnetometer_lag"]
+    assert m["removed_seconds"] == 0.0 and m["path"] == "IMU-only adjustment"
+    assert m["estimate"]["lag_seconds"] == 0.15 and len(m["steps"]) == 1
+    assert [k for k, _ in calls] == ["imu_only"]
+    assert any("--mag-lag 0.15 removes it" in line for line in lines)
+
+    calls.clear()
+    lines.clear()
+    r = slam(path, overrides=NO_MAP, on_warning=lines.append, mag_lag="auto")
+    m = r.info["magnetometer_lag"]
+    assert m["removed_seconds"] == 0.15 and m["estimate"]["lag_seconds"] == 0.02
+    assert [s["path"] for s in m["steps"]] == ["IMU-only adjustment"] * 2
+    assert m["steps"][0]["removed_seconds"] == 0.15 and "removed_seconds" not in m["steps"][1]
+    (_, first), (_, second) = calls  # the magnetometer each estimate read
+    rec = read_recording(path)
+    np.testing.assert_array_equal(first, rec.Y)
+    np.testing.assert_allclose(second, shift_magnetometer(rec.t, rec.Y, 0.15))
+    assert any("shifted by 0.15 s" in line for line in lines)
+    assert not any("removes it" in line for line in lines)
+
+
+def test_each_imu_session_gets_its_own_lag_estimate(tmp_path, long_recording):
+    """``casmag slam A B`` with IMU recordings: each session's lag is estimated on its own
+    keyframes of the stacked result, on the recording's own clock: with no map the same
+    estimate as its recording solved alone."""
+    late = _late(long_recording, tmp_path, 0.15)
+    r = slam_sessions([long_recording, late], overrides=NO_MAP)
+    m = r.info["magnetometer_lag"]
+    assert m["path"] == "IMU-only adjustment"
+    assert [s["name"] for s in m["sessions"]] == [long_recording.stem, late.stem]
+    for session, path in zip(m["sessions"], (long_recording, late), strict=True):
+        alone = slam(path, overrides=NO_MAP).info["magnetometer_lag"]["estimate"]
+        assert session["estimate"]["lag_seconds"] == pytest.approx(alone["lag_seconds"])
+        assert session["estimate"]["windows"] == alone["windows"]
