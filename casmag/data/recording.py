@@ -754,9 +754,8 @@ def _imu_to_uniform_rows(
     stamp; each recorded interval counts as the whole number of median intervals nearest to
     it, at least one (jitter: one each, the row count kept; a dropped sample: two).
     Velocity sums v_k = v_{k-1} + R(q_{k-1}) dv_k and orientations q_k = q_{k-1} dq_k are
-    integrated at
-    the recorded rows, interpolated to the grid (v linearly, q by slerp), and the grid's
-    increments are dq = q_a^-1 q_b and dv = R(q_a)^T (v_b - v_a)."""
+    integrated at the recorded rows, interpolated to the grid (v linearly, q by slerp),
+    and the grid's increments are dq = q_a^-1 q_b and dv = R(q_a)^T (v_b - v_a)."""
     it = col[TIME_COLUMN]
     t = A[:, it]
     dt = np.diff(t)
@@ -795,8 +794,8 @@ def _imu_to_uniform_rows(
         "reason": (
             f"{int(off.sum())} of {dt.size} sample intervals differ from the median "
             f"{median:.6g} s by more than {IMU_PERIOD_TOLERANCE:.0%} (the largest: "
-            f"{dt[i]:.6g} s before row {i + 3}): the IMU increments, the magnetometer and "
-            f"the truth were resampled onto a uniform grid of {span / m:.6g} s "
+            f"{dt[i]:.6g} s, up to t = {t[i + 1]:.6g} s): the IMU increments, the "
+            f"magnetometer and the truth were resampled onto a uniform grid of {span / m:.6g} s "
             f"({tk.size} rows from {A.shape[0]})"
         ),
     }
