@@ -41,6 +41,7 @@ another field's, in another unit.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -183,6 +184,15 @@ def _lengthscale(P: np.ndarray, lengthscale: float) -> list[dict[str, str]]:
 def warning_lines(source: Any, warnings: list[dict[str, str]]) -> list[str]:
     """One line per warning, naming the source, the column or key and the reason."""
     return [f"casmag: warning: {source}: {w['column']}: {w['reason']}" for w in warnings]
+
+
+def announce(
+    source: Any, warnings: list[dict[str, str]], on_warning: Callable[[str], None] | None
+) -> None:
+    """Hand each warning's line (:func:`warning_lines`) to ``on_warning``, when given."""
+    if on_warning is not None:
+        for line in warning_lines(source, warnings):
+            on_warning(line)
 
 
 #: Model settings whose null takes the simulation's true value: (setting, hyperparameter

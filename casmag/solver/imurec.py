@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from casmag import strapdown as sd
-from casmag.data.checks import warning_lines
+from casmag.data.checks import announce
 from casmag.data.clock import LagEstimate, estimate_lag, lag_warning, shift_magnetometer
 from casmag.data.imurec import RestNoise, imu_data, rest_noise, rest_warnings
 from casmag.data.imusim import ImuData, stack_sessions
@@ -173,9 +173,7 @@ def slam_imu(
     found: list[dict[str, Any]] = []
 
     def warn(items: list[dict[str, Any]]) -> None:
-        for line in warning_lines(rec.path, items):
-            if on_warning is not None:
-                on_warning(line)
+        announce(rec.path, items, on_warning)
         found.extend(items)
 
     warn([*rec.notes, *rest_warnings(noise, rest_seconds)])
@@ -316,9 +314,7 @@ def slam_imu_sessions(
         noise = rest_noise(rec, data.T, n)
         _with_rest_noise(spec, rec, noise)  # a sensor without noise at rest: refused here
         own = [*rec.notes, *rest_warnings(noise, rest_seconds)]
-        for line in warning_lines(rec.path, own):
-            if on_warning is not None:
-                on_warning(line)
+        announce(rec.path, own, on_warning)
         found.extend({**w, "recording": str(rec.path)} for w in own)
         datas.append(dataclasses.replace(data, T=datas[0].T if datas else data.T))
         noises.append(noise)
@@ -327,15 +323,13 @@ def slam_imu_sessions(
     prob = recording_imu_problem(spec, source, 1.0 / datas[0].T)
     result = solve_imu(prob, stack_sessions(datas), progress)
     names = [Path(r.path).stem for r in recs]
-    lags = []
+    lags, path = [], _final_path(result)
     for row, name, rec, data in zip(result.info["sessions"], names, recs, datas, strict=True):
         row["name"] = name
-        lag = _session_lag(rec, data, result.arrays, row, _final_path(result))
+        lag = _session_lag(rec, data, result.arrays, row, path)
         lags.append({"name": name, "estimate": None if lag is None else lag.to_dict()})
-        own = lag_warning(lag, f"the {_final_path(result)} path")
-        for line in warning_lines(rec.path, own):
-            if on_warning is not None:
-                on_warning(line)
+        own = lag_warning(lag, f"the {path} path")
+        announce(rec.path, own, on_warning)
         found.extend({**w, "recording": str(rec.path)} for w in own)
     result.info.update(
         name="+".join(names),
@@ -347,7 +341,7 @@ def slam_imu_sessions(
         },
         magnetometer_lag={
             **lag_record(None, None),
-            "path": _final_path(result),
+            "path": path,
             "sessions": lags,
         },
     )

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from casmag.data.checks import recording_warnings, warning_lines
+from casmag.data.checks import announce, recording_warnings
 from casmag.data.clock import LagEstimate, estimate_lag, lag_warning
 from casmag.data.posesim import simulate_planar, simulate_pose
 from casmag.data.recording import Recording
@@ -113,9 +113,7 @@ def slam_oriented(
         *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
         *lag_warning(lag),
     ]
-    for line in warning_lines(rec.path, found):
-        if on_warning is not None:
-            on_warning(line)
+    announce(rec.path, found, on_warning)
     if constant:
         if not field_check:
             refuse_constant_field(rec.path)
@@ -300,9 +298,7 @@ def slam_oriented_sessions(
             *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
             *lag_warning(lag_of(rec)),
         ]
-        for line in warning_lines(rec.path, own):
-            if on_warning is not None:
-                on_warning(line)
+        announce(rec.path, own, on_warning)
         found.extend({**w, "recording": str(rec.path)} for w in own)
     solve_sessions = solve_planar_sessions if motion == "planar" else solve_pose_sessions
     result = solve_sessions(list(recs), options, progress)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from casmag.data.checks import model_warnings, recording_warnings, warning_lines
+from casmag.data.checks import announce, model_warnings, recording_warnings
 from casmag.data.clock import estimate_lag, lag_warning, shift_magnetometer
 from casmag.data.recording import Recording, read_recording
 from casmag.data.simulate import Dataset
@@ -429,9 +429,7 @@ def slam(
         data = rec.to_dataset(anchor)
         prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides, given)
     found = _plausibility(rec, data, prob) + (lag_warning(lag) if not removed else [])
-    for line in warning_lines(recording, found):
-        if on_warning is not None:
-            on_warning(line)
+    announce(recording, found, on_warning)
     if not field_check and how["field_evidence"].get("constant"):
         refuse_constant_field(recording)
     if saved is not None and method == "ekf":
@@ -690,9 +688,7 @@ def slam_sessions(
     found = []
     for path, rec, d in zip(recordings, recs, datasets, strict=True):
         own = _plausibility(rec, d, prob)
-        for line in warning_lines(path, own):
-            if on_warning is not None:
-                on_warning(line)
+        announce(path, own, on_warning)
         found.extend({**w, "recording": str(path)} for w in own)
     if prob.spec.model.gp.form != "reduced_rank" and data.n_sessions > 1:
         raise ProblemError(
