@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-lag bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-lag bench-imu-mag-rate bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -76,6 +76,9 @@ SEEDS  ?= 20
 # make bench-imu-lag: the magnetometer's lag put into the recordings [s], and seeds per scenario.
 LAG    ?= 0.2
 LAG_SEEDS ?= 1
+# make bench-imu-mag-rate: the magnetometer on every MAG_EVERY-th IMU row, and seeds per scenario.
+MAG_EVERY ?= 4
+MAG_SEEDS ?= 2
 PAPER  ?= results/paper
 TABLES := table1 table2 table3 table4 table5
 SWEEP  := $(VENV)/bin/casmag sweep --seeds $(SEEDS)
@@ -170,6 +173,9 @@ bench-imu-recordings: $(STAMP) ## Every IMU scenario written as a recording and 
 
 bench-imu-lag: $(STAMP) ## The handwriting, rectangle and spiral recordings with the magnetometer LAG s late (default 0.2), casmag slam with and without --mag-lag auto, LAG_SEEDS seeds -> results/bench/imu-lag/ (hours: a lag slows the solve)
 	$(PY) -m casmag.experiments.imurecbench problems/imu/handwriting.yaml problems/imu/rectangle.yaml problems/imu/spiral.yaml --seeds $(LAG_SEEDS) --lag $(LAG) --out results/bench/imu-lag
+
+bench-imu-mag-rate: $(STAMP) ## The handwriting and rectangle recordings with the magnetometer on every MAG_EVERY-th IMU row only (default 4: 25 Hz beside 100 Hz), casmag slam on both, MAG_SEEDS seeds -> results/bench/imu-mag-rate/
+	$(PY) -m casmag.experiments.imurecbench problems/imu/handwriting.yaml problems/imu/rectangle.yaml --seeds $(MAG_SEEDS) --mag-every $(MAG_EVERY) --out results/bench/imu-mag-rate
 
 bench-imu-strategies: $(STAMP) ## Every IMU scenario with each warm-start strategy (none, coarse-to-fine, sliding) over SEEDS seeds -> results/bench/imu-<strategy>/
 	@for s in none coarse-to-fine sliding; do \

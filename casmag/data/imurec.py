@@ -94,20 +94,47 @@ def rest_noise(rec: Recording, T: float, n: int) -> RestNoise:
     """The white noise of the gyroscope, accelerometer and magnetometer from the first n
     intervals (module docstring): each axis's sample standard deviation about its mean,
     the root mean square over the axes; a density is the per-sample deviation times
-    sqrt(T). The magnetometer's is at least its rounding noise (:func:`quantisation_floor`)."""
+    sqrt(T) (:func:`_density`). When the recording was resampled, from its rows as
+    recorded over the same time (``rec.imu_samples``, each over its own interval: resampled
+    increments average neighbouring samples, which hides part of the noise), and the
+    magnetometer from its own samples (``rec.mag_samples``). The magnetometer's is at least
+    its rounding noise (:func:`quantisation_floor`), NaN when the rest holds fewer than two
+    of its samples."""
     dq, dv = rec.increments[:n, :4], rec.increments[:n, 4:]
-    rate = sd.quat_log(dq) / T  # rad/s
-    force = dv / T
-    spread = lambda x: float(np.sqrt(np.mean(np.var(x, axis=0, ddof=1))))  # noqa: E731
     turned = np.degrees(np.linalg.norm(sd.quat_log(sd.compose_increments(dq, dv, T, n)[0][0])))
+    force_mean = float(np.linalg.norm((dv / T).mean(axis=0)))
+    dt = np.full(n, T)
+    if rec.imu_samples is not None:  # resampled: the rows as recorded, each its interval
+        tr, inc = rec.imu_samples
+        rest = tr[1:] <= rec.t[n] + 1e-9 * T
+        dt, dq, dv = np.diff(tr)[rest], inc[rest, :4], inc[rest, 4:]
+    spread = lambda x: float(np.sqrt(np.mean(np.var(x, axis=0, ddof=1))))  # noqa: E731
+    Y = rec.Y
+    at_rest = Y[: n + 1]
+    if rec.mag_samples is not None:  # its own samples, not the interpolated rows
+        tm, Y = rec.mag_samples
+        at_rest = Y[(tm >= rec.t[0]) & (tm <= rec.t[n])]
+    sigma_m = np.nan  # too few samples at rest (one magnetometer sample or none)
+    if at_rest.shape[0] >= 2:
+        sigma_m = max(spread(at_rest), quantisation_floor(Y))
     return RestNoise(
-        gyro_noise_density=float(np.degrees(spread(rate)) * np.sqrt(T)),
-        acc_noise_density=spread(force) * float(np.sqrt(T)),
-        sigma_m=max(spread(rec.Y[: n + 1]), quantisation_floor(rec.Y)),
+        gyro_noise_density=float(np.degrees(_density(sd.quat_log(dq), dt))),
+        acc_noise_density=_density(dv, dt),
+        sigma_m=sigma_m,
         samples=int(n),
-        specific_force=float(np.linalg.norm(force.mean(axis=0))),
+        specific_force=force_mean,
         turned_deg=float(turned),
     )
+
+
+def _density(x: np.ndarray, dt: np.ndarray) -> float:
+    """The noise density of increments x (n, 3) integrated over the intervals dt (n,): a
+    white rate r with density s integrates to x = r dt with standard deviation s sqrt(dt),
+    so (x / dt - mean rate) sqrt(dt) has standard deviation s; the root mean square over
+    the axes of each one's sample standard deviation."""
+    w = np.sqrt(dt)[:, None]
+    deviation = (x / dt[:, None] - x.sum(axis=0) / dt.sum()) * w
+    return float(np.sqrt(np.mean(np.var(deviation, axis=0, ddof=1))))
 
 
 def quantisation_floor(Y: np.ndarray) -> float:
@@ -169,6 +196,6 @@ def imu_data(rec: Recording, rest_seconds: float, anchor: str = "truth") -> tupl
         truth = Truth(t=rec.t, P=rec.P_true, V=None, Q=rec.q_true)
     data = ImuData(
         T=T, dq=dq, dv=dv, Y=rec.Y, p0=p0, v0=np.zeros(3),
-        q0=levelled_attitude(dv, T, n, yaw), truth=truth,
+        q0=levelled_attitude(dv, T, n, yaw), truth=truth, mag_share=rec.mag_share,
     )  # fmt: skip
     return data, n

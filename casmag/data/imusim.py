@@ -322,6 +322,10 @@ class ImuData:
     #: Each session's known initial state, rows (p0, v0, q0) (S, 10); None: one session
     #: from (p0, v0, q0).
     initial: np.ndarray | None = None
+    #: Magnetometer samples per IMU sample (at most 1): below 1 when a slower magnetometer
+    #: was interpolated to the IMU's samples (casmag.data.recording.Recording.mag_share), so
+    #: that an average over several IMU samples holds fewer independent magnetometer samples.
+    mag_share: float = 1.0
 
     @property
     def n_samples(self) -> int:
@@ -346,7 +350,8 @@ def stack_sessions(sessions: list[ImuData]) -> ImuData:
     ImuData with ``starts`` (the first sample of each) and each one's initial state in
     ``initial``: one IMU interval T (ValueError otherwise), a no-motion increment row
     (identity rotation, zero velocity change; not read) before each later session, the
-    truth's times shifted to follow on, truth arrays kept when every session has them."""
+    truth's times shifted to follow on, truth arrays kept when every session has them, the
+    smallest magnetometer share."""
     first = sessions[0]
     for d in sessions[1:]:
         if abs(d.T - first.T) > 1e-9 * first.T:
@@ -373,6 +378,7 @@ def stack_sessions(sessions: list[ImuData]) -> ImuData:
         p0=first.p0, v0=first.v0, q0=first.q0, truth=truth,
         b_w=_stacked([d.b_w for d in sessions]), b_a=_stacked([d.b_a for d in sessions]),
         M=_stacked([d.M for d in sessions]), starts=starts, initial=initial,
+        mag_share=min(d.mag_share for d in sessions),
     )  # fmt: skip
 
 

@@ -32,14 +32,22 @@ turned back into increments between them (planar: in the body frame at the earli
 heading; pose: orientations interpolated by slerp, displacements in the earlier row's body
 frame); truth is interpolated the same way (quaternion truth must be on every
 magnetometer row); magnetometer rows after the last motion row are dropped. The reader
-says what it did in ``Recording.notes`` (warnings in result.json). IMU recordings take
-complete rows only; their sample times must be uniform for the IMU model (one interval T),
-so when an interval differs from the median by more than :data:`IMU_PERIOD_TOLERANCE`
-(clock jitter, a dropped sample, a gap) the recording is resampled onto a uniform grid
-over its span (:func:`_imu_to_uniform_rows`): the increments integrated at the recorded
-times (velocity sums and orientations, as strapdown integration composes them), interpolated
-to the grid (linearly; orientations by slerp) and turned back into increments between
-grid times; the magnetometer and the truth interpolated the same way.
+says what it did in ``Recording.notes`` (warnings in result.json). IMU recordings keep the
+IMU's rows instead: a magnetometer on other rows (slower, or with time stamps of its own)
+is interpolated to them in the frame of the gyroscope's attitude, so that a turn between
+its samples does not shrink the field (:func:`_magnetometer_to_imu_rows`; its own samples
+are kept in ``Recording.mag_samples`` for its noise, and the IMU model counts an average
+over several rows as the samples it holds). The IMU's sample times must be uniform for
+the IMU model (one interval T): when an interval differs from the median by more than
+:data:`IMU_PERIOD_TOLERANCE` and the increments follow a uniform rate rather than the
+stamps (the stamps jitter), the rows are kept and moved to a fitted uniform grid
+(``retimed``); otherwise (samples taken at irregular times, a dropped sample, a gap) the
+recording is resampled onto a uniform grid over its span (:func:`_imu_to_uniform_rows`):
+the increments integrated at the recorded times (velocity sums and orientations, as
+strapdown integration composes them), interpolated to the grid (linearly; orientations by
+slerp) and turned back into increments between grid times; the magnetometer and the truth
+interpolated the same way; the rows as recorded are kept in ``Recording.imu_samples`` and
+``Recording.mag_samples`` for the noise at rest.
 
 Every problem with a file raises :class:`~casmag.errors.DataError` as one line naming the
 file, the row (header = row 1, first data row = row 2) or column, and the reason.
@@ -149,7 +157,11 @@ class Recording:
     (N, 4) orientation quaternion (w, x, y, z). notes: what reading changed (rows sharing
     a time stamp merged, odometry and magnetometer at different rates brought to the
     magnetometer's rows), each a warning ``{"check", "column", "reason"}``
-    (casmag.data.checks).
+    (casmag.data.checks). mag_samples: an IMU recording's magnetometer samples (times (M,),
+    values (M, 3)) as written, when they were interpolated to the rows (on other rows than
+    the IMU's, or the IMU resampled onto a uniform grid; None otherwise; :attr:`mag_share`);
+    imu_samples: its IMU rows as written (times (K,), increments (K-1, 7) of rows 2..K) when
+    they were resampled (the noise at rest is estimated from these).
     """
 
     path: str
@@ -162,11 +174,27 @@ class Recording:
     yaw_true: np.ndarray | None = None
     q_true: np.ndarray | None = None
     notes: tuple[dict[str, str], ...] = ()
+    mag_samples: tuple[np.ndarray, np.ndarray] | None = None
+    imu_samples: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def n_samples(self) -> int:
-        """Number of rows N (magnetometer samples)."""
+        """Number of rows N (magnetometer samples; IMU: IMU samples)."""
         return self.Y.shape[0]
+
+    @property
+    def mag_share(self) -> float:
+        """Magnetometer samples per row, at most 1: 1 when the magnetometer was measured on
+        every row; for an IMU recording whose magnetometer was on other rows (``mag_samples``:
+        its own times and values, interpolated to the IMU's rows), the ratio of the rates
+        (the rows' median interval over the magnetometer's), or its samples within the
+        rows' time span per row interval when fewer (samples lost)."""
+        if self.mag_samples is None:
+            return 1.0
+        tm = self.mag_samples[0]
+        inside = int(np.count_nonzero((tm >= self.t[0]) & (tm <= self.t[-1])))
+        rates = float(np.median(np.diff(self.t)) / np.median(np.diff(tm)))
+        return min(1.0, rates, inside / (self.n_samples - 1))
 
     @property
     def dim(self) -> int:
@@ -524,7 +552,7 @@ def read_recording(path: str | Path) -> Recording:
     truth_cols = [c for c in (*POSITION_TRUTH_COLUMNS, YAW_TRUTH_COLUMN) if c in col]
     if QUATERNION_TRUTH_COLUMNS[0] in col:
         truth_cols += list(QUATERNION_TRUTH_COLUMNS)
-    A, notes = _regularise(path, A, absent, col, motion, motion_cols, truth_cols)
+    A, notes, raw = _regularise(path, A, absent, col, motion, motion_cols, truth_cols)
     t = A[:, col[TIME_COLUMN]]
 
     def columns(group: Sequence[str]) -> np.ndarray | None:
@@ -555,6 +583,7 @@ def read_recording(path: str | Path) -> Recording:
         yaw_true=A[:, col[YAW_TRUTH_COLUMN]].copy() if YAW_TRUTH_COLUMN in col else None,
         q_true=q_true,
         notes=tuple(notes),
+        **raw,
     )
 
 
@@ -598,9 +627,11 @@ def _regularise(
     motion: str,
     motion_cols: Sequence[str],
     truth_cols: Sequence[str],
-) -> tuple[np.ndarray, list[dict[str, str]]]:
-    """The rows as the solver takes them, one per magnetometer sample, from rows as sensors
-    write them (see :func:`read_recording`); the notes say what was changed."""
+) -> tuple[np.ndarray, list[dict[str, str]], dict[str, Any]]:
+    """The rows as the solver takes them, one per magnetometer sample (IMU: one per IMU
+    sample), from rows as sensors write them (see :func:`read_recording`); the notes say
+    what was changed; an IMU recording's samples as recorded when its rows were made from
+    them by interpolation (``mag_samples``, ``imu_samples``: Recording's fields)."""
     notes: list[dict[str, str]] = []
     mi = [col[c] for c in motion_cols]
     yi = [col[c] for c in MAGNETOMETER_COLUMNS]
@@ -630,15 +661,6 @@ def _regularise(
     has_motion = ~absent[:, mi].any(axis=1)
     has_motion[0] = True  # the first row is where the dead reckoning starts
     has_mag = ~absent[:, yi].any(axis=1)
-    if motion == "imu" and not (has_motion.all() and has_mag.all()):
-        i = int(np.flatnonzero(~(has_motion & has_mag))[0])
-        j = next(j for j in (*mi, *yi) if absent[i, j] and (i > 0 or j in yi))
-        name = [*motion_cols, *MAGNETOMETER_COLUMNS][[*mi, *yi].index(j)]
-        raise _error(
-            path,
-            f"row {i + 2}, column '{name}'",
-            "empty value (IMU increments and the magnetometer are needed on every row)",
-        )
     same = np.r_[False, np.all((A[1:] == A[:-1]) | (absent[1:] & absent[:-1]), axis=1)]
     if same.any():  # a row written twice by the logger: one of them
         A, absent = A[~same], absent[~same]
@@ -661,12 +683,25 @@ def _regularise(
                 f"into it (motion increments {how}, magnetometer and truth averaged)",
             }
         )
-    if motion == "imu":  # complete rows (checked above): one interval T
-        A, note = _imu_to_uniform_rows(A, absent, col, mi)
-        return A, notes + ([note] if note else [])
+    if motion == "imu":
+        raw: dict[str, Any] = {}
+        if not (has_motion.all() and has_mag.all()):
+            A, absent, raw["mag_samples"], note = _magnetometer_to_imu_rows(
+                path, A, absent, col, mi, yi, has_motion, has_mag
+            )
+            notes.append(note)
+        resampled, note = _imu_to_uniform_rows(A, absent, col, mi)  # complete rows: one T
+        if note is not None and note["check"] == "resampled":  # the rows as recorded
+            t = A[:, col[TIME_COLUMN]]
+            raw["imu_samples"] = (t.copy(), A[1:, mi].copy())
+            raw.setdefault("mag_samples", (t.copy(), A[:, yi].copy()))
+        return resampled, notes + ([note] if note else []), raw
     if has_motion.all() and has_mag.all():
-        return A, notes
-    return _to_magnetometer_rows(path, A, absent, col, motion, mi, yi, has_motion, has_mag, notes)
+        return A, notes, {}
+    A, notes = _to_magnetometer_rows(
+        path, A, absent, col, motion, mi, yi, has_motion, has_mag, notes
+    )
+    return A, notes, {}
 
 
 def _merge_equal_times(
@@ -745,6 +780,119 @@ def _slerp(tk: np.ndarray, tm: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return quat_normalize(quat_mul(Q[j], quat_exp(s[:, None] * quat_log(d))))
 
 
+def _grid_times(t: np.ndarray, period: float) -> tuple[np.ndarray, float] | None:
+    """The time stamps t moved to a uniform grid of whole periods, and its period: the
+    line t = t0 + period k fitted by least squares, k one period per row when every stamp
+    is within half a period of that line, else each interval's whole number of ``period``
+    (the median interval; a missing sample: two), refined; None when two stamps fall on one
+    period."""
+    k = np.arange(t.size, dtype=float)  # no sample missing: one period per row
+    slope, t0 = np.polyfit(k, t, 1)
+    if np.abs(t - (t0 + slope * k)).max() < 0.5 * slope:
+        return t0 + slope * k, float(slope)
+    k = np.r_[0.0, np.cumsum(np.maximum(1.0, np.round(np.diff(t) / period)))]
+    for _ in range(3):  # each interval's whole periods first: the median drifts over a run
+        slope, t0 = np.polyfit(k, t, 1)
+        k = np.round((t - t0) / slope)
+        if np.any(np.diff(k) < 1):
+            return None
+    return t0 + slope * k, float(slope)
+
+
+def _stamps_jitter(dv: np.ndarray, stamped: np.ndarray, grid: np.ndarray) -> bool:
+    """Whether an IMU's velocity increments dv (n, 3) were integrated over the intervals of
+    a uniform grid (``grid``, n: whole periods) rather than over the stamped intervals
+    (``stamped``, n): the specific force dv / interval (gravity at least) is smoother,
+    summed squared differences between neighbouring rows, over the grid's intervals. Over
+    its true intervals the force varies only with the motion and the noise; over wrong ones
+    it also varies by gravity times the intervals' relative error."""
+    by_stamps = np.diff(dv / stamped[:, None], axis=0)
+    by_grid = np.diff(dv / grid[:, None], axis=0)
+    return float(np.sum(by_grid**2)) < float(np.sum(by_stamps**2))
+
+
+def _magnetometer_to_imu_rows(
+    path: str,
+    A: np.ndarray,
+    absent: np.ndarray,
+    col: dict[str, int],
+    mi: list[int],
+    yi: list[int],
+    has_motion: np.ndarray,
+    has_mag: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], dict[str, str]]:
+    """An IMU recording whose magnetometer is on other rows (another rate, or its own time
+    stamps): the IMU's rows, each with the magnetometer interpolated to its time. The
+    samples are turned into one frame by the gyroscope's attitude (G, integrated from the
+    dq increments, by slerp between IMU rows at a sample's time, beyond the first or last
+    IMU row continued at that interval's rate), interpolated linearly in
+    that frame and turned back into the body frame of the row, so that a turn between two
+    samples does not shrink the field. IMU rows before the first or after the last
+    magnetometer sample are dropped (the first one kept is where the motion starts); truth
+    on other rows is interpolated to the IMU rows (quaternions by slerp). Returns the
+    rows, their absent mask, the magnetometer's own samples (times, values) and the note."""
+    it = col[TIME_COLUMN]
+    t = A[:, it]
+    tm, Ym = t[has_mag], A[has_mag][:, yi]
+    if tm.size < 2:
+        raise _error(
+            path,
+            f"columns {_names(MAGNETOMETER_COLUMNS)}",
+            f"needs at least 2 magnetometer samples (got {tm.size})",
+        )
+    rows = np.flatnonzero(has_motion)
+    keep = rows[(t[rows] >= tm[0]) & (t[rows] <= tm[-1])]
+    if keep.size < _MIN_ROWS:
+        raise _error(
+            path,
+            "",
+            f"needs at least {_MIN_ROWS} IMU rows within the magnetometer's time span "
+            f"(got {keep.size})",
+        )
+    ti = t[rows]
+    U = np.zeros((rows.size, 7))
+    U[:, 3] = 1.0
+    U[1:, 3:] = A[rows[1:]][:, mi[:4]]
+    G = quat_prefix(U[:, 3:])  # the gyroscope's attitude at the IMU rows
+    Gm = _slerp(tm, ti, G)  # beyond the IMU rows: carried on at the nearest interval's rate
+    Z = rotate(Gm, Ym)
+    tk = t[keep]
+    at = np.column_stack([np.interp(tk, tm, Z[:, j]) for j in range(3)])
+    out = A[keep].copy()
+    gone = absent[keep].copy()
+    out[:, yi] = rotate(quat_conj(G[np.searchsorted(rows, keep)]), at)
+    gone[:, yi] = False
+    out[0, mi] = np.nan  # the start: its increments are ignored
+    quaternion = [col[c] for c in QUATERNION_TRUTH_COLUMNS if c in col]
+    for name in (*POSITION_TRUTH_COLUMNS, YAW_TRUTH_COLUMN):
+        if name not in col:
+            continue
+        j = col[name]
+        have = ~absent[:, j]
+        if have.sum() >= 2 and not have[keep].all():
+            values = np.unwrap(A[have, j]) if name == YAW_TRUTH_COLUMN else A[have, j]
+            out[:, j] = np.interp(tk, t[have], values)
+            gone[:, j] = False
+    if quaternion:
+        have = ~absent[:, quaternion].any(axis=1)
+        if have.sum() >= 2 and not have[keep].all():
+            out[:, quaternion] = _slerp(tk, t[have], quat_normalize(A[have][:, quaternion]))
+            gone[:, quaternion] = False
+    n_mag = int(np.count_nonzero((tm >= tk[0]) & (tm <= tk[-1])))
+    reason = (
+        f"IMU increments on {keep.size} rows and the magnetometer on {tm.size} "
+        f"({n_mag} within the IMU rows' span, about {n_mag / max(tk[-1] - tk[0], 1e-300):.4g} "
+        f"Hz against {(keep.size - 1) / max(tk[-1] - tk[0], 1e-300):.4g} Hz): the magnetometer "
+        "was interpolated to the IMU rows (in the gyroscope's frame), its noise counted per "
+        "sample it has"
+    )
+    dropped = rows.size - keep.size
+    if dropped:
+        reason += f"; {dropped} IMU rows outside the magnetometer's time span were dropped"
+    note = {"check": "resampled", "column": ", ".join(MAGNETOMETER_COLUMNS), "reason": reason}
+    return out, gone, (tm.copy(), Ym.copy()), note
+
+
 def _imu_to_uniform_rows(
     A: np.ndarray, absent: np.ndarray, col: dict[str, int], mi: list[int]
 ) -> tuple[np.ndarray, dict[str, str] | None]:
@@ -755,7 +903,16 @@ def _imu_to_uniform_rows(
     it, at least one (jitter: one each, the row count kept; a dropped sample: two).
     Velocity sums v_k = v_{k-1} + R(q_{k-1}) dv_k and orientations q_k = q_{k-1} dq_k are
     integrated at the recorded rows, interpolated to the grid (v linearly, q by slerp),
-    and the grid's increments are dq = q_a^-1 q_b and dv = R(q_a)^T (v_b - v_a)."""
+    and the grid's increments are dq = q_a^-1 q_b and dv = R(q_a)^T (v_b - v_a).
+
+    Unless only the time stamps jitter (:func:`_stamps_jitter`: no interval near two or
+    more median intervals, and the velocity increments smoother as they are than over their
+    stamped intervals): an IMU sampled by its own clock and stamped by another's (a phone's
+    operating system) integrates over uniform intervals whatever the stamps say, and
+    resampling by the stamps would add the stamps' error to every increment (tiny desk
+    recording, stamps jittered by up to 5 % of the interval: the accelerometer's noise at
+    rest came out 31-40 times the simulated). Such rows are kept as they are, on the uniform
+    grid (note ``retimed``)."""
     it = col[TIME_COLUMN]
     t = A[:, it]
     dt = np.diff(t)
@@ -763,6 +920,31 @@ def _imu_to_uniform_rows(
     off = np.abs(dt - median) > IMU_PERIOD_TOLERANCE * median
     if not off.any():
         return A, None
+    i = int(np.argmax(np.abs(dt - median)))
+    largest = f"(the largest: {dt[i]:.6g} s, up to t = {t[i + 1]:.6g} s)"
+    grid = _grid_times(t, median)
+    retimed = ""
+    if grid is not None and _stamps_jitter(A[1:, mi[4:]], dt, np.diff(grid[0])):
+        t, period = grid
+        retimed = (
+            "the velocity increments follow a uniform rate, not the time stamps (the stamps "
+            f"jitter): each row moved to the nearest multiple of {period:.6g} s from the first "
+            "stamp"
+        )
+        if np.allclose(np.diff(t), period, rtol=1e-6):  # no sample missing
+            out = A.copy()
+            out[:, it] = t
+            return out, {
+                "check": "retimed",
+                "column": TIME_COLUMN,
+                "reason": (
+                    f"{int(off.sum())} of {dt.size} sample intervals differ from the median "
+                    f"{median:.6g} s by more than {IMU_PERIOD_TOLERANCE:.0%} {largest}, but "
+                    f"{retimed}, the rows kept as they are"
+                ),
+            }
+        dt = np.diff(t)
+        median = period
     span = float(t[-1] - t[0])
     m = int(np.maximum(1, np.round(dt / median)).sum())  # a dropped sample: 2 intervals
     tk = t[0] + (span / m) * np.arange(m + 1)
@@ -787,14 +969,14 @@ def _imu_to_uniform_rows(
         have = ~absent[:, quaternion].any(axis=1)
         if have.sum() >= 2:
             out[:, quaternion] = _slerp(tk, t[have], quat_normalize(A[have][:, quaternion]))
-    i = int(np.argmax(np.abs(dt - median)))
     note = {
         "check": "resampled",
         "column": TIME_COLUMN,
         "reason": (
             f"{int(off.sum())} of {dt.size} sample intervals differ from the median "
-            f"{median:.6g} s by more than {IMU_PERIOD_TOLERANCE:.0%} (the largest: "
-            f"{dt[i]:.6g} s, up to t = {t[i + 1]:.6g} s): the IMU increments, the "
+            f"{median:.6g} s by more than {IMU_PERIOD_TOLERANCE:.0%} {largest}: "
+            + (f"{retimed}, and " if retimed else "")
+            + "the IMU increments, the "
             f"magnetometer and the truth were resampled onto a uniform grid of {span / m:.6g} s "
             f"({tk.size} rows from {A.shape[0]})"
         ),
@@ -960,7 +1142,9 @@ def write_recording(
 ) -> None:
     """Write a recording CSV file that :func:`read_recording` reads back exactly.
 
-    t: (N,) strictly increasing times [s]; Y: (N, 3) magnetometer. Exactly one motion input,
+    t: (N,) strictly increasing times [s]; Y: (N, 3) magnetometer, a row of NaN where it
+    was not sampled (written as empty cells: a magnetometer slower than the motion input;
+    at least two rows sampled). Exactly one motion input,
     given for steps 1..N-1 (the first row's increments are written as 0, pose's dq as 1):
     dxy (N-1, 2) or (N-1, 3) world-frame position increments [m] (columns dx, dy[, dz]);
     planar (N-1, 3) body-frame dfwd, dleft [m] and dyaw [rad]; imu (N-1, 7) dqw..dqz, dvx..dvz;
@@ -1003,7 +1187,12 @@ def write_recording(
     if kind == "pose":
         first[0, 3] = 1.0  # the identity rotation
     blocks: list[np.ndarray] = [t[:, None], np.vstack([first, U])]
-    blocks.append(_as_array(path, "Y", Y, n, (3,)))
+    Y = np.asarray(Y, dtype=np.float64)
+    unsampled = np.isnan(Y).all(axis=1) if Y.ndim == 2 else np.zeros(0, bool)
+    if unsampled.sum() > n - 2:
+        raise _error(path, "Y", "needs at least two sampled rows (rows of NaN are not sampled)")
+    sampled = _as_array(path, "Y", np.where(unsampled[:, None], 0.0, Y), n, (3,))
+    blocks.append(np.where(unsampled[:, None], np.nan, sampled))
     if P_true is not None:
         P = _as_array(path, "P_true", P_true, n, (2, 3))
         names += POSITION_TRUTH_COLUMNS[: P.shape[1]]
@@ -1021,7 +1210,10 @@ def write_recording(
         blocks.append(q)
 
     A = np.hstack(blocks)
-    body = "\n".join(",".join(map(repr, row)) for row in A.tolist())
+    if unsampled.any():  # empty cells where the magnetometer was not sampled
+        body = "\n".join(",".join("" if v != v else repr(v) for v in row) for row in A.tolist())
+    else:
+        body = "\n".join(",".join(map(repr, row)) for row in A.tolist())
     _write_atomic(path, ",".join(names) + "\n" + body + "\n")
 
 

@@ -27,6 +27,12 @@ that late (row k reads the field of time t_k - lag) and solved by ``casmag slam 
 instead: as it is (the lag estimated on the path solved and reported) and with ``--mag-lag
 auto`` (the estimated lag removed); each row has the estimate, what was removed, GP-SLAM's
 RMSE and the wall time (``runs/<scenario>-<seed>-lag<SECONDS>.json``).
+
+With ``--mag-every K`` (``make bench-imu-mag-rate``) the recording is written twice: as
+simulated, and with the magnetometer on every K-th row only (the other rows' mx, my, mz
+empty: a magnetometer K times slower than the IMU, which casmag.data.recording
+interpolates to the IMU's rows); both solved by ``casmag slam REC`` with its defaults
+(``runs/<scenario>-<seed>-every<K>.json``).
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ import argparse
 import json
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -126,6 +133,51 @@ def run_lag(
     return out
 
 
+def run_mag_rate(
+    path: Path, seed: int, folder: Path, every: int, overrides: list[str] | None = None
+) -> dict[str, Any]:
+    """One scenario and seed written with the magnetometer on every row and on every
+    ``every``-th row only, both solved as recordings (module docstring)."""
+    prob = load_imu_problem(path, [*(overrides or []), f"seed={seed}"])
+    data = simulate_imu(prob)
+    tr = data.truth
+    slow = np.full_like(data.Y, np.nan)
+    slow[::every] = data.Y[::every]
+    out: dict[str, Any] = {"scenario": path.stem, "seed": seed, "every": every}
+    for key, Y in (("every_row", data.Y), ("slow", slow)):
+        rec = (
+            folder / f"{path.stem}-{seed}-{'every1' if key == 'every_row' else f'every{every}'}.csv"
+        )
+        write_recording(rec, tr.t, Y, imu=np.hstack([data.dq, data.dv]), P_true=tr.P, q_true=tr.Q)
+        t0 = time.perf_counter()
+        r = slam(rec)
+        out[key] = {
+            **_row(r, time.perf_counter() - t0),
+            "sigma_m_rest": r.info["defaults"]["rest"]["sigma_m"],
+        }
+    out["sigma_m_true"] = prob.spec.simulation.magnetometer.noise
+    return out
+
+
+def mag_rate_table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
+    def row(run: dict[str, Any]) -> str:
+        a, b, true = run["every_row"], run["slow"], run["sigma_m_true"]
+        return (
+            f"| {run['scenario']} | {run['seed']} | {run['every']} rows "
+            f"| {cell(a['rmse_imu_only'])} "
+            f"| {cell(a['rmse_gp_slam'])}, {a['status']}, {cell(a['seconds'], '.0f')}, "
+            f"{cell(a['sigma_m_rest'] / true, '.2f')} "
+            f"| {cell(b['rmse_gp_slam'])}, {b['status']}, {cell(b['seconds'], '.0f')}, "
+            f"{cell(b['sigma_m_rest'] / true, '.2f')} |"
+        )
+
+    head = (
+        "| scenario | seed | magnetometer every | IMU-only RMSE | every row: GP-SLAM RMSE, "
+        "status, s, sigma_m / true | slower: GP-SLAM RMSE, status, s, sigma_m / true |"
+    )
+    return _table(head, runs, vers, row, "every")
+
+
 def cell(v: Any, fmt: str = ".3g") -> str:
     """A table cell: ``v`` formatted, ``-`` for None."""
     return "-" if v is None else format(v, fmt)
@@ -138,40 +190,49 @@ def _with_versions(lines: list[str], vers: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def lag_table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
-    lines = [
-        "| scenario | seed | lag put in [s] | as it is: estimate [s], GP-SLAM RMSE, status, s "
-        "| --mag-lag auto: removed [s], left [s], GP-SLAM RMSE, status, s |",
-        "|---|---|---|---|---|",
-    ]
+def _table(
+    head: str,
+    runs: list[dict[str, Any]],
+    vers: dict[str, Any],
+    row: Callable[[dict[str, Any]], str],
+    third: str | None = None,
+) -> str:
+    """A markdown table: the header ``head``, one ``row(run)`` per run, a run that failed
+    as its scenario, seed (and its ``third`` key) and error; the versions under it."""
+    columns = head.count("|") - 1
+    lines = [head, "|" + "---|" * columns]
     for run in runs:
-        if "error" in run:
-            lines.append(f"| {run['scenario']} | {run['seed']} | {run['lag']:g} | error: "
-                         f"{run['error']} ||")  # fmt: skip
+        if "error" not in run:
+            lines.append(row(run))
             continue
+        cells = [run["scenario"], run["seed"], *([run.get(third)] if third else [])]
+        cells.append(f"error: {run['error']}")
+        lines.append("| " + " | ".join(map(str, cells)) + " |" + "|" * (columns - len(cells)))
+    return _with_versions(lines, vers)
+
+
+def lag_table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
+    def row(run: dict[str, Any]) -> str:
         a, b = run["as_is"], run["auto"]
-        lines.append(
+        return (
             f"| {run['scenario']} | {run['seed']} | {run['lag']:g} "
             f"| {cell(a['lag_estimate'], '+.2f')}, {cell(a['rmse_gp_slam'])}, {a['status']}, "
             f"{cell(a['seconds'], '.0f')} "
             f"| {cell(b['lag_removed'], '+.2f')}, {cell(b['lag_estimate'], '+.2f')}, "
             f"{cell(b['rmse_gp_slam'])}, {b['status']}, {cell(b['seconds'], '.0f')} |"
         )
-    return _with_versions(lines, vers)
+
+    head = (
+        "| scenario | seed | lag put in [s] | as it is: estimate [s], GP-SLAM RMSE, status, s "
+        "| --mag-lag auto: removed [s], left [s], GP-SLAM RMSE, status, s |"
+    )
+    return _table(head, runs, vers, row, "lag")
 
 
 def table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
-    lines = [
-        "| scenario | seed | IMU-only RMSE: imu, slam | casmag imu: GP-SLAM RMSE, status, it, s "
-        "| casmag slam: GP-SLAM RMSE, status, it, s | rest / truth: gyro, acc, sigma_m |",
-        "|---|---|---|---|---|---|",
-    ]
-    for run in runs:
-        if "error" in run:
-            lines.append(f"| {run['scenario']} | {run['seed']} | error: {run['error']} |||||")
-            continue
+    def row(run: dict[str, Any]) -> str:
         a, b, q = run["problem"], run["recording"], run["rest_over_truth"]
-        lines.append(
+        return (
             f"| {run['scenario']} | {run['seed']} "
             f"| {cell(a['rmse_imu_only'])}, {cell(b['rmse_imu_only'])} "
             f"| {cell(a['rmse_gp_slam'])}, {a['status']}, {a['iterations']}, "
@@ -181,7 +242,12 @@ def table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
             f"| {cell(q['gyro_noise_density'], '.2f')}, {cell(q['acc_noise_density'], '.2f')}, "
             f"{cell(q['sigma_m'], '.2f')} |"
         )
-    return _with_versions(lines, vers)
+
+    head = (
+        "| scenario | seed | IMU-only RMSE: imu, slam | casmag imu: GP-SLAM RMSE, status, it, s "
+        "| casmag slam: GP-SLAM RMSE, status, it, s | rest / truth: gyro, acc, sigma_m |"
+    )
+    return _table(head, runs, vers, row)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -203,7 +269,15 @@ def main(argv: list[str] | None = None) -> int:
         help="write the magnetometer this many seconds late and solve the recording with "
         "and without --mag-lag auto",
     )
+    ap.add_argument(
+        "--mag-every",
+        type=int,
+        default=None,
+        help="also write the magnetometer on every K-th row only and solve both recordings",
+    )
     args = ap.parse_args(argv)
+    if args.lag is not None and args.mag_every is not None:
+        ap.error("--lag and --mag-every: one at a time")
     vers = versions()
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
     (args.out / "recordings").mkdir(parents=True, exist_ok=True)
@@ -211,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     for path in args.problems:
         for seed in range(1, args.seeds + 1):
             stem = f"{path.stem}-{seed}" + ("" if args.lag is None else f"-lag{args.lag:g}")
+            if args.mag_every is not None:
+                stem += f"-every{args.mag_every}"
             saved = args.out / "runs" / f"{stem}.json"
             key = {"versions": vers, "source": source_digest(path), "overrides": args.overrides}
             if saved.exists():
@@ -220,7 +296,9 @@ def main(argv: list[str] | None = None) -> int:
                     continue
             try:
                 folder = args.out / "recordings"
-                if args.lag is None:
+                if args.mag_every is not None:
+                    run = run_mag_rate(path, seed, folder, args.mag_every, args.overrides)
+                elif args.lag is None:
                     run = run_one(path, seed, folder, args.overrides)
                 else:
                     run = run_lag(path, seed, folder, args.lag, args.overrides)
@@ -233,11 +311,16 @@ def main(argv: list[str] | None = None) -> int:
             runs.append(run)
             print(f"{path.stem} seed {seed}: done", flush=True)
     name = "imu-recordings" if args.lag is None else f"imu-lag{args.lag:g}"
+    if args.mag_every is not None:
+        name = f"imu-mag-every{args.mag_every}"
     write_text_atomic(
         args.out / f"{name}.json", json.dumps({"runs": runs, "versions": vers}, indent=2)
     )
     head = f"Problem files with {', '.join(args.overrides)}.\n\n" if args.overrides else ""
-    body = table(runs, vers) if args.lag is None else lag_table(runs, vers)
+    if args.mag_every is not None:
+        body = mag_rate_table(runs, vers)
+    else:
+        body = table(runs, vers) if args.lag is None else lag_table(runs, vers)
     write_text_atomic(args.out / f"{name}.md", head + body)
     return 0
 

@@ -48,6 +48,7 @@ from casmag.data.recording import Recording
 from casmag.errors import DataError
 from casmag.problem.imu import (
     IMU_SOLVER_KEYS,
+    ImuProblem,
     ImuRecordingSpec,
     load_recording_spec,
     recording_imu_problem,
@@ -82,6 +83,13 @@ def _with_rest_noise(
         if section == "magnetometer" and model.gp.form == "none":
             continue
         value = getattr(noise, key)
+        if np.isnan(value):
+            raise DataError(
+                f"{rec.path}: model.{section}.{key}: the rest at the start "
+                f"({noise.samples} IMU intervals) holds fewer than two samples of this sensor, "
+                "so its noise cannot be estimated there; give it, or lengthen "
+                "model.initial.rest_seconds"
+            )
         if not value > 0.0:
             raise DataError(
                 f"{rec.path}: model.{section}.{key}: the sensor repeats one value over the "
@@ -91,6 +99,28 @@ def _with_rest_noise(
         model = model.model_copy(update={section: block})
         used.append(f"model.{section}.{key}")
     return spec.model_copy(update={"model": model}), used
+
+
+#: Fewest magnetometer samples per keyframe interval (:func:`check_magnetometer_rate`); below
+#: one, a sample's clock running a little slow would refuse a magnetometer at the keyframe
+#: rate.
+MIN_MAG_PER_KEYFRAME = 0.9
+
+
+def check_magnetometer_rate(rec: Recording, prob: ImuProblem) -> None:
+    """Refuse (DataError naming ``model.keyframe_rate``) keyframes closer together than the
+    magnetometer's samples: a magnetometer slower than the keyframes (interpolated to the
+    IMU's samples, ``rec.mag_share``) would give neighbouring keyframes the same sample."""
+    per_keyframe = prob.substeps * rec.mag_share
+    if per_keyframe >= MIN_MAG_PER_KEYFRAME:
+        return
+    rate = prob.imu_rate * rec.mag_share
+    raise DataError(
+        f"{rec.path}: model.keyframe_rate: the magnetometer gives about {rate:.3g} samples "
+        f"per second, fewer than the {prob.imu_rate / prob.substeps:.3g} keyframes per second, "
+        "so neighbouring keyframes would share its samples; set model.keyframe_rate to at "
+        f"most {rate:.3g}"
+    )
 
 
 #: Rate [Hz] of the series the lag is estimated on (:func:`imu_lag`). The recording's own
@@ -170,6 +200,7 @@ def slam_imu(
     noise = rest_noise(rec, data.T, n)
     spec, used = _with_rest_noise(spec, rec, noise)
     prob = recording_imu_problem(spec, source, 1.0 / data.T)
+    check_magnetometer_rate(rec, prob)
     found: list[dict[str, Any]] = []
 
     def warn(items: list[dict[str, Any]]) -> None:
@@ -223,6 +254,7 @@ def slam_imu(
     if constant:
         result.info["fallback"] = "constant magnetometer: the IMU-only adjustment, no map"
     result.warnings = found + list(result.warnings or [])
+    result.judge()  # again, with the lag left on the path solved
     return result
 
 
@@ -321,6 +353,8 @@ def slam_imu_sessions(
     pooled = _pooled(noises)
     spec, used = _with_rest_noise(spec, recs[0], pooled)
     prob = recording_imu_problem(spec, source, 1.0 / datas[0].T)
+    for rec in recs:
+        check_magnetometer_rate(rec, prob)
     result = solve_imu(prob, stack_sessions(datas), progress)
     names = [Path(r.path).stem for r in recs]
     lags, path = [], _final_path(result)

@@ -82,6 +82,42 @@ def test_a_failed_solve_and_a_models_own_flags_are_reasons():
     assert v["checks"]["against_truth"]["passed"] is True
 
 
+def _lag(lag_seconds, significant):
+    return {"lag_seconds": lag_seconds, "gain": 800.0, "significant": significant}
+
+
+def test_a_lag_left_on_the_estimated_path_is_not_trusted_one_on_the_dead_reckoning_is():
+    """A significant lag estimated on the path solved (IMU: GP-SLAM) is a reason, per
+    session when there are several; one estimated on the dead reckoning or the IMU-only
+    adjustment stays a warning."""
+    late = {"path": "GP-SLAM", "estimate": _lag(0.17, True), "removed_seconds": 0.0}
+    v = verdict(_result(info={"n_samples": 100, "magnetometer_lag": late}))
+    assert not v["trusted"] and v["checks"]["magnetometer_lag"]["passed"] is False
+    assert v["reasons"] == [
+        "the magnetometer lags the estimated path by 0.17 s (log-likelihood gain 800): it "
+        "was read at the wrong places, an error the model does not hold; --mag-lag auto "
+        "removes it"
+    ]
+    clear = {**late, "estimate": _lag(0.02, False)}
+    v = verdict(_result(info={"n_samples": 100, "magnetometer_lag": clear}))
+    assert v["trusted"] and v["checks"]["magnetometer_lag"]["passed"] is True
+    for path in ("IMU-only adjustment", None):  # None: translational (the dead reckoning)
+        early = {**late, "path": path}
+        v = verdict(_result(info={"n_samples": 100, "magnetometer_lag": early}))
+        assert v["trusted"] and "magnetometer_lag" not in v["checks"]
+    sessions = {
+        "path": "GP-SLAM",
+        "estimate": None,
+        "sessions": [{"name": "a", "estimate": _lag(0.01, False)},
+                     {"name": "b", "estimate": _lag(-0.12, True)}],
+    }  # fmt: skip
+    v = verdict(_result(info={"n_samples": 100, "magnetometer_lag": sessions}))
+    assert not v["trusted"] and len(v["reasons"]) == 1
+    assert v["reasons"][0].startswith(
+        "the magnetometer lags the estimated path of session b by -0.12 s"
+    )
+
+
 def test_the_base_case_is_trusted_and_says_so_in_result_json(tmp_path):
     r = casmag.solve(casmag.load_problem("problems/paper/base.yaml", seed=1))
     assert r.trusted and set(r.verdict["checks"]) == {

@@ -2,6 +2,7 @@
 data (casmag.data.imurec, casmag.solver.imurec), its noise from the rest at the start."""
 
 import dataclasses
+import itertools
 import json
 
 import numpy as np
@@ -16,6 +17,7 @@ from casmag.data.imurec import imu_data, quantisation_floor, rest_noise, rest_wa
 from casmag.data.imusim import simulate_imu
 from casmag.data.recording import read_recording, write_recording
 from casmag.errors import DataError, ProblemError
+from casmag.model.imu import keyframes
 from casmag.problem.imu import ImuRecordingSpec, load_imu_problem, load_recording_spec
 from casmag.solver import imurec
 from casmag.solver.imu import _estimate_flag, solve_imu
@@ -170,19 +172,179 @@ def test_a_dropped_sample_is_resampled_onto_the_uniform_grid(tmp_path, recording
         np.testing.assert_allclose(back.increments[[i - 1, i], 4:], inc[[i - 1, i], 4:], atol=2e-3)
 
 
-def test_jittered_time_stamps_are_resampled_and_solved(tmp_path, recording):
-    """Time stamps jittered by up to a fifth of the interval: resampled with a note (the
-    warning names it), and the recording solved."""
-    _, _, path = recording
-    t = read_recording(path).t
+@pytest.mark.parametrize("jitter", [0.2, 0.4])
+def test_jittered_time_stamps_of_a_uniform_imu_keep_its_rows(tmp_path, recording, jitter):
+    """An IMU sampled uniformly, its time stamps jittered by up to ``jitter`` of the
+    interval (another clock stamps them): the velocity increments follow the uniform rate,
+    so the rows are kept as they are on the fitted uniform grid (``retimed``, the warning
+    names it); the rest's noise is the uniform recording's (resampling by the stamps gave
+    the accelerometer 114-139 times its noise at 0.2), and the solve is the uniform
+    recording's."""
+    _, data, path = recording
+    rec = read_recording(path)
     rng = np.random.default_rng(3)
-    jittered = t + rng.uniform(-0.2, 0.2, t.size) * 0.01
-    jittered[0], jittered[-1] = t[0], t[-1]
+    jittered = rec.t + rng.uniform(-jitter, jitter, rec.t.size) * 0.01
     lines = []
-    r = slam(_rewritten(path, tmp_path, t=jittered), overrides=NO_MAP, on_warning=lines.append)
+    changed = _rewritten(path, tmp_path, t=jittered)
+    back = read_recording(changed)
+    (note,) = [n for n in back.notes if n["column"] == "t"]
+    assert note["check"] == "retimed" and "the rows kept as they are" in note["reason"]
+    np.testing.assert_array_equal(back.increments, rec.increments)
+    np.testing.assert_allclose(np.diff(back.t), np.diff(back.t).mean(), rtol=1e-9)
+    # the fitted grid: within a quarter of the jitter of the uniform times
+    np.testing.assert_allclose(back.t, rec.t, atol=0.25 * jitter * 0.01)
+    a, b = rest_noise(back, data.T, 50), rest_noise(rec, data.T, 50)
+    assert a.acc_noise_density == pytest.approx(b.acc_noise_density, rel=1e-3)
+    r = slam(changed, overrides=NO_MAP, on_warning=lines.append)
+    r0 = slam(path, overrides=NO_MAP)
     assert r.success, r.status
-    assert any("resampled onto a uniform grid of 0.01 s" in line for line in lines)
-    assert r.info["imu_rate_hz"] == pytest.approx(100.0)
+    assert any("the stamps jitter" in line for line in lines)
+    assert r.info["imu_rate_hz"] == pytest.approx(100.0, rel=1e-4)
+    rmse = [x.details["errors"]["imu_only"]["rmse"] for x in (r, r0)]
+    assert rmse[0] == pytest.approx(rmse[1], rel=0.01)
+
+
+def test_an_imu_sampled_at_jittered_times_is_resampled(tmp_path):
+    """An IMU whose samples really fall at jittered times (a 1 kHz simulation picked at
+    10 ms +- 2 ms, the increments composed between picks; the stamps right): the increments
+    follow the stamps, so the rows are resampled onto the uniform grid, not retimed. The
+    noise at rest comes from the rows as recorded, within a fifth of the simulated (from
+    the resampled rows it came out 0.67-0.82 of it at +-4 ms, seeds 1-3)."""
+    d = _problem()
+    d["simulation"]["imu"] = {"rate": 1000.0}
+    prob = load_imu_problem(d)
+    fine = simulate_imu(prob)
+    rng = np.random.default_rng(4)
+    n = (fine.n_samples - 3) // 10
+    picks = 10 * np.arange(n) + np.r_[0, rng.integers(-2, 3, n - 2), 0]
+    inc = []
+    for a, b in itertools.pairwise(picks):
+        q, v = np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3)
+        for j in range(a, b):  # dv = dv1 + R(dq1) dv2, dq = dq1 dq2
+            v = v + sd.rotate(q, fine.dv[j])
+            q = sd.quat_mul(q, fine.dq[j])
+        inc.append(np.r_[q / np.linalg.norm(q), v])
+    tr = fine.truth
+    path = tmp_path / "irregular.csv"
+    write_recording(path, tr.t[picks], fine.Y[picks], imu=np.array(inc), P_true=tr.P[picks],
+                    q_true=tr.Q[picks])  # fmt: skip
+    back = read_recording(path)
+    (note,) = [n for n in back.notes if n["column"] == "t"]
+    assert note["check"] == "resampled" and "stamps jitter" not in note["reason"]
+    np.testing.assert_allclose(np.diff(back.t), 0.01, rtol=1e-6)
+    np.testing.assert_array_equal(back.imu_samples[0], tr.t[picks])
+    sim, noise = prob.spec.simulation, rest_noise(back, 0.01, 50)
+    assert noise.gyro_noise_density == pytest.approx(sim.imu.gyro_noise_density, rel=0.2)
+    assert noise.acc_noise_density == pytest.approx(sim.imu.acc_noise_density, rel=0.2)
+    assert noise.sigma_m == pytest.approx(sim.magnetometer.noise, rel=0.2)
+
+
+def _two_streams(path, out, every, offset=0.0, values=None):
+    """The recording at ``path`` written again with the magnetometer on every ``every``-th
+    row only (the other rows' mx, my, mz left empty), or, with ``offset`` [s], on rows of
+    its own at those rows' times plus ``offset`` (the IMU's rows without it), with
+    ``values`` (N, 3) there when given."""
+    header, *rows = path.read_text().splitlines()
+    names = header.split(",")
+    mag = [names.index(c) for c in ("mx", "my", "mz")]
+    lines = [header]
+    for i, line in enumerate(rows):
+        f = line.split(",")
+        own = [""] * len(f)
+        own[0] = repr(float(f[0]) + offset)
+        for k, j in enumerate(mag):
+            own[j] = f[j] if values is None else repr(float(values[i, k]))
+            f[j] = "" if i % every or offset else f[j]
+        lines.append(",".join(f))
+        if offset and i % every == 0:
+            lines.append(",".join(own))
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+def _spinning(tmp_path, offset, rate=2.0, n=301):
+    """A device at rest turning about the vertical at ``rate`` rad/s (100 Hz) in a
+    constant field, its magnetometer in the body frame on every row (N, 3), and ``offset``
+    seconds later."""
+    t = 0.01 * np.arange(n)
+
+    def body_field(t):
+        half = 0.5 * rate * t
+        q = np.column_stack([np.cos(half), 0 * t, 0 * t, np.sin(half)])
+        return q, sd.rotate(sd.quat_conj(q), np.array([20.0, 5.0, -40.0]))
+
+    q, Y = body_field(t)
+    imu = np.column_stack(
+        [
+            sd.quat_mul(sd.quat_conj(q[:-1]), q[1:]),
+            np.tile([0.0, 0.0, sd.GRAVITY * 0.01], (n - 1, 1)),
+        ]
+    )
+    path = tmp_path / "spin.csv"
+    write_recording(path, t, Y, imu=imu, q_true=q)
+    return path, Y, body_field(t + offset)[1]
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.004])
+def test_a_slower_magnetometer_is_interpolated_in_the_gyroscope_frame(tmp_path, offset):
+    """Magnetometer at 10 Hz beside a 100 Hz IMU (on every 10th row, or on rows of its own
+    4 ms later), the device turning 0.2 rad between its samples: the IMU rows get the
+    field interpolated in the gyroscope's frame, exact for a constant field (to 1e-9),
+    where interpolating the body-frame values would shrink it by 0.1 uT. IMU rows before
+    the first magnetometer sample are dropped. The note says so, and the share of
+    magnetometer samples per row is recorded."""
+    path, Y, later = _spinning(tmp_path, offset)
+    rec = read_recording(_two_streams(path, tmp_path / "two.csv", 10, offset, later))
+    a = 1 if offset else 0  # the first IMU row kept
+    kept = slice(a, a + rec.t.size)
+    np.testing.assert_allclose(rec.t, 0.01 * np.arange(301)[kept], atol=1e-12)
+    np.testing.assert_allclose(rec.Y, Y[kept], atol=1e-9)
+    naive = np.column_stack([np.interp(rec.t, rec.t[::10], Y[kept][::10, j]) for j in range(3)])
+    assert np.abs(naive - Y[kept]).max() > 0.05
+    assert rec.mag_share == pytest.approx(0.1, rel=0.05)  # within one sample of 30
+    (note,) = [n for n in rec.notes if n["column"] == "mx, my, mz"]
+    assert "interpolated to the IMU rows" in note["reason"]
+    assert [n for n in rec.notes if n["column"] == "t"] == []  # the IMU rows stay uniform
+
+
+def test_a_slower_magnetometer_keeps_its_noise_and_is_solved(tmp_path, recording):
+    """The desk recording with the magnetometer at 25 Hz: the rest's sigma_m comes from its
+    own samples (the interpolated rows would give less), the keyframes count 5 x 0.25
+    samples in their average, and the recording is solved, GP-SLAM better than the IMU-only
+    adjustment (13.9 mm against 28.5 mm; 4.9 mm with the magnetometer on every row)."""
+    prob, data, path = recording
+    slow = _two_streams(path, tmp_path / "slow.csv", 4)
+    rec = read_recording(slow)
+    noise = rest_noise(rec, data.T, 50).sigma_m
+    assert noise == pytest.approx(prob.spec.simulation.magnetometer.noise, rel=0.3)
+    assert rest_noise(dataclasses.replace(rec, mag_samples=None), data.T, 50).sigma_m < noise
+    slow_data, _ = imu_data(rec, 0.5)
+    assert slow_data.mag_share == pytest.approx(0.25, rel=0.05)
+    kf = keyframes(slow_data, 20, 1e-3, 1e-2, samples=5)
+    assert kf.sigma_scale == pytest.approx(1 / np.sqrt(5 * slow_data.mag_share))
+    lines = []
+    model = _true_noise_model(prob)
+    del model["magnetometer"]
+    r = slam(slow, {"model": model, "solver": _problem()["solver"]}, on_warning=lines.append)
+    assert r.success, r.status
+    assert any("interpolated to the IMU rows" in line for line in lines)
+    assert r.info["defaults"]["from_rest"] == ["model.magnetometer.sigma_m"]
+    errors = r.details["errors"]
+    assert errors["gp_slam"]["rmse"] < 0.7 * errors["imu_only"]["rmse"]
+
+
+@pytest.mark.parametrize(
+    ("every", "needle"),
+    [(40, "model.keyframe_rate: the magnetometer gives about 2.5 samples per second"),
+     (100, "model.magnetometer.sigma_m: the rest at the start")],
+)  # fmt: skip
+def test_a_magnetometer_too_slow_for_the_keyframes_or_the_rest_is_refused(
+    tmp_path, recording, every, needle
+):
+    _, _, path = recording
+    with pytest.raises(DataError) as err:
+        slam(_two_streams(path, tmp_path / "slow.csv", every))
+    assert needle in str(err.value) and "\n" not in str(err.value)
 
 
 def test_a_sensor_constant_at_rest_must_be_given_its_noise(tmp_path, recording):
@@ -320,6 +482,20 @@ def test_the_lag_left_on_the_path_solved_is_reported(tmp_path, long_recording, m
     np.testing.assert_allclose(second, shift_magnetometer(rec.t, rec.Y, 0.15))
     assert any("shifted by 0.15 s" in line for line in lines)
     assert not any("removes it" in line for line in lines)
+
+
+def test_a_lag_left_on_the_gp_slam_path_is_in_the_verdict(recording, monkeypatch):
+    """With the map solved, the lag is estimated on GP-SLAM's path; a significant one left
+    there makes the result untrusted (casmag.result.verdict), a clear path keeps it."""
+    prob, _, path = recording
+    settings = {"model": _true_noise_model(prob), "solver": _problem()["solver"]}
+    for lag, trusted in ((0.15, False), (0.0, True)):
+        found = LagEstimate(lag, 500.0, lag != 0.0, 3, 10.0, 0.05)
+        monkeypatch.setattr(imurec, "imu_lag", lambda *a, found=found, **k: found)
+        r = slam(path, settings)
+        assert r.success and r.info["magnetometer_lag"]["path"] == "GP-SLAM"
+        assert r.verdict["checks"]["magnetometer_lag"]["passed"] is trusted
+        assert r.verdict["trusted"] is trusted, r.verdict["reasons"]
 
 
 def test_each_imu_session_gets_its_own_lag_estimate(tmp_path, long_recording):
