@@ -171,7 +171,7 @@ bench-imu: $(STAMP) ## Every IMU scenario over SEEDS seeds (resumable) -> result
 bench-imu-recordings: $(STAMP) ## Every IMU scenario written as a recording and solved by casmag slam's defaults beside casmag imu, SEEDS seeds -> results/bench/imu-recordings/
 	$(PY) -m casmag.experiments.imurecbench problems/imu/*.yaml --seeds $(SEEDS) --out results/bench/imu-recordings
 
-bench-imu-lag: $(STAMP) ## The handwriting, rectangle and spiral recordings with the magnetometer LAG s late (default 0.2), casmag slam with and without --mag-lag auto, LAG_SEEDS seeds -> results/bench/imu-lag/ (hours: a lag slows the solve)
+bench-imu-lag: $(STAMP) ## The handwriting, rectangle and spiral recordings with the magnetometer LAG s late (default 0.2), casmag slam with --mag-lag 0 and auto (the IMU default), LAG_SEEDS seeds -> results/bench/imu-lag/ (hours: a lag slows the solve)
 	$(PY) -m casmag.experiments.imurecbench problems/imu/handwriting.yaml problems/imu/rectangle.yaml problems/imu/spiral.yaml --seeds $(LAG_SEEDS) --lag $(LAG) --out results/bench/imu-lag
 
 bench-imu-mag-rate: $(STAMP) ## The handwriting and rectangle recordings with the magnetometer on every MAG_EVERY-th IMU row only (default 4: 25 Hz beside 100 Hz), casmag slam on both, MAG_SEEDS seeds -> results/bench/imu-mag-rate/

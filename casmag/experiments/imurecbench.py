@@ -17,16 +17,18 @@ recording's solve must find for itself):
   (casmag.problem.imu.ImuRecordingSpec).
 
 Each run is saved as ``runs/<scenario>-<seed>.json`` (resumable: a run saved with the same
-package versions and source is not solved again); ``imu-recordings.json`` gathers them and
+package versions and source is not solved again); ``imu-recordings.json`` gathers them
+(with the runs saved by earlier calls for other scenarios or seeds) and
 ``imu-recordings.md`` is the table: position RMSE of the IMU-only adjustment and GP-SLAM
 both ways, IPOPT's status, the iterations of the last solve, the wall time and the rest's
 noise estimates against the simulation's values.
 
 With ``--lag SECONDS`` (``make bench-imu-lag``) the recording's magnetometer is written
 that late (row k reads the field of time t_k - lag) and solved by ``casmag slam REC`` twice
-instead: as it is (the lag estimated on the path solved and reported) and with ``--mag-lag
-auto`` (the estimated lag removed); each row has the estimate, what was removed, GP-SLAM's
-RMSE and the wall time (``runs/<scenario>-<seed>-lag<SECONDS>.json``).
+instead: as it is (``--mag-lag 0``: the lag estimated on the path solved and reported) and
+with ``--mag-lag auto`` (the default: the estimated lag removed); each row has the
+estimate, what was removed, GP-SLAM's RMSE and the wall time
+(``runs/<scenario>-<seed>-lag<SECONDS>.json``).
 
 With ``--mag-every K`` (``make bench-imu-mag-rate``) the recording is written twice: as
 simulated, and with the magnetometer on every K-th row only (the other rows' mx, my, mz
@@ -126,7 +128,7 @@ def run_lag(
     rec = folder / f"{path.stem}-{seed}-lag{lag:g}.csv"
     write_recording(rec, tr.t, Y, imu=np.hstack([data.dq, data.dv]), P_true=tr.P, q_true=tr.Q)
     out: dict[str, Any] = {"scenario": path.stem, "seed": seed, "lag": lag}
-    for key, mag_lag in (("as_is", None), ("auto", "auto")):
+    for key, mag_lag in (("as_is", 0.0), ("auto", "auto")):
         t0 = time.perf_counter()
         r = slam(rec, mag_lag=mag_lag)
         out[key] = _lag_row(r, time.perf_counter() - t0)
@@ -250,6 +252,25 @@ def table(runs: list[dict[str, Any]], vers: dict[str, Any]) -> str:
     return _table(head, runs, vers, row)
 
 
+def _earlier_runs(folder: Path, suffix: str, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The runs saved in ``folder`` by earlier calls in the same mode (file names ending in
+    ``suffix``: ``-lag<S>``, ``-every<K>``, or neither) whose scenario and seed this call did
+    not run: the tables keep their rows, as ``make bench-real``'s do."""
+    done = {(r["scenario"], r["seed"]) for r in runs}
+    out = []
+    for f in sorted(folder.glob(f"*{suffix}.json")):
+        if not suffix and ("-lag" in f.stem or "-every" in f.stem):
+            continue
+        run = json.loads(f.read_text(encoding="utf-8"))
+        if (run.get("scenario"), run.get("seed")) not in done:
+            out.append(run)
+    return out
+
+
+def _order(run: dict[str, Any]) -> tuple[str, int]:
+    return run["scenario"], run["seed"]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("problems", nargs="+", type=Path)
@@ -281,12 +302,13 @@ def main(argv: list[str] | None = None) -> int:
     vers = versions()
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
     (args.out / "recordings").mkdir(parents=True, exist_ok=True)
+    suffix = "" if args.lag is None else f"-lag{args.lag:g}"
+    if args.mag_every is not None:
+        suffix = f"-every{args.mag_every}"
     runs = []
     for path in args.problems:
         for seed in range(1, args.seeds + 1):
-            stem = f"{path.stem}-{seed}" + ("" if args.lag is None else f"-lag{args.lag:g}")
-            if args.mag_every is not None:
-                stem += f"-every{args.mag_every}"
+            stem = f"{path.stem}-{seed}{suffix}"
             saved = args.out / "runs" / f"{stem}.json"
             key = {"versions": vers, "source": source_digest(path), "overrides": args.overrides}
             if saved.exists():
@@ -310,6 +332,7 @@ def main(argv: list[str] | None = None) -> int:
             write_text_atomic(saved, json.dumps(run, indent=2))
             runs.append(run)
             print(f"{path.stem} seed {seed}: done", flush=True)
+    runs = sorted([*runs, *_earlier_runs(args.out / "runs", suffix, runs)], key=_order)
     name = "imu-recordings" if args.lag is None else f"imu-lag{args.lag:g}"
     if args.mag_every is not None:
         name = f"imu-mag-every{args.mag_every}"

@@ -202,7 +202,7 @@ def verdict(result: Any) -> dict[str, Any]:
         reasons.extend(
             f"the magnetometer lags the estimated path{w['of']} by {w['lag_seconds']:.2f} s "
             f"(log-likelihood gain {w['gain']:.0f}): it was read at the wrong places, an error "
-            "the model does not hold; --mag-lag auto removes it"
+            "the model does not hold (--mag-lag SECONDS removes a known lag)"
             for w in lag["left"]
         )
     flags = getattr(result, "flags", None)

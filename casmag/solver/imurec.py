@@ -21,11 +21,13 @@ the sessions are solved together in the given order (casmag.solver.imu).
 The magnetometer's lag behind the motion is estimated on the path solved (:func:`imu_lag`:
 GP-SLAM's when the map was solved, else the IMU-only adjustment) and reported in
 ``info["magnetometer_lag"]`` (``estimate``: the lag left there, ``steps``: each estimate),
-with a warning when it is significant. ``--mag-lag SECONDS`` removes a known lag;
-``--mag-lag auto`` estimates it first on the IMU-only adjustment (it does not read the
-magnetometer, but drifts) and removes a significant one before the map is solved, then
-once more on the path solved, solving again when a lag is still clear there (one
-recording; several sessions get each one's estimate reported).
+with a warning when it is significant, and a significant one left on GP-SLAM's path makes
+the verdict untrusted (casmag.result.verdict). ``--mag-lag SECONDS`` removes a known lag (0:
+none); ``--mag-lag auto``, the default of ``casmag slam`` for IMU recordings
+(casmag.solver.recslam.DEFAULT_MAG_LAG), estimates it first on the IMU-only adjustment (it
+does not read the magnetometer, but drifts) and removes a significant one before the map
+is solved, then once more on the path solved, solving again when a lag is still clear
+there (one recording; several sessions get each one's estimate reported).
 
 Not done here: no filter baseline (``--method ekf``), no saved map, no Laplace covariance
 (casmag.solver.imu.IMU_NO_COVARIANCE)."""

@@ -447,10 +447,11 @@ def test_the_lag_is_found_on_a_path_of_keyframe_poses(tmp_path, long_recording, 
 
 
 def test_the_lag_left_on_the_path_solved_is_reported(tmp_path, long_recording, monkeypatch):
-    """Without --mag-lag the lag is estimated once, on the path solved (here the IMU-only
+    """With --mag-lag 0 the lag is estimated once, on the path solved (here the IMU-only
     adjustment: no map) and reported, with a warning when significant; nothing removed.
-    --mag-lag auto removes a significant estimate (from the IMU-only adjustment first,
-    then on the path solved) and solves again; every step is recorded."""
+    Without --mag-lag (auto, the default for IMU recordings) a significant estimate is
+    removed (from the IMU-only adjustment first, then on the path solved) and the
+    recording solved again; every step is recorded."""
     path = _late(long_recording, tmp_path, 0.15)
     found = [0.15, 0.02]  # what the estimates say, in turn (imu_lag stands in)
     calls = []
@@ -462,7 +463,7 @@ def test_the_lag_left_on_the_path_solved_is_reported(tmp_path, long_recording, m
 
     monkeypatch.setattr(imurec, "imu_lag", stand_in)
     lines = []
-    r = slam(path, overrides=NO_MAP, on_warning=lines.append)
+    r = slam(path, overrides=NO_MAP, on_warning=lines.append, mag_lag=0.0)
     m = r.info["magnetometer_lag"]
     assert m["removed_seconds"] == 0.0 and m["path"] == "IMU-only adjustment"
     assert m["estimate"]["lag_seconds"] == 0.15 and len(m["steps"]) == 1
@@ -471,7 +472,7 @@ def test_the_lag_left_on_the_path_solved_is_reported(tmp_path, long_recording, m
 
     calls.clear()
     lines.clear()
-    r = slam(path, overrides=NO_MAP, on_warning=lines.append, mag_lag="auto")
+    r = slam(path, overrides=NO_MAP, on_warning=lines.append)  # auto: the IMU default
     m = r.info["magnetometer_lag"]
     assert m["removed_seconds"] == 0.15 and m["estimate"]["lag_seconds"] == 0.02
     assert [s["path"] for s in m["steps"]] == ["IMU-only adjustment"] * 2
@@ -492,7 +493,7 @@ def test_a_lag_left_on_the_gp_slam_path_is_in_the_verdict(recording, monkeypatch
     for lag, trusted in ((0.15, False), (0.0, True)):
         found = LagEstimate(lag, 500.0, lag != 0.0, 3, 10.0, 0.05)
         monkeypatch.setattr(imurec, "imu_lag", lambda *a, found=found, **k: found)
-        r = slam(path, settings)
+        r = slam(path, settings, mag_lag=0.0)
         assert r.success and r.info["magnetometer_lag"]["path"] == "GP-SLAM"
         assert r.verdict["checks"]["magnetometer_lag"]["passed"] is trusted
         assert r.verdict["trusted"] is trusted, r.verdict["reasons"]
@@ -508,6 +509,6 @@ def test_each_imu_session_gets_its_own_lag_estimate(tmp_path, long_recording):
     assert m["path"] == "IMU-only adjustment"
     assert [s["name"] for s in m["sessions"]] == [long_recording.stem, late.stem]
     for session, path in zip(m["sessions"], (long_recording, late), strict=True):
-        alone = slam(path, overrides=NO_MAP).info["magnetometer_lag"]["estimate"]
+        alone = slam(path, overrides=NO_MAP, mag_lag=0.0).info["magnetometer_lag"]["estimate"]
         assert session["estimate"]["lag_seconds"] == pytest.approx(alone["lag_seconds"])
         assert session["estimate"]["windows"] == alone["windows"]
