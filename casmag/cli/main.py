@@ -313,8 +313,8 @@ def slam(
         else:
             if map_file is not None or method != "map":
                 raise CasmagError("--map, --method: one recording at a time")
-            if mag_lag or refit_noise:
-                raise CasmagError("--mag-lag, --refit-noise: one recording at a time")
+            if refit_noise:
+                raise CasmagError("--refit-noise: one recording at a time")
             if anchor != "truth":
                 raise CasmagError(
                     "--anchor origin: several sessions need each one's first position in the "
@@ -327,6 +327,7 @@ def slam(
                 progress=progress,
                 field_check=not no_field_check,
                 on_warning=_warn,
+                mag_lag=mag_lag,
             )
         if method != "both":
             with_evaluation(result, align).save(out_dir, figures=not no_figures)

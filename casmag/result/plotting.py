@@ -163,10 +163,14 @@ def _error_panel(ax: Any, a: dict[str, Any], label: str) -> None:
 
 
 def _pieces(result: Drawable) -> list[slice]:
-    """The sample ranges drawn as separate lines: one per session (casmag.solver.multisession)."""
+    """The ranges of the result's arrays drawn as separate lines: one per session
+    (casmag.solver.multisession; the IMU model's arrays are per keyframe, its session rows
+    count keyframes)."""
     sessions = result.info.get("sessions")
     if not sessions:
         return [slice(None)]
+    if "first_keyframe" in sessions[0]:
+        return [slice(s["first_keyframe"], s["first_keyframe"] + s["keyframes"]) for s in sessions]
     return [slice(s["first_sample"], s["first_sample"] + s["n_samples"]) for s in sessions]
 
 
@@ -178,6 +182,7 @@ def _trajectories(
     covariance: str = "Laplace",
     ellipses: bool = True,
     estimate: str = "GP-SLAM",
+    before: str = "odometry only",
 ) -> None:
     for i, sl in enumerate(pieces):
         first = i == 0
@@ -186,7 +191,7 @@ def _trajectories(
             "--",
             color="tab:cyan",
             lw=1.4,
-            label="odometry only" if first else None,
+            label=before if first else None,
         )
         if a.get("P_true") is not None:
             ax.plot(
@@ -221,11 +226,13 @@ def _trajectories(
 
 
 def sessions_figure(result: Drawable, path: Path) -> Figure:
-    """One panel per session of a multi-session solve (casmag.solver.multisession): odometry-only,
-    estimate and truth, with the session's errors in its title."""
+    """One panel per session of a multi-session solve (casmag.solver.multisession): odometry-only
+    (IMU: the IMU-only adjustment), estimate and truth, with the session's errors in its
+    title."""
     import math
 
     sessions = result.info["sessions"]
+    imu = result.arrays.get("P_odometry") is None and result.arrays.get("P_imu_only") is not None
     cols = min(3, len(sessions))
     rows = math.ceil(len(sessions) / cols)
     fig = Figure(figsize=(4.2 * cols, 4.0 * rows))
@@ -236,7 +243,12 @@ def sessions_figure(result: Drawable, path: Path) -> Figure:
             for k, v in result.arrays.items()
             if k.startswith("P_")
         }
-        _trajectories(ax, a, [slice(None)], result.success, _covariance_label(result))
+        if imu:
+            a["P_odometry"] = a["P_imu_only"]
+        before = "IMU-only adjustment" if imu else "odometry only"
+        _trajectories(
+            ax, a, [slice(None)], result.success, _covariance_label(result), before=before
+        )
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(alpha=0.3)
         title = s["name"]

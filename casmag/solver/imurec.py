@@ -313,6 +313,7 @@ def slam_imu_sessions(
     overrides: str | Sequence[str] | Mapping[str, Any] = (),
     progress: Callable[[int, float, float, float], None] | None = None,
     on_warning: Callable[[str], None] | None = None,
+    mag_lag: float | str | None = None,
 ) -> Result:
     """GP-SLAM on several IMU recordings of one field with one map: each recording's data
     as :func:`slam_imu` makes it from its own rest and first true pose (truth columns
@@ -323,7 +324,11 @@ def slam_imu_sessions(
     sessions together by the schedule ladder (the default, ``auto``), or added one at a time
     with a ``solver.warm_start`` strategy (casmag.solver.staged.solve_sessions).
     ``info["sessions"]`` has each recording's rows under its name; a constant
-    magnetometer is refused (it has no field to share a map of)."""
+    magnetometer is refused (it has no field to share a map of). ``mag_lag`` ``auto``
+    (``casmag slam``'s default for IMU recordings): each recording's lag estimated on its
+    own IMU-only adjustment and removed when significant, before the sessions are stacked;
+    None or 0: as recorded. Either way each session's lag left on the path solved is
+    reported (``info["magnetometer_lag"]["sessions"]``) and judged by the verdict."""
     require_first_poses(recs, "imu", "x_true, y_true, z_true, qw_true..qz_true")
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(overrides, "casmag slam on imu recordings", IMU_SOLVER_KEYS)
@@ -357,13 +362,38 @@ def slam_imu_sessions(
     prob = recording_imu_problem(spec, source, 1.0 / datas[0].T)
     for rec in recs:
         check_magnetometer_rate(rec, prob)
+    if mag_lag not in (None, 0, 0.0, "auto"):
+        raise DataError(
+            f"mag_lag: several recordings take 'auto' or 0, got {mag_lag!r} (a lag in "
+            "seconds belongs to one recording)"
+        )
+    removed = [0.0] * len(recs)
+    if mag_lag == "auto":  # each recording's own IMU-only adjustment: it does not read the field
+        alone = recording_imu_problem(_without_map(spec), source, 1.0 / datas[0].T)
+        for i, rec in enumerate(recs):
+            lag = imu_lag(rec.t, datas[i], solve_imu(alone, datas[i]).arrays, "imu_only")
+            if lag is not None and lag.significant:
+                removed[i] = lag.lag_seconds
+                datas[i] = dataclasses.replace(
+                    datas[i], Y=shift_magnetometer(rec.t, datas[i].Y, removed[i])
+                )
+                announce(rec.path, [_shifted(removed[i])], on_warning)
+                found.append({**_shifted(removed[i]), "recording": str(rec.path)})
     result = solve_imu(prob, stack_sessions(datas), progress)
     names = [Path(r.path).stem for r in recs]
     lags, path = [], _final_path(result)
-    for row, name, rec, data in zip(result.info["sessions"], names, recs, datas, strict=True):
+    for row, name, rec, data, gone in zip(
+        result.info["sessions"], names, recs, datas, removed, strict=True
+    ):
         row["name"] = name
         lag = _session_lag(rec, data, result.arrays, row, path)
-        lags.append({"name": name, "estimate": None if lag is None else lag.to_dict()})
+        lags.append(
+            {
+                "name": name,
+                "removed_seconds": gone,
+                "estimate": None if lag is None else lag.to_dict(),
+            }
+        )
         own = lag_warning(lag, f"the {path} path")
         announce(rec.path, own, on_warning)
         found.extend({**w, "recording": str(rec.path)} for w in own)
@@ -378,6 +408,7 @@ def slam_imu_sessions(
         magnetometer_lag={
             **lag_record(None, None),
             "path": path,
+            "auto": mag_lag == "auto",
             "sessions": lags,
         },
     )

@@ -664,6 +664,7 @@ def slam_sessions(
     field_check: bool = True,
     name: str | None = None,
     on_warning: Callable[[str], None] | None = None,
+    mag_lag: float | str | None = None,
 ) -> Result:
     """GP-SLAM on several recordings of the same field with one shared map
     (:func:`slam`'s defaults, computed on all sessions together). The stacked
@@ -672,13 +673,22 @@ def slam_sessions(
     warning). Planar and pose recordings are solved with their models' sessions
     (casmag.solver.oriented.slam_oriented_sessions), IMU recordings with the IMU model's
     (casmag.solver.imurec.slam_imu_sessions); recordings of different motion kinds
-    together are refused."""
+    together are refused. ``mag_lag``: None (:data:`DEFAULT_MAG_LAG`: each IMU recording's
+    clear lag removed), ``auto`` (IMU recordings) or 0 (as recorded); a lag in seconds
+    belongs to one recording (DataError)."""
     overrides = as_overrides(overrides)
     check_recording_overrides(overrides)
 
     recs = [read_recording(r) for r in recordings]
+    if mag_lag is None:
+        mag_lag = DEFAULT_MAG_LAG.get(recs[0].motion)
     if all(r.motion == "imu" for r in recs):
-        return slam_imu_sessions(recs, problem, overrides, progress, on_warning)
+        return slam_imu_sessions(recs, problem, overrides, progress, on_warning, mag_lag)
+    if mag_lag not in (None, 0, 0.0):
+        raise DataError(
+            f"mag_lag: {mag_lag!r} with several {recs[0].motion} recordings: solve each alone "
+            "with --mag-lag (several recordings take it for IMU recordings: auto or 0)"
+        )
     if any(r.motion != "translation" for r in recs):
         return slam_oriented_sessions(recs, problem, overrides, progress, on_warning)
     datasets = [r.to_dataset() for r in recs]

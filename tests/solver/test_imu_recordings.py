@@ -504,11 +504,53 @@ def test_each_imu_session_gets_its_own_lag_estimate(tmp_path, long_recording):
     keyframes of the stacked result, on the recording's own clock: with no map the same
     estimate as its recording solved alone."""
     late = _late(long_recording, tmp_path, 0.15)
-    r = slam_sessions([long_recording, late], overrides=NO_MAP)
+    r = slam_sessions([long_recording, late], overrides=NO_MAP, mag_lag=0.0)
     m = r.info["magnetometer_lag"]
-    assert m["path"] == "IMU-only adjustment"
+    assert m["path"] == "IMU-only adjustment" and m["auto"] is False
     assert [s["name"] for s in m["sessions"]] == [long_recording.stem, late.stem]
     for session, path in zip(m["sessions"], (long_recording, late), strict=True):
         alone = slam(path, overrides=NO_MAP, mag_lag=0.0).info["magnetometer_lag"]["estimate"]
         assert session["estimate"]["lag_seconds"] == pytest.approx(alone["lag_seconds"])
         assert session["estimate"]["windows"] == alone["windows"]
+
+
+def test_imu_sessions_remove_each_ones_clear_lag_by_default(tmp_path, long_recording, monkeypatch):
+    """Several IMU recordings, no --mag-lag: each one's lag is estimated on its own IMU-only
+    adjustment and removed when significant before the sessions are stacked (a warning
+    names the recording); the lag left on the path solved is reported per session. A lag
+    in seconds belongs to one recording: refused in one line."""
+    late = _late(long_recording, tmp_path, 0.15)
+    found = [0.0, 0.15, 0.0, 0.01]  # each session alone, then each on the path solved
+    calls = []
+
+    def stand_in(t, data, arrays, key="estimate"):
+        calls.append(data.Y.copy())
+        lag = found[len(calls) - 1]
+        return LagEstimate(lag, 500.0, abs(lag) >= 0.05, 3, 10.0, 0.05)
+
+    monkeypatch.setattr(imurec, "imu_lag", stand_in)
+    lines = []
+    r = slam_sessions([long_recording, late], overrides=NO_MAP, on_warning=lines.append)
+    m = r.info["magnetometer_lag"]
+    assert m["auto"] is True and len(calls) == 4
+    assert [s["removed_seconds"] for s in m["sessions"]] == [0.0, 0.15]
+    assert [s["estimate"]["lag_seconds"] for s in m["sessions"]] == [0.0, 0.01]
+    rec = read_recording(late)
+    np.testing.assert_array_equal(calls[1], rec.Y)  # estimated on the recording as read
+    np.testing.assert_allclose(calls[3], shift_magnetometer(rec.t, rec.Y, 0.15))  # solved shifted
+    assert any(str(late) in line and "shifted by 0.15 s" in line for line in lines)
+    # no map: the path solved is the IMU-only adjustment, whose lag the verdict leaves alone
+    assert m["path"] == "IMU-only adjustment" and "magnetometer_lag" not in r.verdict["checks"]
+    with pytest.raises(DataError, match="a lag in seconds belongs to one recording"):
+        slam_sessions([long_recording, late], overrides=NO_MAP, mag_lag=0.15)
+
+
+def test_casmag_slam_draws_one_panel_per_imu_session(tmp_path, long_recording):
+    """``casmag slam A B`` on IMU recordings writes its figures: sessions.png takes each
+    session's keyframes (the IMU model's arrays are per keyframe)."""
+    out = tmp_path / "out"
+    res = _cli(["slam", long_recording, long_recording, "--out", out, "-q", "--set", NO_MAP[0]])
+    assert res.exit_code == 0, res.output
+    assert (out / "sessions.png").stat().st_size > 0 and (out / "trajectory.png").exists()
+    saved = json.loads((out / "result.json").read_text())
+    assert [s["keyframes"] for s in saved["info"]["sessions"]] == [161, 161]
