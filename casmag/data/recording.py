@@ -690,11 +690,10 @@ def _regularise(
                 path, A, absent, col, mi, yi, has_motion, has_mag
             )
             notes.append(note)
-        resampled, note = _imu_to_uniform_rows(A, absent, col, mi)  # complete rows: one T
+        resampled, note, t = _imu_to_uniform_rows(A, absent, col, mi)  # one interval T
         if note is not None and note["check"] == "resampled":  # the rows as recorded
-            t = A[:, col[TIME_COLUMN]]
-            raw["imu_samples"] = (t.copy(), A[1:, mi].copy())
-            raw.setdefault("mag_samples", (t.copy(), A[:, yi].copy()))
+            raw["imu_samples"] = (t, A[1:, mi].copy())
+            raw.setdefault("mag_samples", (t, A[:, yi].copy()))
         return resampled, notes + ([note] if note else []), raw
     if has_motion.all() and has_mag.all():
         return A, notes, {}
@@ -895,9 +894,11 @@ def _magnetometer_to_imu_rows(
 
 def _imu_to_uniform_rows(
     A: np.ndarray, absent: np.ndarray, col: dict[str, int], mi: list[int]
-) -> tuple[np.ndarray, dict[str, str] | None]:
-    """An IMU recording's rows on a uniform time grid (module docstring), and the note
-    that says so; the rows as they are (note None) when every interval is within
+) -> tuple[np.ndarray, dict[str, str] | None, np.ndarray]:
+    """An IMU recording's rows on a uniform time grid (module docstring), the note that
+    says so, and the times of the rows as recorded that it believed (their stamps, or the
+    fitted grid when the stamps jitter); the rows as they are (note None) when every
+    interval is within
     :data:`IMU_PERIOD_TOLERANCE` of the median. The grid spans the first to the last time
     stamp; each recorded interval counts as the whole number of median intervals nearest to
     it, at least one (jitter: one each, the row count kept; a dropped sample: two).
@@ -905,21 +906,22 @@ def _imu_to_uniform_rows(
     integrated at the recorded rows, interpolated to the grid (v linearly, q by slerp),
     and the grid's increments are dq = q_a^-1 q_b and dv = R(q_a)^T (v_b - v_a).
 
-    Unless only the time stamps jitter (:func:`_stamps_jitter`: no interval near two or
-    more median intervals, and the velocity increments smoother as they are than over their
-    stamped intervals): an IMU sampled by its own clock and stamped by another's (a phone's
-    operating system) integrates over uniform intervals whatever the stamps say, and
-    resampling by the stamps would add the stamps' error to every increment (tiny desk
+    Unless the time stamps jitter (:func:`_grid_times` fits a grid of whole periods to them,
+    and :func:`_stamps_jitter` finds the velocity increments smoother over its intervals
+    than over the stamped ones): an IMU sampled by its own clock and stamped by another's
+    (a phone's operating system) integrates over uniform intervals whatever the stamps say,
+    and resampling by the stamps would add the stamps' error to every increment (tiny desk
     recording, stamps jittered by up to 5 % of the interval: the accelerometer's noise at
-    rest came out 31-40 times the simulated). Such rows are kept as they are, on the uniform
-    grid (note ``retimed``)."""
+    rest came out 31-40 times the simulated). Such rows are moved to the grid and kept as
+    they are (note ``retimed``), or, when the grid shows a sample missing, resampled from
+    the grid's times."""
     it = col[TIME_COLUMN]
     t = A[:, it]
     dt = np.diff(t)
     median = float(np.median(dt))
     off = np.abs(dt - median) > IMU_PERIOD_TOLERANCE * median
     if not off.any():
-        return A, None
+        return A, None, t.copy()
     i = int(np.argmax(np.abs(dt - median)))
     largest = f"(the largest: {dt[i]:.6g} s, up to t = {t[i + 1]:.6g} s)"
     grid = _grid_times(t, median)
@@ -934,15 +936,12 @@ def _imu_to_uniform_rows(
         if np.allclose(np.diff(t), period, rtol=1e-6):  # no sample missing
             out = A.copy()
             out[:, it] = t
-            return out, {
-                "check": "retimed",
-                "column": TIME_COLUMN,
-                "reason": (
-                    f"{int(off.sum())} of {dt.size} sample intervals differ from the median "
-                    f"{median:.6g} s by more than {IMU_PERIOD_TOLERANCE:.0%} {largest}, but "
-                    f"{retimed}, the rows kept as they are"
-                ),
-            }
+            reason = (
+                f"{int(off.sum())} of {dt.size} sample intervals differ from the median "
+                f"{median:.6g} s by more than {IMU_PERIOD_TOLERANCE:.0%} {largest}, but "
+                f"{retimed}, the rows kept as they are"
+            )
+            return out, {"check": "retimed", "column": TIME_COLUMN, "reason": reason}, t
         dt = np.diff(t)
         median = period
     span = float(t[-1] - t[0])
@@ -981,7 +980,7 @@ def _imu_to_uniform_rows(
             f"({tk.size} rows from {A.shape[0]})"
         ),
     }
-    return out, note
+    return out, note, t
 
 
 def _to_magnetometer_rows(

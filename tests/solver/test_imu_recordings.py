@@ -204,6 +204,36 @@ def test_jittered_time_stamps_of_a_uniform_imu_keep_its_rows(tmp_path, recording
     assert rmse[0] == pytest.approx(rmse[1], rel=0.01)
 
 
+def test_jittered_stamps_with_a_missing_sample_are_moved_to_the_grid_then_resampled(
+    tmp_path, recording
+):
+    """Stamps jittered by up to a fifth of the interval and every 37th sample missing (its
+    increments composed into the next row's): the stamps are moved to the fitted grid, the
+    missing samples resampled from there, the row count restored; the noise at rest comes
+    from the rows on the grid's times, within 10 % of the uniform recording's."""
+    _, data, path = recording
+    rec = read_recording(path)
+    t, inc = rec.t, rec.increments
+    drop = np.arange(30, t.size - 1, 37)
+    keep = np.setdiff1d(np.arange(t.size), drop)
+    joined = inc.copy()
+    for i in drop:
+        joined[i] = np.r_[
+            sd.quat_mul(inc[i - 1, :4], inc[i, :4]),
+            inc[i - 1, 4:] + sd.rotate(inc[i - 1, :4], inc[i, 4:]),
+        ]
+    stamps = t[keep] + np.random.default_rng(5).uniform(-0.2, 0.2, keep.size) * 0.01
+    out = _rewritten(path, tmp_path, t=stamps, Y=rec.Y[keep], P_true=rec.P_true[keep],
+                     q_true=rec.q_true[keep], imu=joined[keep[1:] - 1])  # fmt: skip
+    back = read_recording(out)
+    (note,) = [n for n in back.notes if n["column"] == "t"]
+    assert note["check"] == "resampled" and "the stamps jitter" in note["reason"]
+    assert back.t.size == t.size
+    a, b = rest_noise(back, data.T, 50), rest_noise(rec, data.T, 50)
+    for key in ("gyro_noise_density", "acc_noise_density", "sigma_m"):
+        assert getattr(a, key) == pytest.approx(getattr(b, key), rel=0.1), key
+
+
 def test_an_imu_sampled_at_jittered_times_is_resampled(tmp_path):
     """An IMU whose samples really fall at jittered times (a 1 kHz simulation picked at
     10 ms +- 2 ms, the increments composed between picks; the stamps right): the increments
