@@ -320,16 +320,16 @@ def solve_from_two_starts(
     return result
 
 
-#: The estimators of casmag.solver.recslam.slam (``method``): the MAP, or the filter baseline.
 #: ``mag_lag`` when none is given, per motion input: an IMU recording's clear lag is removed
 #: (``auto``, casmag.solver.imurec). Measured (casmag.experiments.imurecbench --lag): with
 #: the magnetometer 0.2 s late the rectangle went from 77 mm (IMU-only 131 mm) to 8.1 mm and
 #: handwriting from the iteration limit to 3.7 mm; without a lag, on every IMU scenario at
-#: seeds 1 and 2, nothing was removed, the same estimates, 0-3 s more. The other recordings
-#: keep the lag (estimated on the dead reckoning, reported): removing it brought the wrong
-#: real-robot estimates further from the truth (README, Recording format).
+#: seeds 1 and 2, nothing was removed, the same estimates, -2 to +3 s of wall time. The
+#: other recordings keep the lag (estimated on the dead reckoning, reported): removing it
+#: brought the wrong real-robot estimates further from the truth (README, Recording format).
 DEFAULT_MAG_LAG: dict[str, str] = {"imu": "auto"}
 
+#: The estimators of casmag.solver.recslam.slam (``method``): the MAP, or the filter baseline.
 METHODS = ("map", "ekf")
 
 #: Where a recording's estimate starts (casmag.solver.recslam.slam's ``anchor``).
@@ -680,9 +680,10 @@ def slam_sessions(
     check_recording_overrides(overrides)
 
     recs = [read_recording(r) for r in recordings]
-    if mag_lag is None:
+    kinds = {r.motion for r in recs}
+    if mag_lag is None and len(kinds) == 1:  # mixed kinds are refused below
         mag_lag = DEFAULT_MAG_LAG.get(recs[0].motion)
-    if all(r.motion == "imu" for r in recs):
+    if kinds == {"imu"}:
         return slam_imu_sessions(recs, problem, overrides, progress, on_warning, mag_lag)
     if mag_lag not in (None, 0, 0.0):
         raise DataError(
