@@ -849,10 +849,8 @@ def _magnetometer_to_imu_rows(
             f"(got {keep.size})",
         )
     ti = t[rows]
-    U = np.zeros((rows.size, 7))
-    U[:, 3] = 1.0
-    U[1:, 3:] = A[rows[1:]][:, mi[:4]]
-    G = quat_prefix(U[:, 3:])  # the gyroscope's attitude at the IMU rows
+    identity = np.array([[1.0, 0.0, 0.0, 0.0]])  # the first row: where the motion starts
+    G = quat_prefix(np.vstack([identity, A[rows[1:]][:, mi[:4]]]))  # the gyro's attitude
     Gm = _slerp(tm, ti, G)  # beyond the IMU rows: carried on at the nearest interval's rate
     Z = rotate(Gm, Ym)
     tk = t[keep]
