@@ -105,3 +105,43 @@ def test_a_limited_memory_nlp_solves_under_a_memory_budget_and_has_no_covariance
     np.testing.assert_allclose(np.ravel(sol.x["x"]), 1.0, atol=1e-6)
     assert "limited-memory" in without_hessian(nlp)["error"]
     assert without_hessian(_tiny_nlp(1e-8)) is None
+
+
+LIBRARY_CTRL_C = """
+import os, signal
+import numpy as np
+from casmag.nlp import NLPBuilder
+from casmag.problem.spec import SolverSpec
+
+b = NLPBuilder()
+x = b.variable("x", (2, 1))
+a = b.parameter("a", (1, 1))
+b.cost("stiff", a * ((x[0] - 0.1) ** 2 + np.pi * (x[0] - 0.2) ** 2) + (x[1] - 0.1) ** 2)
+nlp = b.build(SolverSpec(tol=1e-30, max_iter=200, ipopt={"tiny_step_tol": 0.0}))
+seen = []
+
+def progress(k, cost, step, seconds):
+    seen.append(k)
+    if k == 2:
+        os.kill(os.getpid(), signal.SIGINT)
+
+try:
+    nlp.solve({"a": 1e12}, {"x": np.array([0.5, 1.0])}, progress=progress)
+except KeyboardInterrupt:
+    print("KeyboardInterrupt after", len(seen))
+"""
+
+
+def test_ctrl_c_in_a_library_solve_stops_ipopt_then_raises_keyboard_interrupt():
+    """Without casmag's own handler (a library caller), Ctrl-C during a solve is held back
+    like the command line's: IPOPT stops at its next iteration (it would run on to 200
+    here), then KeyboardInterrupt is raised, not a solver failure."""
+    import subprocess
+    import sys
+
+    res = subprocess.run(
+        [sys.executable, "-c", LIBRARY_CTRL_C], capture_output=True, text=True, timeout=120
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split()[:2] == ["KeyboardInterrupt", "after"], res.stdout
+    assert int(res.stdout.split()[2]) <= 4

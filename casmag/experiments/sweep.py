@@ -538,6 +538,9 @@ def default_jobs() -> int:
         return os.cpu_count() or 1
 
 
+#: Seconds between looks at a recorded Ctrl-C or SIGTERM while the pool's runs are awaited.
+SIGNAL_POLL = 0.1
+
 #: Seconds a worker has to stop after the sweep is interrupted (its solve stops at IPOPT's
 #: next iteration, a save in progress completes or is undone) before it is killed.
 STOP_GRACE = 5.0
@@ -587,12 +590,12 @@ def _sigint_blocked() -> Iterator[None]:
 def _stop_pool(pool: Any) -> None:
     """Stop a process pool now: queued runs are cancelled, running ones are sent SIGTERM
     and killed after STOP_GRACE seconds. Further signals wait until it is done."""
-    procs = list((getattr(pool, "_processes", None) or {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
     main = threading.current_thread() is threading.main_thread()
     stops = {signal.SIGINT, signal.SIGTERM}
     saved = signal.pthread_sigmask(signal.SIG_BLOCK, stops) if main else None
     try:
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
         for p in procs:
             with contextlib.suppress(OSError, ValueError, AttributeError):
                 p.terminate()
@@ -629,26 +632,27 @@ def local_map(
     if not items:
         return
     ctx = multiprocessing.get_context("spawn")
-    with single_threaded_environment(), _sigint_blocked():
-        pool = ProcessPoolExecutor(
-            max_workers=min(jobs, len(items)), mp_context=ctx, initializer=_worker_init
-        )
-        try:
-            # Spawned workers start during the first submits, inside this environment.
-            pending = {pool.submit(_call, fn, item) for item in items}
-        except BaseException:
-            _stop_pool(pool)
-            raise
+    pool = None
     try:
-        while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in done:
-                on_done(fut.result())
+        # A signal is recorded and raised between waits, never inside concurrent.futures,
+        # where it can leave a future's lock held and the exit hanging (casmag.interrupt).
+        with interrupt.deferred():
+            with single_threaded_environment(), _sigint_blocked():
+                pool = ProcessPoolExecutor(
+                    max_workers=min(jobs, len(items)), mp_context=ctx, initializer=_worker_init
+                )
+                # Spawned workers start during the first submits, inside this environment.
+                pending = {pool.submit(_call, fn, item) for item in items}
+            while pending and not interrupt.pending():
+                done, pending = wait(pending, timeout=SIGNAL_POLL, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    on_done(fut.result())
     except BrokenProcessPool as exc:
         _stop_pool(pool)
         raise SweepAborted(f"a worker process died ({exc}); saved runs are kept") from None
     except BaseException:
-        _stop_pool(pool)
+        if pool is not None:
+            _stop_pool(pool)
         raise
     pool.shutdown(wait=True)
 

@@ -2,8 +2,13 @@
 
 import json
 import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -421,3 +426,81 @@ def test_workers_start_with_ctrl_c_ignored():
     finally:
         proc.join(60)
     assert signal.getsignal(signal.SIGINT) is before
+
+
+POOL_SCRIPT = """
+import os, signal, sys, time
+from casmag import interrupt
+from casmag.experiments.sweep import local_map
+from casmag.interrupt import Interrupted
+
+if __name__ == "__main__":
+    mode, count = sys.argv[1], int(sys.argv[2])
+    if mode != "library":
+        interrupt.install()
+    seen = []
+
+    def on_done(value):
+        if not seen:
+            print("running", flush=True)
+            if mode == "inside":
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.2)
+                print("on_done finished", flush=True)
+        seen.append(value)
+
+    try:
+        local_map(abs, list(range(-count, 0)), 2, on_done)
+    except (Interrupted, KeyboardInterrupt) as exc:
+        print(type(exc).__name__, flush=True)
+        sys.exit(130)
+    print("finished", flush=True)
+"""
+
+
+def _pool_script(mode: str, count: int) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-c", POOL_SCRIPT, mode, str(count)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+
+
+@pytest.mark.parametrize(
+    ("mode", "raised"), [("cli", "Interrupted"), ("library", "KeyboardInterrupt")]
+)
+def test_ctrl_c_while_the_pool_is_awaited_stops_it_without_hanging(mode, raised):
+    """A Ctrl-C that lands inside concurrent.futures' wait (thousands of short runs keep the
+    parent there) could leave a future's lock held, and the exit then waited for ever on the
+    pool's thread (4 of 10 tries before the signal was deferred). Now it is raised between
+    waits: with the command line's handler as Interrupted, with Python's as
+    KeyboardInterrupt."""
+    rng = np.random.default_rng(7)
+    for _ in range(3):
+        proc = _pool_script(mode, 3000)
+        try:
+            assert proc.stdout.readline().strip() == "running", proc.communicate()
+            time.sleep(rng.uniform(0.0, 0.3))
+            os.killpg(proc.pid, signal.SIGINT)
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.communicate()
+        assert proc.returncode == 130, err
+        assert out.split() == [raised], (out, err)
+        assert err == ""
+
+
+def test_a_signal_inside_on_done_is_raised_once_it_returns():
+    proc = _pool_script("inside", 50)
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, err
+    assert out.splitlines() == ["running", "on_done finished", "Interrupted"], (out, err)
