@@ -478,7 +478,7 @@ def test_ctrl_c_while_the_pool_is_awaited_stops_it_without_hanging(mode, raised)
     waits: with the command line's handler as Interrupted, with Python's as
     KeyboardInterrupt."""
     rng = np.random.default_rng(7)
-    for _ in range(3):
+    for _ in range(2):
         proc = _pool_script(mode, 3000)
         try:
             assert proc.stdout.readline().strip() == "running", proc.communicate()
