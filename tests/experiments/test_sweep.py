@@ -1,11 +1,13 @@
 """Sweeps: table files, planning, the local process pool, resuming, and a Dask cluster."""
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -458,14 +460,22 @@ if __name__ == "__main__":
 """
 
 
-def _pool_script(mode: str, count: int) -> subprocess.Popen:
-    return subprocess.Popen(
+@contextlib.contextmanager
+def _pool_script(mode: str, count: int) -> Iterator[subprocess.Popen]:
+    """POOL_SCRIPT in its own process group, killed if the test leaves it running."""
+    proc = subprocess.Popen(
         [sys.executable, "-c", POOL_SCRIPT, mode, str(count)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
     )
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
 
 
 @pytest.mark.parametrize(
@@ -479,28 +489,18 @@ def test_ctrl_c_while_the_pool_is_awaited_stops_it_without_hanging(mode, raised)
     KeyboardInterrupt."""
     rng = np.random.default_rng(7)
     for _ in range(2):
-        proc = _pool_script(mode, 3000)
-        try:
+        with _pool_script(mode, 3000) as proc:
             assert proc.stdout.readline().strip() == "running", proc.communicate()
             time.sleep(rng.uniform(0.0, 0.3))
             os.killpg(proc.pid, signal.SIGINT)
             out, err = proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.communicate()
         assert proc.returncode == 130, err
         assert out.split() == [raised], (out, err)
         assert err == ""
 
 
 def test_a_signal_inside_on_done_is_raised_once_it_returns():
-    proc = _pool_script("inside", 50)
-    try:
+    with _pool_script("inside", 50) as proc:
         out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
     assert proc.returncode == 130, err
     assert out.splitlines() == ["running", "on_done finished", "Interrupted"], (out, err)
