@@ -490,7 +490,7 @@ class NLP:
         t0 = time.perf_counter()
         over_budget = False
         try:
-            with interrupt.deferred():  # a signal stops IPOPT, then raises Interrupted
+            with interrupt.deferred():  # a signal stops IPOPT, then is raised
                 out = self.solver(**args)
         finally:
             if self.progress is not None:
