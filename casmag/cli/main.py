@@ -233,9 +233,16 @@ def _warn(line: str) -> None:
     type=click.Path(path_type=Path),
     default=None,
     help="Locate the recording against this saved map (map.npz, or the result folder of an "
-    "earlier run) instead of mapping from scratch; the map's kernel, hyperparameters and "
-    "mean are used, held fixed (translational recordings, casmag.solver.localize); with "
-    "--method ekf the filter locates and writes the map updated by the recording.",
+    "earlier run) instead of mapping from scratch, with the map's kernel and "
+    "hyperparameters, and write the map updated by the recording (its posterior as the "
+    "prior; translational recordings, casmag.solver.localize); with --method ekf the "
+    "filter does the same.",
+)
+@click.option(
+    "--hold-map",
+    is_flag=True,
+    help="With --map and the MAP estimate: locate against the map held at its mean, without "
+    "the update (faster, less accurate where the map is weak; no map.npz is written).",
 )
 @click.option(
     "--method",
@@ -260,6 +267,7 @@ def slam(
     mag_lag: float | str | None,
     refit_noise: bool,
     map_file: Path | None,
+    hold_map: bool,
     method: str,
 ) -> None:
     """GP-SLAM on RECORDINGS (CSV: t, motion increments, mx,my,mz, optional truth).
@@ -281,7 +289,7 @@ def slam(
 
     Every translational run with a reduced-rank map writes map.npz, the map with its
     posterior; --map MAP locates a later recording (its first position in the map's frame)
-    against it, and casmag map MAP draws it.
+    against it and writes the map updated by it, and casmag map MAP draws it.
     """
     from casmag.solver.recslam import slam as run_slam
     from casmag.solver.recslam import slam_sessions
@@ -294,7 +302,7 @@ def slam(
                 raise CasmagError("--refit-noise: for the MAP alone, not with --method both")
             result = _both_methods(
                 recording, problem, overrides, progress, not no_field_check, anchor, mag_lag,
-                map_file, out_dir, align, no_figures, quiet,
+                map_file, hold_map, out_dir, align, no_figures, quiet,
             )  # fmt: skip
         elif len(recordings) == 1:  # any motion input (casmag.solver.recslam.slam)
             result = run_slam(
@@ -308,11 +316,12 @@ def slam(
                 mag_lag=mag_lag,
                 refit_noise=refit_noise,
                 map_file=map_file,
+                hold_map=hold_map,
                 method=method,
             )
         else:
-            if map_file is not None or method != "map":
-                raise CasmagError("--map, --method: one recording at a time")
+            if map_file is not None or hold_map or method != "map":
+                raise CasmagError("--map, --hold-map, --method: one recording at a time")
             if refit_noise:
                 raise CasmagError("--refit-noise: one recording at a time")
             if anchor != "truth":
@@ -347,6 +356,7 @@ def _both_methods(
     anchor: str,
     mag_lag: float | str | None,
     map_file: Path | None,
+    hold_map: bool,
     out_dir: Path,
     align: str,
     no_figures: bool,
@@ -375,6 +385,7 @@ def _both_methods(
             anchor=anchor,
             mag_lag=mag_lag,
             map_file=map_file,
+            hold_map=hold_map and m == "map",
             method=m,
         )
         walls[m] = time.perf_counter() - t0

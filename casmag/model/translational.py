@@ -204,6 +204,7 @@ class WindowStructure:
     estimate_bias: bool
     solver: str  # SolverSpec as JSON
     share_columns: bool = True
+    form = "reduced_rank"  # the window's map (casmag.solver.uncertainty reads it)
 
     @property
     def shared_prior(self) -> bool:

@@ -348,6 +348,7 @@ def slam(
     refit_noise: bool = False,
     map_file: str | Path | None = None,
     method: str = "map",
+    hold_map: bool = False,
     **sections: Mapping[str, Any],
 ) -> Result:
     """GP-SLAM on a recording (CSV, see casmag.data.recording) with the defaults of
@@ -390,8 +391,9 @@ def slam(
     worse (casmag.data.clock, :func:`refit_sigma_m`).
 
     map_file: a saved map (``map.npz`` of an earlier run, casmag.gp.savedmap; translational
-    recordings): the recording is located against it (casmag.solver.localize.localise; with
-    ``method`` ``ekf`` by the filter, which also updates the map:
+    recordings): the recording is located against it and the map updated by it
+    (casmag.solver.localize.localise; ``hold_map``: located against the map held at its
+    mean, no update; with ``method`` ``ekf`` by the filter, which also updates the map:
     casmag.solver.ekf.localise_filter), with the map's kernel and hyperparameters, instead
     of mapped from scratch.
 
@@ -402,6 +404,8 @@ def slam(
         raise DataError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
     if method != "map" and refit_noise:
         raise DataError(f"method {method}: --refit-noise is for the MAP estimate")
+    if hold_map and (map_file is None or method != "map"):
+        raise DataError("--hold-map: for the MAP estimate against a saved map (--map)")
     if anchor not in ANCHORS:
         raise DataError(f"anchor: expected one of {', '.join(ANCHORS)}, got {anchor!r}")
     overrides = [*as_overrides(overrides), *section_overrides(sections)]
@@ -447,7 +451,7 @@ def slam(
     if saved is not None and method == "ekf":
         result = localise_filter(prob, data, saved, str(map_file), float(np.ptp(rec.t)))
     elif saved is not None:
-        result = localise(prob, data, saved, progress, str(map_file))
+        result = localise(prob, data, saved, progress, str(map_file), update=not hold_map)
     elif field_check and how["field_evidence"]["homogeneous"]:
         result = odometry_only(prob, data, "homogeneous field: " + _evidence_text(how))
     elif method == "ekf":

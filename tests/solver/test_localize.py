@@ -12,7 +12,7 @@ from casmag.data.recording import write_recording
 from casmag.data.simulate import simulate_problem
 from casmag.errors import DataError
 from casmag.gp.savedmap import MAP_FILE, load_map, map_from_solution
-from casmag.model.translational import parameters_and_guess
+from casmag.model.translational import WindowStructure, parameters_and_guess
 from casmag.result import Result
 from casmag.solver.api import solve
 from casmag.solver.ekf import localise_filter
@@ -87,9 +87,10 @@ def test_a_bad_map_file_is_one_line_naming_it(mapped, tmp_path):
         load_map(tmp_path / "neg.npz")
 
 
-def test_a_later_recording_is_located_against_the_map(mapped):
+def test_a_later_recording_is_located_against_the_map_and_updates_it(mapped):
     problem, _, result, later, _ = mapped
-    loc = localise(problem, later, result.saved_map())
+    saved = result.saved_map()
+    loc = localise(problem, later, saved, map_source="A")
     assert loc.success, loc.status
     assert loc.rmse_before > 0.3
     # as good as mapping the walk itself, from 0.49 m of dead-reckoning error
@@ -97,15 +98,71 @@ def test_a_later_recording_is_located_against_the_map(mapped):
     assert loc.rmse_after < 0.05 * loc.rmse_before
     windows = [s for s in loc.stages if s["name"] == "window"]
     assert windows and all(s["success"] for s in windows)
-    assert loc.info["localisation"]["covered"] == 1.0
+    assert [s["name"] for s in loc.stages[len(windows) :]] == ["batch", "map_update"]
+    assert loc.info["localisation"]["covered"] == 1.0 and loc.info["localisation"]["updated"]
     assert loc.trusted and not loc.flags
+    # the map updated by the recording is the result's map: more data, better known
+    new = loc.saved_map()
+    assert new is not None and loc.info["map"] == {"saved": True, "updated_from": "A"}
+    assert new.basis_key == saved.basis_key and new.frame == saved.frame
+    P = later.P_true
+    assert np.mean(new.std(P)) < 0.9 * np.mean(saved.std(P))
+    np.testing.assert_allclose(loc.arrays["M_estimate"], new.field(loc.arrays["P_estimate"]))
+    # its covariance as a mapping run's: the correction for correlated residuals, and the plain
+    u = loc.uncertainty
+    assert "inflation" in u and "uninflated" in u and loc.arrays["P_cov_uninflated"] is not None
+    assert loc.arrays["P_cov"].shape == (later.n_samples, 2, 2)
+
+
+def test_a_held_map_locates_without_an_update(mapped):
+    problem, _, result, later, _ = mapped
+    saved = result.saved_map()
+    loc = localise(problem, later, saved, update=False)
+    assert loc.success and loc.rmse_after < 0.05 * loc.rmse_before
+    assert loc.stages[-1]["name"] == "batch" and not loc.info["localisation"]["updated"]
     # the map's own uncertainty widens the magnetometer noise; the map is held, not resaved
     info = loc.info["localisation"]
-    assert info["sigma_m_used"] > result.saved_map().sigma_m
+    assert info["sigma_m_used"] > saved.sigma_m
     assert info["sigma_m_used"] ** 2 == pytest.approx(
-        result.saved_map().sigma_m ** 2 + info["map_std_on_path"] ** 2
+        saved.sigma_m**2 + info["map_std_on_path"] ** 2
     )
-    assert loc.field_map is None and loc.info["map"]["saved"] is False
+    assert loc.saved_map() is None and loc.info["map"]["saved"] is False
+    np.testing.assert_allclose(loc.arrays["M_estimate"], saved.field(loc.arrays["P_estimate"]))
+
+
+def test_a_failed_map_update_keeps_the_held_result_and_says_so(mapped, monkeypatch):
+    """The update's IPOPT run reported as failed (its status replaced): the result is step
+    2's, located against the held map, with a ``map_update`` warning naming the status."""
+    problem, _, result, later, _ = mapped
+    saved = result.saved_map()
+    real = WindowStructure.nlp
+
+    class Failing:
+        def __init__(self, nlp):
+            self.nlp = nlp
+
+        def __getattr__(self, name):
+            return getattr(self.nlp, name)
+
+        def solve(self, *args, **kwargs):
+            return replace(
+                self.nlp.solve(*args, **kwargs), status="Restoration_Failed", success=False
+            )
+
+    def nlp(self, fixed_map=False):
+        built = real(self, fixed_map)
+        return built if fixed_map else Failing(built)
+
+    monkeypatch.setattr(WindowStructure, "nlp", nlp)
+    loc = localise(problem, later, saved)
+    held = localise(problem, later, saved, update=False)
+    assert loc.success and loc.status == held.status
+    assert [s["name"] for s in loc.stages[-2:]] == ["batch", "map_update"]
+    assert loc.stages[-1]["status"] == "Restoration_Failed"
+    assert not loc.info["localisation"]["updated"] and loc.saved_map() is None
+    np.testing.assert_array_equal(loc.arrays["P_estimate"], held.arrays["P_estimate"])
+    [w] = [w for w in loc.warnings if w["check"] == "map_update"]
+    assert "Restoration_Failed" in w["reason"]
 
 
 def test_a_recording_off_the_map_is_flagged(mapped):
@@ -146,6 +203,17 @@ def test_the_command_line_maps_once_and_locates_later(mapped, tmp_path):
     loc = Result.load(tmp_path / "B")
     assert loc.info["localisation"]["map"] == str(tmp_path / "A")
     assert loc.rmse_after < 0.2 * loc.rmse_before
+    assert (tmp_path / "B" / MAP_FILE).is_file() and loc.info["localisation"]["updated"]
+    held = runner.invoke(
+        main, ["slam", str(tmp_path / "b.csv"), "--map", str(tmp_path / "A"), "--hold-map",
+               "--out", str(tmp_path / "H")],
+    )  # fmt: skip
+    assert held.exit_code in (0, 3), held.output
+    assert not (tmp_path / "H" / MAP_FILE).exists()
+    assert not Result.load(tmp_path / "H").info["localisation"]["updated"]
+    alone = runner.invoke(main, ["slam", str(tmp_path / "b.csv"), "--hold-map", "--out",
+                                 str(tmp_path / "N")])  # fmt: skip
+    assert alone.exit_code == 2 and "--hold-map: for the MAP estimate" in alone.output
     drawn = runner.invoke(
         main, ["map", str(tmp_path / "A" / MAP_FILE), "--out", str(tmp_path / "D")]
     )
