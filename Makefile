@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-lag bench-imu-mag-rate bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-lag bench-imu-mag-rate bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-localise bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -148,6 +148,9 @@ bench-walks: $(STAMP) ## Planar and pose odometry walks (problems/planar, proble
 bench-drift: $(STAMP) ## Planar and pose walks drifting beyond one batch's basin: growing vs sliding windows, 5 seeds -> results/bench/drift/report.md
 	$(VENV)/bin/casmag sweep problems/planar/drift.yaml problems/pose/drift.yaml --seeds 5 --figures first --out results/bench/drift
 	$(VENV)/bin/casmag report results/bench/drift --out results/bench/drift/report.md
+
+bench-localise: $(STAMP) ## Map once, locate later: planar and pose walks located against their saved map, beside scratch and joint solves, 5 seeds -> results/bench/localise/localise.md
+	$(PY) -m casmag.experiments.locbench --seeds 5 --out results/bench/localise
 
 bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
 	$(PY) -m casmag.experiments.bench scale --out results/bench

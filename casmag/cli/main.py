@@ -235,14 +235,15 @@ def _warn(line: str) -> None:
     help="Locate the recording against this saved map (map.npz, or the result folder of an "
     "earlier run) instead of mapping from scratch, with the map's kernel and "
     "hyperparameters, and write the map updated by the recording (its posterior as the "
-    "prior; translational recordings, casmag.solver.localize); with --method ekf the "
-    "filter does the same.",
+    "prior; translational recordings: casmag.solver.localize, with --method ekf the filter "
+    "does the same; planar and pose recordings: the model's warm start against the map).",
 )
 @click.option(
     "--hold-map",
     is_flag=True,
-    help="With --map and the MAP estimate: locate against the map held at its mean, without "
-    "the update (faster, less accurate where the map is weak; no map.npz is written).",
+    help="With --map and the MAP estimate of a translational recording: locate against the "
+    "map held at its mean, without the update (faster, less accurate where the map is weak; "
+    "no map.npz is written).",
 )
 @click.option(
     "--method",
@@ -287,9 +288,10 @@ def slam(
     odometry bias (casmag.solver.multisession; casmag.solver.staged.solve_sessions for planar
     and pose); result.json lists each session's errors and sessions.png shows them.
 
-    Every translational run with a reduced-rank map writes map.npz, the map with its
-    posterior; --map MAP locates a later recording (its first position in the map's frame)
-    against it and writes the map updated by it, and casmag map MAP draws it.
+    Every translational, planar and pose run with a reduced-rank box map writes map.npz, the
+    map with its posterior; --map MAP locates a later recording of those kinds (its first
+    position in the map's frame) against it and writes the map updated by it, and casmag map
+    MAP draws it.
     """
     from casmag.solver.recslam import slam as run_slam
     from casmag.solver.recslam import slam_sessions

@@ -1,12 +1,15 @@
 """A field map saved to a file, to draw and to localise a later recording against.
 
-Every GP-SLAM run with a reduced-rank map in the map frame (the translational model, one
-recording or several sessions) writes ``map.npz`` beside ``result.json``: the Hilbert basis
-(kernel, box centre and half width [m], number of functions), the hyperparameters it was
-solved with, and the posterior of the map's unknowns z = [vec(W); c] (the weights W,
-column-major, then the constant field c when the model has one) as a mean and a precision
-matrix. The precision is the Laplace approximation at the MAP, marginal over the path:
-the inverse of the z block of the inverse Hessian of the whole objective
+Every GP-SLAM run with a reduced-rank box map (the translational, planar, pose and IMU
+models, one recording or several sessions) writes ``map.npz`` beside ``result.json``: the
+Hilbert basis (kernel, box centre and half width [m], number of functions), the dimension
+of the positions it is read at, the hyperparameters it was solved with, and the posterior
+of the map's unknowns z = [vec(W); c] (the weights W, column-major, then the constant field
+c when the model has one) as a mean and a precision matrix. The map is the field in the map
+frame, m(p) + c, whatever the motion model: the planar, pose and IMU models read it through
+the body's rotation and solve for whitened weights, which are turned into W before it is
+saved. The precision is the Laplace approximation at the MAP, marginal over the path: the
+inverse of the z block of the inverse Hessian of the whole objective
 (casmag.nlp.NLP.hessian), so the uncertainty of the positions the map was made from is in
 it, not taken as known. Hyperparameters are taken as known.
 
@@ -64,6 +67,8 @@ class SavedMap:
     """A reduced-rank field map with its posterior (module docstring).
 
     kernel: ``se`` or ``curl_free``; center, half_width: the basis box (d,) [m], d = 2 or 3;
+    position_dim: the positions it is read at (default d; 2 for a curl-free map of planar
+    positions, whose potential lives on a 3-D box and is read at z = 0);
     num_basis: M; sigma_f, lengthscale [m], sigma_m: the hyperparameters it was solved
     with (field units but the lengthscale); constant_field: z ends with c (3,); mean (n_z,),
     precision (n_z, n_z): the posterior of z; frame: what its origin is."""
@@ -79,8 +84,15 @@ class SavedMap:
     mean: np.ndarray
     precision: np.ndarray
     frame: str = ""
+    position_dim: int | None = None
 
     def __post_init__(self) -> None:
+        if self.position_dim is None:
+            object.__setattr__(self, "position_dim", len(self.center))
+        if not 2 <= int(self.position_dim) <= len(self.center):
+            raise ValueError(
+                f"position_dim {self.position_dim} is not 2..{len(self.center)} (the box's)"
+            )
         if self.kernel not in KERNELS:
             raise ValueError(f"kernel {self.kernel!r} is not one of {', '.join(KERNELS)}")
         n_z = self.size
@@ -93,7 +105,7 @@ class SavedMap:
     @property
     def dim(self) -> int:
         """Dimension of the positions (2 or 3)."""
-        return len(self.center)
+        return int(self.position_dim)
 
     @property
     def basis_key(self) -> tuple:
@@ -214,7 +226,7 @@ class SavedMap:
         """(n,) whether each point lies in the basis box (outside it the map is only its
         constant: the basis functions vanish on the box's boundary)."""
         X = self._points(X)
-        c, h = np.asarray(self.center), np.asarray(self.half_width)
+        c, h = np.asarray(self.center)[: self.dim], np.asarray(self.half_width)[: self.dim]
         return np.all(np.abs(X - c) <= h, axis=1)
 
     def _points(self, X: np.ndarray) -> np.ndarray:
@@ -243,6 +255,7 @@ class SavedMap:
                 mean=self.mean,
                 precision=self.precision,
                 frame=np.array(self.frame),
+                position_dim=np.array(self.dim),
             )
         os.replace(tmp, path)
         return path
@@ -302,6 +315,8 @@ def load_map(path: str | Path) -> SavedMap:
             mean=np.asarray(data["mean"], dtype=float),
             precision=np.asarray(data["precision"], dtype=float),
             frame=str(data["frame"]),
+            # absent from the maps of casmag before it: their positions were the box's
+            position_dim=int(data["position_dim"]) if "position_dim" in data else None,
         )
     except ValueError as exc:
         raise DataError(f"{path}: {exc}") from None
@@ -315,27 +330,45 @@ def map_from_solution(
     basis: tuple,
     hyper: dict[str, float],
     frame: str,
+    fixed: tuple[str, ...] = (),
+    whitened: bool = False,
+    position_dim: int | None = None,
 ) -> SavedMap:
     """The saved map of a solved NLP with a map-frame reduced-rank map (variables ``W`` and
     optionally ``c``): mean the solution, precision the Schur complement of the rest of the
     Hessian, H_zz - H_za H_aa^-1 H_az (the inverse of the z block of H^-1: the marginal over
     the path, the bias and every other unknown; module docstring). H_aa (knots and bias) is
     sparse and banded, so this costs one sparse factorisation and a product, not n_z
-    solves with the whole Hessian."""
+    solves with the whole Hessian.
+
+    fixed: variables the solve held at their start (NLP.solve's ``fixed``): conditioned on,
+    not marginalised. whitened: the NLP's ``W`` holds the whitened weights V of the
+    rotated magnetometer models (planar, pose: casmag.model.rotated), W = sqrt(S) V with S
+    the prior variances; mean and precision are turned into those of W, the map's own.
+    position_dim: the positions the map is read at (default the box's dimension)."""
     import scipy.sparse.linalg as spla
 
     H = nlp.hessian(x, params).tocsr()
     names = ["W", *(["c"] if "c" in x else [])]
-    z = np.concatenate(
-        [nlp.x_layout.entries[n].offset + np.arange(nlp.x_layout.entries[n].size) for n in names]
-    )
-    a = np.setdiff1d(np.arange(H.shape[0]), z)
+
+    def indices(name: str) -> np.ndarray:
+        return nlp.x_layout.entries[name].offset + np.arange(nlp.x_layout.entries[name].size)
+
+    z = np.concatenate([indices(n) for n in names])
+    held = [indices(n) for n in fixed if n in nlp.x_layout.entries]
+    a = np.setdiff1d(np.arange(H.shape[0]), np.concatenate([z, *held]))
     H_zz = H[z][:, z].toarray()
     H_az = H[a][:, z]
     X = spla.splu(H[a][:, a].tocsc()).solve(H_az.toarray())
     precision = H_zz - H_az.T @ X
     mean = np.concatenate([np.ravel(x[n], order="F") for n in names])
     center, half, M = basis
+    if whitened:
+        S = cached_basis(basis).prior_variances(kernel, hyper["sigma_f"], hyper["lengthscale"])
+        cols = np.asarray(x["W"]).shape[1]
+        scale = np.concatenate([np.tile(np.sqrt(np.ravel(S)), cols), np.ones(mean.size - M * cols)])
+        mean = scale * mean
+        precision = precision / np.outer(scale, scale)
     return SavedMap(
         kernel=kernel,
         center=tuple(float(v) for v in center),
@@ -348,4 +381,5 @@ def map_from_solution(
         mean=mean,
         precision=0.5 * (precision + precision.T),
         frame=frame,
+        position_dim=position_dim,
     )

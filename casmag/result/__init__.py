@@ -3,7 +3,7 @@
 A result holds ``info`` (what was solved), scalar statistics and arrays. It is saved as
 ``result.json`` (everything but the arrays), ``arrays.npz`` (the arrays, exactly),
 ``trajectory.csv`` (the trajectories as text), ``map.npz`` when the run has a reduced-rank
-map in the map frame (casmag.gp.savedmap) and figures, written into a temporary folder
+box map (casmag.gp.savedmap) and figures, written into a temporary folder
 that replaces the output folder only once complete, so an interrupted or failed write never
 leaves a half-written output. :meth:`Result.load` reads a saved result back.
 """

@@ -12,9 +12,9 @@ import numpy as np
 from casmag.data.checks import refuse_simulation_truths
 from casmag.data.imusim import ImuData
 from casmag.data.simulate import Dataset, simulate_problem
-from casmag.errors import DataError, ProblemError
+from casmag.errors import ProblemError
 from casmag.gp.fieldmap import grid_over
-from casmag.gp.savedmap import SavedMap, map_from_solution
+from casmag.gp.savedmap import SavedMap
 from casmag.gp.tiles import cached_tiles
 from casmag.model.field import HYPERPARAMETERS, left_map_box
 from casmag.model.tiledmap import left_map_tiles
@@ -32,14 +32,15 @@ from casmag.result.evaluation import anchor_info
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.imu import solve_imu
 from casmag.solver.oriented import solve_oriented
+from casmag.solver.staged import MAP_NOT_YET
 from casmag.solver.translational import solve_translational, solve_translational_strategy
 from casmag.solver.uncertainty import (
     KNOT_UNCERTAINTY_MAX_UNKNOWNS,
-    UNCERTAINTY_MAX_UNKNOWNS,
     NotPositiveDefinite,
     laplace_positions,
     magnetometer_correction,
     position_uncertainty,
+    saved_field_map,
     whitened_correction,
     without_hessian,
 )
@@ -174,7 +175,7 @@ def solve(
     if start is not None:  # the joint MAP's start of its estimated hyperparameters
         info["estimate_start"] = start
         initial.update(start["values"])
-    info["map"] = {"saved": False, "reason": "not computed yet (Result.saved_map())"}
+    info["map"] = dict(MAP_NOT_YET)
 
     def map_maker() -> tuple[SavedMap | None, dict[str, Any]]:
         return _field_map(problem, nlp, sol, structure, solved, hyper, info["anchor"])
@@ -238,11 +239,6 @@ def _kind(problem: Any) -> str:
     return "translational"
 
 
-#: Largest number of map unknowns whose posterior precision is saved (a dense n_z x n_z
-#: matrix: 290 MB at 6,000, 108 MB at the real field's 3,675).
-MAP_MAX_UNKNOWNS = 6_000
-
-
 def _field_map(
     problem: Problem,
     nlp: Any,
@@ -259,19 +255,12 @@ def _field_map(
     if structure.form != "reduced_rank" or structure.kernel not in ("se", "curl_free"):
         form = f"{structure.form} ({structure.kernel})"
         return None, {"saved": False, "reason": f"no reduced-rank map to save: {form}"}
-    n_z = sum(sol.x[n].size for n in ("W", "c") if n in sol.x)
-    if n_z > MAP_MAX_UNKNOWNS or nlp.x_layout.size > UNCERTAINTY_MAX_UNKNOWNS:
-        reason = f"{n_z} map unknowns, {nlp.x_layout.size} in all (limits {MAP_MAX_UNKNOWNS}, "
-        return None, {"saved": False, "reason": reason + f"{UNCERTAINTY_MAX_UNKNOWNS})"}
     params, _ = parameters_and_guess(problem, solved, structure)
     frame = f"anchored at the {anchor['kind']}: {anchor['position']} (sigma {anchor['sigma']} m)"
-    x = {n: sol.x[n] for n in nlp.x_layout.entries}
-    try:
-        saved = map_from_solution(nlp, x, params, structure.kernel, structure.basis, hyper, frame)
-        saved.cholesky()
-    except (np.linalg.LinAlgError, RuntimeError, DataError) as exc:
-        return None, {"saved": False, "reason": f"posterior not positive definite ({exc})"}
-    return saved, {"saved": True, "unknowns": n_z, "kernel": structure.kernel}
+    return saved_field_map(
+        nlp, sol, params, structure.kernel, structure.basis, hyper, frame,
+        position_dim=solved.dim,
+    )  # fmt: skip
 
 
 def _uncertainty(

@@ -18,6 +18,7 @@ not (a homogeneous field), the result is the IMU-only adjustment
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -59,6 +60,7 @@ from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.closures import magnetic_closures
 from casmag.solver.staged import (
+    MAP_NOT_YET,
     SessionsRun,
     Solved,
     StagedModel,
@@ -69,6 +71,7 @@ from casmag.solver.staged import (
     solve_sessions,
     solve_starts,
 )
+from casmag.solver.uncertainty import saved_field_map
 from casmag.solver.windowing import continues, grow
 from casmag.versions import __version__, versions
 
@@ -1346,6 +1349,22 @@ def _map_arrays(st: ImuSolveStage) -> dict[str, np.ndarray]:
     return map_arrays(basis, fm["kernel"], W, st.solution.x["c"], fm["hyper"], st.P)
 
 
+def _imu_map(st: ImuSolveStage, frame: str) -> tuple[Any, dict[str, Any]]:
+    """The GP-SLAM stage's reduced-rank map with its posterior, marginal over the keyframe
+    states (casmag.solver.uncertainty.saved_field_map: whitened weights turned into the
+    map's). Its precision is a Laplace approximation like the position covariance this
+    model does not give (:data:`IMU_NO_COVARIANCE`): a map to locate against and update,
+    whose uncertainty is likely too small."""
+    fm, sol = st.field_model, st.solution
+    assert fm is not None
+    if sol.params is None:
+        return None, {"saved": False, "reason": "the solution records no parameters"}
+    return saved_field_map(
+        st.nlp, sol, dict(sol.params), fm["kernel"], fm["basis"], fm["hyper"], frame,
+        whitened=True,
+    )  # fmt: skip
+
+
 def _errors(P: np.ndarray | None, Q: np.ndarray | None, Pt: Any, Qt: Any) -> dict[str, Any]:
 
     if P is None or Pt is None:
@@ -1477,6 +1496,16 @@ def solve_imu(
         "versions": versions(),
     }
 
+    map_maker = None
+    if decision == "map" and slam_map is not None and slam_map.field_model is not None:
+        info["map"] = dict(MAP_NOT_YET)
+        anchor = info["anchor"]
+        frame = f"anchored at the {anchor['kind']}: {anchor['position']}"
+        map_maker = functools.partial(_imu_map, slam_map, frame)
+    else:
+        form = spec.model.gp.form
+        why = "the solve failed" if not ok else f"map decision {decision!r}, map form {form}"
+        info["map"] = {"saved": False, "reason": f"no reduced-rank map to save: {why}"}
     t = idx * data.T
     arrays: dict[str, Any] = {
         "t": t,
@@ -1580,6 +1609,7 @@ def solve_imu(
             for i, p in enumerate(res.slam_passes)
         ],
         arrays=arrays,
+        map_maker=map_maker,
         # solver.uncertainty asks for a covariance this model does not give: said so.
         uncertainty={"error": IMU_NO_COVARIANCE} if spec.solver.uncertainty else None,
     )

@@ -462,8 +462,9 @@ def _updated_map(
     )
     try:
         new = map_from_solution(
-            nlp, x, params, saved.kernel, saved.basis_key, saved.hyperparameters(), saved.frame
-        )
+            nlp, x, params, saved.kernel, saved.basis_key, saved.hyperparameters(), saved.frame,
+            position_dim=saved.dim,
+        )  # fmt: skip
         new.cholesky()
     except (np.linalg.LinAlgError, RuntimeError, DataError) as exc:
         reason = f"updated posterior not positive definite ({exc})"

@@ -17,6 +17,7 @@ from casmag.data.clock import LagEstimate, estimate_lag, lag_warning
 from casmag.data.posesim import simulate_planar, simulate_pose
 from casmag.data.recording import Recording
 from casmag.errors import DataError
+from casmag.gp.savedmap import SavedMap
 from casmag.model.planar import dead_reckon_planar
 from casmag.problem.imu import (
     STAGED_SOLVER_KEYS,
@@ -89,6 +90,8 @@ def slam_oriented(
     anchor: str = "truth",
     mag_lag: float | None = None,
     method: str = "map",
+    saved: SavedMap | None = None,
+    map_source: str = "",
 ) -> Result:
     """A recording whose magnetometer turns with the body: planar (``dfwd,dleft,dyaw``,
     the planar model with a heading-rate bias, casmag.solver.planar) or pose odometry
@@ -99,8 +102,11 @@ def slam_oriented(
     reckoning, status ``Odometry_Only`` (with ``field_check`` off, DataError). The
     magnetometer's lag is estimated with the field turned into the map frame along the dead
     reckoning, and reported (``mag_lag``: what was removed before). ``method``: as for
-    :func:`slam`."""
+    :func:`slam`. ``saved``: the recording is located against this saved map (read from
+    ``map_source``) and updates it (casmag.solver.planar.solve_planar,
+    casmag.solver.pose.solve_pose)."""
     load, lag_of, odometry_only, solve_recording = _ORIENTED[rec.motion]
+    located = {} if saved is None else {"prior_map": saved, "map_source": map_source}
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(
         overrides, f"casmag slam on a {rec.motion} recording", STAGED_SOLVER_KEYS
@@ -119,7 +125,9 @@ def slam_oriented(
             refuse_constant_field(rec.path)
         result = odometry_only(rec, anchor)
     else:
-        result = solve_recording(rec, options, progress=progress, anchor=anchor, method=method)
+        result = solve_recording(
+            rec, options, progress=progress, anchor=anchor, method=method, **located
+        )
     result.warnings = found
     result.info["magnetometer_lag"] = lag_record(lag, mag_lag)
     a = result.arrays

@@ -18,6 +18,7 @@ from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
 from casmag.gp.fieldmap import map_arrays, tiled_map_arrays, unwhitened
 from casmag.gp.hyper import estimate_hyperparameters
+from casmag.gp.savedmap import SavedMap
 from casmag.model.field import left_map_box
 from casmag.model.planar import (
     PlanarStructure,
@@ -34,6 +35,7 @@ from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import heading_rms_deg, rmse_and_max
 from casmag.solver.ekf import FilterMap, PlanarNav, filter_result, run_safely
+from casmag.solver.localize import covered, off_map_flag
 from casmag.solver.sessions import (
     Stacked,
     check_starts,
@@ -42,7 +44,10 @@ from casmag.solver.sessions import (
     session_errors,
 )
 from casmag.solver.staged import (
+    MAP_NOT_YET,
+    PriorMap,
     Solved,
+    StagedMap,
     StagedModel,
     Window,
     WindowPrior,
@@ -73,6 +78,8 @@ def solve_planar(
     method: str = "map",
     starts: tuple[int, ...] = (0,),
     session_names: list[str] | None = None,
+    prior_map: SavedMap | None = None,
+    map_source: str = "",
 ) -> Result:
     """Planar odometry with heading plus magnetometer GP-SLAM from arrays.
 
@@ -101,8 +108,16 @@ def solve_planar(
     truth's at its first sample) and heading-rate bias, and they are added one at a time
     in the given order (casmag.solver.staged.solve_sessions; solve_planar_sessions orders
     recordings first). ``info["sessions"]`` has each session's errors, named
-    ``session_names``."""
+    ``session_names``.
+
+    prior_map: locate the recording against a saved 2-D map (casmag.gp.savedmap, read from
+    ``map_source``) and update it: its box, kernel and hyperparameters, its posterior as the
+    prior of the map (:func:`localisation_options`); ``info["localisation"]`` says how much
+    of the estimate lies on ground the map has seen (casmag.solver.localize.covered),
+    flagged ``off_map`` below half. The result's map is the updated one."""
     options = options or PlanarOptions()
+    if prior_map is not None:
+        options = localisation_options(options, prior_map, map_source)
     U = np.column_stack([dfwd, dleft, dyaw]).astype(float)
     Y = np.asarray(mag, dtype=float)
     n = Y.shape[0]
@@ -113,6 +128,8 @@ def solve_planar(
     ends = [*starts[1:], n]
     if S > 1 and method != "map":
         raise DataError(f"method {method}: one session at a time (several sessions: map)")
+    if prior_map is not None and (S > 1 or method != "map"):
+        raise DataError(f"{map_source or 'map'}: one recording is located by the MAP estimate")
     dt = np.ones(n - 1) if t is None else np.diff(np.asarray(t, dtype=float))
     if S > 1:  # the step into a session is not read; a positive value keeps the NLP finite
         dt[[a - 1 for a in starts[1:]]] = 1.0
@@ -166,6 +183,7 @@ def solve_planar(
     model = PlanarStaged(
         options, U, dt, Y, p0, psi0, P_dr, Y_local.mean(axis=0), sigma_m, float(sigma_f),
         float(ell), sigma_lin, progress, starts, anchors,
+        None if prior_map is None else PriorMap.of(prior_map),
     )  # fmt: skip
     ws = options.solver.warm_start
     duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
@@ -224,7 +242,7 @@ def solve_planar(
             "name": name,
             "samples": int(n),
             "num_basis": s.tiles().num_weights if s.tiled else s.hilbert_basis().num_basis,
-            "map": _map_info(s),
+            "map": {**_map_info(s), **MAP_NOT_YET},
             "anchor": {
                 "kind": anchor_kind,
                 "position": [float(v) for v in p0],
@@ -263,7 +281,52 @@ def solve_planar(
         )
         P_true = None if truth is None else np.asarray(truth["P"], float)
         result.info["sessions"] = session_errors(bounds, result, names, P_true, biases)
+    frame = (
+        f"anchored at the {anchor_kind}: {[float(v) for v in p0]}, heading {float(psi0)} rad "
+        f"(sigma {options.sigma_anchor} m)"
+    )
+    result.map_maker = StagedMap(final, options.kernel, hyper, frame, _map_info(s), 2)
+    if prior_map is not None:
+        located(result, prior_map, map_source, sol.x["P"] if sol.success else None)
     return result
+
+
+def localisation_options(options: Any, saved: SavedMap, source: str, motion: str = "planar") -> Any:
+    """The options (PlanarOptions, or the pose model's with ``motion`` ``pose``) of a
+    recording located against a saved map: its kernel and hyperparameters, none estimated,
+    and (pose) its dimension. The box is the saved map's (the staged model's ``prior_map``);
+    the warm start stays the model's (growing prefixes by default: each prefix is located
+    against the saved map, not against what the recording alone would map)."""
+    where = source or "map"
+    if motion == "planar" and saved.dim != 2:
+        raise DataError(f"{where}: a {saved.dim}-D map cannot locate a planar recording")
+    form = getattr(options, "form", "reduced_rank")
+    if form != "reduced_rank":
+        raise DataError(f"{where}: model.gp.form {form}: a saved map is one box")
+    changes: dict[str, Any] = {
+        "kernel": saved.kernel, "sigma_f": saved.sigma_f, "lengthscale": saved.lengthscale,
+        "sigma_m": saved.sigma_m,
+    }  # fmt: skip
+    if motion == "pose":
+        changes["map_dim"] = saved.dim
+    return dataclasses.replace(options, **changes)
+
+
+def located(result: Result, saved: SavedMap, source: str, P: np.ndarray | None) -> None:
+    """``info["localisation"]`` (the map, its frame and size, the share of the estimate on
+    ground it has seen) and ``info["map"]["updated_from"]`` of a result located against a
+    saved map; the ``off_map`` flag when that share is below half."""
+    on_map = None if P is None else float(covered(saved, P[:, : saved.dim]).mean())
+    result.info["localisation"] = {
+        "map": source, "frame": saved.frame, "map_unknowns": saved.size, "covered": on_map,
+    }  # fmt: skip
+    result.info["map"]["updated_from"] = source
+    if isinstance(result.map_maker, StagedMap):  # the updated map, in the saved map's frame
+        form = {**result.map_maker.form, "updated_from": source}
+        result.map_maker = dataclasses.replace(result.map_maker, frame=saved.frame, form=form)
+    flag = None if on_map is None else off_map_flag(on_map)
+    if flag is not None:
+        result.flags.append(flag)
 
 
 def _anchor_state(anchor: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
@@ -308,10 +371,15 @@ class PlanarStaged(StagedModel):
         p0: np.ndarray, psi0: float, P_dr: np.ndarray, c0: np.ndarray, sigma_m: float,
         sigma_f: float, ell: float, sigma_lin: float, progress: Progress | None = None,
         starts: tuple[int, ...] = (0,), anchors: np.ndarray | None = None,
+        prior_map: PriorMap | None = None,
     ) -> None:  # fmt: skip
         """``starts``, ``anchors`` (S, 3: x, y, psi): several sessions, each from its own
-        known start (``U`` row start - 1 not read); one session from ``p0``, ``psi0``."""
+        known start (``U`` row start - 1 not read); one session from ``p0``, ``psi0``.
+        ``prior_map``: a saved map as the map's prior (localisation): every solve's map is
+        its box, held at its mean in a prefix, under its posterior instead of the GP prior
+        in the whole recording's solve (casmag.solver.staged.PriorMap.solve_inputs)."""
         self.progress = progress
+        self.prior_map = prior_map
         self.options, self.U, self.dt, self.Y = options, U, dt, Y
         self.p0, self.psi0, self.P_dr, self.c0 = p0, psi0, P_dr, c0
         self.n, self.solver, self.lengthscale = Y.shape[0], options.solver, ell
@@ -403,9 +471,14 @@ class PlanarStaged(StagedModel):
         if len(self.session_starts) > 1:
             raise ValueError("sliding windows: one session at a time, not several")
         s = planar_structure(self.options, k, self.P_dr, self.lengthscale, solver)
-        return dataclasses.replace(s, bias="constant", window=True)
+        s = dataclasses.replace(s, bias="constant", window=True)
+        if self.prior_map is not None:
+            s = dataclasses.replace(s, basis=self.prior_map.basis)
+        return s
 
     def window_prior(self) -> WindowPrior:
+        if self.prior_map is not None:
+            return self.prior_map.window_prior()
         basis = self._window_structure(2, self.solver).hilbert_basis()
         return WindowPrior.gp(basis, self.options.kernel, self.params["sigma_lin"], self.sigma_m)
 
@@ -517,17 +590,23 @@ class PlanarStaged(StagedModel):
         s_k = planar_structure(
             self.options, k, around, self.lengthscale, solver, self.session_starts
         )
-        nlp_k = cached_planar_nlp(s_k)
         psi_0 = np.asarray(start["psi"], float).ravel()
-        Y0 = sd.rotate(sd.quat_from_euler(0.0 * psi_0, 0.0 * psi_0, psi_0), self.Y[:k])
-        x0 = {
-            "P": start["P"],
-            "psi": psi_0.reshape(-1, 1),
-            "bias": start["bias"],
-            "W": self._initial_map(s_k, start["P"], Y0, lengthscale),
-            "c": self.c0.reshape(3, 1),
-        }
-        return Solved(nlp_k.solve(params_k, x0, progress=self.progress), nlp_k, s_k, lengthscale)
+        x0 = {"P": start["P"], "psi": psi_0.reshape(-1, 1), "bias": start["bias"]}
+        held: tuple[str, ...] = ()
+        if self.prior_map is None:
+            Y0 = sd.rotate(sd.quat_from_euler(0.0 * psi_0, 0.0 * psi_0, psi_0), self.Y[:k])
+            x0["W"] = self._initial_map(s_k, start["P"], Y0, lengthscale)
+            x0["c"] = self.c0.reshape(3, 1)
+        else:  # the saved map's box under its posterior
+            s_k, prior_params, map0, held = self.prior_map.solve_inputs(
+                s_k, start["P"], heading_rotations(psi_0), self.Y[:k], self.sigma_f,
+                lengthscale, hold=k < self.n,
+            )  # fmt: skip
+            params_k.update(prior_params)
+            x0.update(map0)
+        nlp_k = cached_planar_nlp(s_k)
+        sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=held)
+        return Solved(sol, nlp_k, s_k, lengthscale)
 
 
 def heading_rotations(psi: np.ndarray) -> np.ndarray:
@@ -614,11 +693,13 @@ def solve_planar_recording(
     progress: Progress | None = None,
     anchor: str = "truth",
     method: str = "map",
+    prior_map: SavedMap | None = None,
+    map_source: str = "",
 ) -> Result:
     """Solve a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.data.recording``: a path,
     or a Recording already read); truth columns, when present, are used for evaluation
     only, and (``anchor`` ``truth``, the default) for the first pose; ``origin``: the
-    origin, heading 0."""
+    origin, heading 0. ``prior_map``: locate it against a saved map (:func:`solve_planar`)."""
     rec = path if isinstance(path, Recording) else read_recording(path)
     path = rec.path
     if rec.motion != "planar":
@@ -642,6 +723,8 @@ def solve_planar_recording(
         progress=progress,
         name=Path(path).stem,
         method=method,
+        prior_map=prior_map,
+        map_source=map_source,
         **({"p0": np.zeros(2), "psi0": 0.0} if anchor == "origin" else {}),
     )
     if anchor == "origin":

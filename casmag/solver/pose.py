@@ -15,6 +15,7 @@ from casmag import strapdown as sd
 from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
 from casmag.gp.fieldmap import map_arrays, unwhitened
+from casmag.gp.savedmap import SavedMap
 from casmag.model.field import left_map_box
 from casmag.model.pose import (
     PoseStructure,
@@ -30,7 +31,12 @@ from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
 from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
-from casmag.solver.planar import hyperparameter_info, hyperparameters_from_data
+from casmag.solver.planar import (
+    hyperparameter_info,
+    hyperparameters_from_data,
+    localisation_options,
+    located,
+)
 from casmag.solver.sessions import (
     Stacked,
     check_starts,
@@ -39,7 +45,10 @@ from casmag.solver.sessions import (
     session_errors,
 )
 from casmag.solver.staged import (
+    MAP_NOT_YET,
+    PriorMap,
     Solved,
+    StagedMap,
     StagedModel,
     Window,
     WindowPrior,
@@ -93,6 +102,8 @@ def solve_pose(
     method: str = "map",
     starts: tuple[int, ...] = (0,),
     session_names: list[str] | None = None,
+    prior_map: SavedMap | None = None,
+    map_source: str = "",
 ) -> Result:
     """Pose odometry plus magnetometer GP-SLAM from arrays.
 
@@ -112,8 +123,14 @@ def solve_pose(
 
     starts: several sessions of one field stacked end to end, one map, as for
     casmag.solver.planar.solve_planar (p0 (S, 3) and q0 (S, 4): each session's first pose,
-    by default the truth's; its own biases; added one at a time in the given order)."""
+    by default the truth's; its own biases; added one at a time in the given order).
+
+    prior_map: locate the recording against a saved map (read from ``map_source``) and
+    update it, as casmag.solver.planar.solve_planar does; the map's dimension is the saved
+    map's."""
     options = options or PoseOptions()
+    if prior_map is not None:
+        options = localisation_options(options, prior_map, map_source, "pose")
     U = np.asarray(U, dtype=float)
     Y = np.asarray(mag, dtype=float)
     n = Y.shape[0]
@@ -123,6 +140,8 @@ def solve_pose(
     S = len(starts)
     if S > 1 and method != "map":
         raise DataError(f"method {method}: one session at a time (several sessions: map)")
+    if prior_map is not None and (S > 1 or method != "map"):
+        raise DataError(f"{map_source or 'map'}: one recording is located by the MAP estimate")
     dt = np.ones(n - 1) if t is None else np.diff(np.asarray(t, dtype=float))
     if S > 1:  # the step into a session is not read; a positive value keeps the NLP finite
         dt[[a - 1 for a in starts[1:]]] = 1.0
@@ -192,8 +211,9 @@ def solve_pose(
             result.details["bias_w"] = [float(v) for v in run.states[-1, 6:9]]
         return result
     model = PoseStaged(
-        options, U, dt, Y, p0, q0, P_dr, Q_dr, c0, params, dim, height, progress, starts
-    )
+        options, U, dt, Y, p0, q0, P_dr, Q_dr, c0, params, dim, height, progress, starts,
+        None if prior_map is None else PriorMap.of(prior_map),
+    )  # fmt: skip
     duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
     biases = heading_bias_starts(options.starts, options.start_heading_deg, duration)
     ws = options.solver.warm_start
@@ -240,6 +260,14 @@ def solve_pose(
         P_true=None if truth is None else np.asarray(truth["P"], dtype=float),
         Q_true=None if truth is None or "q" not in truth else np.asarray(truth["q"], float),
     )  # fmt: skip
+    form = {
+        "form": "reduced_rank",
+        "dim": dim,
+        "height_prior_m": options.height_sigma if height else None,
+        "num_basis": basis.num_basis,
+        "box_center": [float(v) for v in basis.domain.center],
+        "box_half_width": [float(v) for v in basis.domain.half_width],
+    }
     result = Result(
         motion="pose",
         flags=flags,
@@ -268,14 +296,7 @@ def solve_pose(
             "name": name,
             "samples": int(n),
             "num_basis": basis.num_basis,
-            "map": {
-                "form": "reduced_rank",
-                "dim": dim,
-                "height_prior_m": options.height_sigma if height else None,
-                "num_basis": basis.num_basis,
-                "box_center": [float(v) for v in basis.domain.center],
-                "box_half_width": [float(v) for v in basis.domain.half_width],
-            },
+            "map": {**form, **MAP_NOT_YET},
             "anchor": anchor_info,
             "kernel": options.kernel,
             "biases_estimated": [b for b in _BIASES if b not in fixed],
@@ -292,6 +313,13 @@ def solve_pose(
         P_true = None if truth is None else np.asarray(truth["P"], float)
         result.info["sessions"] = session_errors(bounds, result, names, P_true, biases_p)
         anchor_info["sessions"] = np.hstack([p0s, q0s]).tolist()  # x, y, z, qw, qx, qy, qz
+    frame = (
+        f"anchored at the {anchor_kind}: {anchor_info['position']}, attitude (w, x, y, z) "
+        f"{anchor_info['quaternion']} (sigma {options.sigma_anchor} m)"
+    )
+    result.map_maker = StagedMap(final, options.kernel, hyper, frame, form, dim)
+    if prior_map is not None:
+        located(result, prior_map, map_source, sol.x["P"] if sol.success else None)
     return result
 
 
@@ -323,10 +351,12 @@ class PoseStaged(StagedModel):
         self, options: PoseOptions, U: np.ndarray, dt: np.ndarray, Y: np.ndarray,
         p0: np.ndarray, q0: np.ndarray, P_dr: np.ndarray, Q_dr: np.ndarray, c0: np.ndarray,
         params: dict[str, Any], dim: int, height: bool, progress: Progress | None = None,
-        starts: tuple[int, ...] = (0,),
+        starts: tuple[int, ...] = (0,), prior_map: PriorMap | None = None,
     ) -> None:  # fmt: skip
         """``starts``: several sessions, each from its known first pose (rows of
-        ``params["anchor_p"]`` and ``params["anchor_q"]``; ``U`` row start - 1 not read)."""
+        ``params["anchor_p"]`` and ``params["anchor_q"]``; ``U`` row start - 1 not read).
+        ``prior_map``: a saved map as the map's prior (as casmag.solver.planar.PlanarStaged)."""
+        self.prior_map = prior_map
         self.options, self.U, self.dt, self.Y = options, U, dt, Y
         self.p0, self.q0, self.P_dr, self.Q_dr, self.c0 = p0, q0, P_dr, Q_dr, c0
         self.params, self.dim, self.height, self.progress = params, dim, height, progress
@@ -386,24 +416,36 @@ class PoseStaged(StagedModel):
         s_k = pose_structure(
             self.options, k, around, self.lengthscale, dim, self.height, solver, starts
         )
-        nlp_k = cached_pose_nlp(s_k)
         params_k = {
             **self.params, "U": self.U[: k - 1], "dt": self.dt[: k - 1].reshape(-1, 1),
             "Y": self.Y[:k], "lengthscale": lengthscale, **nominal_parameters(Q0, starts),
             "anchor_p": self.params["anchor_p"][: len(starts)],
             "anchor_q": self.params["anchor_q"][: len(starts)],
         }  # fmt: skip
-        basis = s_k.hilbert_basis()
         sigma_m, sigma_f = self.params["sigma_m"], self.params["sigma_f"]
-        Yk = sd.rotate(Q0, self.Y[:k])
-        w = ridge_weights(basis, kernel, P0[:, :dim], Yk, self.c0, sigma_m, sigma_f, lengthscale)
         x0 = {
             "P": P0, "D": np.zeros((k, 3)),
             "bias_p": np.reshape(start["bias_p"], (-1, 3)),
             "bias_w": np.reshape(start["bias_w"], (-1, 3)),
-            "W": whiten(basis, kernel, sigma_f, lengthscale, w), "c": self.c0.reshape(3, 1),
         }  # fmt: skip
-        sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=self.fixed)
+        held: tuple[str, ...] = ()
+        if self.prior_map is None:
+            basis = s_k.hilbert_basis()
+            Yk = sd.rotate(Q0, self.Y[:k])
+            w = ridge_weights(
+                basis, kernel, P0[:, :dim], Yk, self.c0, sigma_m, sigma_f, lengthscale
+            )
+            x0["W"] = whiten(basis, kernel, sigma_f, lengthscale, w)
+            x0["c"] = self.c0.reshape(3, 1)
+        else:  # the saved map's box under its posterior
+            s_k, prior_params, map0, held = self.prior_map.solve_inputs(
+                s_k, P0[:, :dim], sd.quat_to_rotmat(Q0), self.Y[:k], sigma_f, lengthscale,
+                hold=k < self.n,
+            )  # fmt: skip
+            params_k.update(prior_params)
+            x0.update(map0)
+        nlp_k = cached_pose_nlp(s_k)
+        sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=[*self.fixed, *held])
         return Solved(sol, nlp_k, s_k, lengthscale, nominal=Q0)
 
     # ------------------------------------------------------------ sliding windows
@@ -420,9 +462,14 @@ class PoseStaged(StagedModel):
         s = pose_structure(
             self.options, k, self.P_dr, self.lengthscale, self.dim, self.height, solver
         )
-        return dataclasses.replace(s, window=True)
+        s = dataclasses.replace(s, window=True)
+        if self.prior_map is not None:
+            s = dataclasses.replace(s, basis=self.prior_map.basis)
+        return s
 
     def window_prior(self) -> WindowPrior:
+        if self.prior_map is not None:
+            return self.prior_map.window_prior()
         basis = self._window_structure(2, self.solver).hilbert_basis()
         sigma_lin, sigma_m = self.params["sigma_lin"], self.params["sigma_m"]
         return WindowPrior.gp(basis, self.options.kernel, sigma_lin, sigma_m)
@@ -512,12 +559,14 @@ def solve_pose_recording(
     progress: Progress | None = None,
     anchor: str = "truth",
     method: str = "map",
+    prior_map: SavedMap | None = None,
+    map_source: str = "",
 ) -> Result:
     """Solve a pose recording (``dpx,dpy,dpz,dqw,dqx,dqy,dqz`` columns: a path, or a
     Recording already read); truth columns (``x_true,y_true,z_true``,
     ``qw_true,...``), when present, are used for evaluation only and (``anchor`` ``truth``,
     the default) for the first pose; ``origin``: the origin and the identity. ``method``: as
-    for :func:`solve_pose`."""
+    for :func:`solve_pose`; ``prior_map``: locate it against a saved map (:func:`solve_pose`)."""
     rec = path if isinstance(path, Recording) else read_recording(path)
     if rec.motion != "pose":
         raise DataError(
@@ -532,7 +581,8 @@ def solve_pose_recording(
     start = {"p0": np.zeros(3), "q0": np.array([1.0, 0, 0, 0])} if anchor == "origin" else {}
     result = solve_pose(
         rec.increments, rec.Y, options, truth=truth, t=rec.t, progress=progress,
-        name=Path(rec.path).stem, method=method, **start,
+        name=Path(rec.path).stem, method=method, prior_map=prior_map, map_source=map_source,
+        **start,
     )  # fmt: skip
     if anchor == "origin":
         result.info["anchor"]["kind"] = "origin"

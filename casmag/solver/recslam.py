@@ -391,11 +391,12 @@ def slam(
     worse (casmag.data.clock, :func:`refit_sigma_m`).
 
     map_file: a saved map (``map.npz`` of an earlier run, casmag.gp.savedmap; translational
-    recordings): the recording is located against it and the map updated by it
+    and planar recordings): the recording is located against it and the map updated by it
     (casmag.solver.localize.localise; ``hold_map``: located against the map held at its
     mean, no update; with ``method`` ``ekf`` by the filter, which also updates the map:
-    casmag.solver.ekf.localise_filter), with the map's kernel and hyperparameters, instead
-    of mapped from scratch.
+    casmag.solver.ekf.localise_filter; a planar recording by the sliding windows and one
+    solve under the map's posterior, casmag.solver.planar.solve_planar), with the map's
+    kernel and hyperparameters, instead of mapped from scratch.
 
     method: ``map`` (default) the MAP estimate above; ``ekf`` the filter baseline
     (casmag.solver.ekf: an EKF with the same map, hyperparameters and noise in its state,
@@ -428,12 +429,17 @@ def slam(
         refuse_translational_options(recording, None, refit_noise, rec.motion)
         return slam_imu(rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag)
     if rec.motion in ("planar", "pose"):
-        if saved is not None:
-            raise DataError(f"{map_file}: a saved map locates translational recordings only")
+        if saved is not None and (method != "map" or hold_map):
+            how = "--hold-map" if hold_map else f"--method {method}"
+            raise DataError(
+                f"{map_file}: {how} locates translational recordings; a {rec.motion} one is "
+                "located by the MAP estimate, which updates the map"
+            )
         refuse_translational_options(recording, mag_lag, refit_noise, rec.motion)
         return slam_oriented(
-            rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag, method
-        )
+            rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag, method,
+            saved, "" if map_file is None else str(map_file),
+        )  # fmt: skip
     data = rec.to_dataset(anchor)
     prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides, given)
     lag = estimate_lag(rec.t, data.dead_reckoning(), rec.Y, _assumed(prob))

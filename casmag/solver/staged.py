@@ -32,18 +32,19 @@ stage before the last stops after ``stage_max_iter`` iterations. With truth,
 
 from __future__ import annotations
 
+import dataclasses
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from casmag.model.rotated import window_unknowns
+from casmag.model.rotated import rotated_design, window_unknowns
 from casmag.nlp import NLP, Solution, lowest_cost
 from casmag.problem.imu import STAGED_STRATEGIES
 from casmag.problem.spec import SolverSpec, WarmStartSpec
 from casmag.result.metrics import rmse_and_max
-from casmag.solver.uncertainty import sample_state_uncertainty
+from casmag.solver.uncertainty import sample_state_uncertainty, saved_field_map
 from casmag.solver.windowing import (
     ACCEPTED,
     continues,
@@ -237,6 +238,71 @@ class WindowPrior:
         s2 = self.sigma_m**2
         self.Lam = self.Lam + J.T @ J / s2
         self.eta = self.eta + J.T @ y / s2
+
+
+@dataclass(frozen=True)
+class PriorMap:
+    """A saved map (casmag.gp.savedmap.SavedMap) as the prior of a staged model's map, to
+    locate a recording against it: the saved basis key, and the saved posterior of the
+    NLP's map unknowns z = [vec(V); c] (whitened weights, casmag.model.rotated), mean and
+    precision. A map saved without a constant field holds c at zero (a precision of
+    1 / (1e-9 sigma_m)^2)."""
+
+    basis: tuple
+    kernel: str
+    mean: np.ndarray
+    precision: np.ndarray
+    sigma_m: float
+
+    @classmethod
+    def of(cls, saved: Any) -> PriorMap:
+        basis = saved.basis()
+        S = np.ravel(basis.prior_variances(saved.kernel, saved.sigma_f, saved.lengthscale))
+        cols = saved.num_weights // saved.num_basis
+        d = np.concatenate([np.tile(np.sqrt(S), cols), np.ones(3)])
+        mean, precision = np.zeros(d.size), np.zeros((d.size, d.size))
+        n = saved.size
+        mean[:n], precision[:n, :n] = saved.mean, saved.precision
+        if not saved.constant_field:
+            precision[n:, n:] = np.eye(3) * (1e-9 * saved.sigma_m) ** -2
+        # W = sqrt(S) V: the mean divided by d, the precision scaled by d on both sides
+        return cls(
+            saved.basis_key, saved.kernel, mean / d, d[:, None] * precision * d, saved.sigma_m
+        )
+
+    def window_prior(self) -> WindowPrior:
+        """The windows' prior (:func:`slide`), a copy each call (the windows update it)."""
+        return WindowPrior(self.precision @ self.mean, self.precision.copy(), self.sigma_m)
+
+    def solve_inputs(
+        self, structure: Any, P: np.ndarray, R: np.ndarray, Y: np.ndarray, sigma_f: float,
+        lengthscale: float, hold: bool,
+    ) -> tuple[Any, dict[str, np.ndarray], dict[str, np.ndarray], tuple[str, ...]]:  # fmt: skip
+        """What a staged model's solve changes under this prior: its structure on the saved
+        box, the parameters of its map block, the map's start and the map's unknowns to
+        hold fixed.
+
+        ``hold`` (a prefix of the recording, :func:`solve_strategy`): the map is held at the
+        saved mean (the structure's own GP prior is then a constant), so IPOPT factorises
+        the path alone, and the NLP carries no dense block to build; the path is located
+        against the map. Else (the whole recording) the block ``map_prior`` (a window
+        structure) puts the saved posterior in place of the GP prior, and the map is free,
+        from its mean given the readings Y (k, 3) at positions P (k, d) with body-to-map
+        rotations R (k, 3, 3): the map is updated by the recording (at the real field's
+        3,675 unknowns the dense prior costs about 6 s an iteration)."""
+        if hold:
+            s = dataclasses.replace(structure, basis=self.basis)
+            nv = self.mean.size - 3
+            held = {
+                "W": self.mean[:nv].reshape(s.hilbert_basis().num_basis, -1, order="F"),
+                "c": self.mean[nv:].reshape(3, 1),
+            }
+            return s, {}, held, ("W", "c")
+        s = dataclasses.replace(structure, basis=self.basis, window=True)
+        basis, prior = s.hilbert_basis(), self.window_prior()
+        params = {"map_mean": self.mean.reshape(-1, 1), "map_precision": prior.Lam}
+        J = rotated_design(basis, self.kernel, P, R, sigma_f, lengthscale)
+        return s, params, prior.start(J, np.reshape(Y, -1), basis.num_basis), ()
 
 
 #: Status of a window whose states left its map's box (IPOPT itself stopped normally).
@@ -691,3 +757,37 @@ def uncertainty(
     return sample_state_uncertainty(
         final.nlp, final.sol, final.sol.x["P"], P_true, sigma_m, solver.uncertainty_inflation
     )
+
+
+#: ``info["map"]`` of a result until :meth:`casmag.result.Result.saved_map` computes it.
+MAP_NOT_YET = {"saved": False, "reason": "not computed yet (Result.saved_map())"}
+
+
+@dataclass(frozen=True)
+class StagedMap:
+    """The ``map_maker`` of a staged model's result (casmag.result.Result.saved_map): the
+    final solve's box map (whitened weights: casmag.model.rotated) with its posterior,
+    marginal over the path and conditioned on what the solve held
+    (casmag.solver.uncertainty.saved_field_map), in the frame described by ``frame``, read
+    at positions of ``position_dim``. The record it gives ``info["map"]`` keeps ``form``
+    (the map's description). A tiled map has none to save (the saved format is one box)."""
+
+    final: Solved
+    kernel: str
+    hyper: dict[str, float]
+    frame: str
+    form: dict[str, Any]
+    position_dim: int
+
+    def __call__(self) -> tuple[Any, dict[str, Any]]:
+        form, sol = self.form, self.final.sol
+        basis = getattr(self.final.structure, "basis", None)
+        if basis is None:
+            return None, {**form, "saved": False, "reason": "no reduced-rank map to save: tiled"}
+        if sol.params is None:
+            return None, {**form, "saved": False, "reason": "the solution records no parameters"}
+        saved, record = saved_field_map(
+            self.final.nlp, sol, dict(sol.params), self.kernel, basis, self.hyper, self.frame,
+            whitened=True, position_dim=self.position_dim,
+        )  # fmt: skip
+        return saved, {**form, **record}

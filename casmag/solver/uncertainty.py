@@ -293,6 +293,51 @@ UNCERTAINTY_MAX_UNKNOWNS = DENSE_MAX_UNKNOWNS
 #: for are too).
 KNOT_UNCERTAINTY_MAX_UNKNOWNS = 200_000
 
+#: Largest number of map unknowns whose posterior precision is saved (a dense n_z x n_z
+#: matrix: 290 MB at 6,000, 108 MB at the real field's 3,675).
+MAP_MAX_UNKNOWNS = 6_000
+
+
+def saved_field_map(
+    nlp: NLP,
+    sol: Solution,
+    params: dict[str, Any],
+    kernel: str,
+    basis: tuple,
+    hyper: dict[str, float],
+    frame: str,
+    whitened: bool = False,
+    position_dim: int | None = None,
+    max_unknowns: int = UNCERTAINTY_MAX_UNKNOWNS,
+) -> tuple[Any, dict[str, Any]]:
+    """The map of a solved reduced-rank NLP to save (casmag.gp.savedmap.map_from_solution,
+    conditioned on the variables the solve held, ``sol.fixed``) and a record of it for a
+    result's ``info["map"]``: ``{"saved": True, "unknowns", "kernel"}``, or ``{"saved":
+    False, "reason"}`` for a failed solve, too many unknowns (the map's above
+    :data:`MAP_MAX_UNKNOWNS`, the NLP's above ``max_unknowns``) or a posterior that is not
+    positive definite. ``whitened``: the NLP solves for the whitened weights (planar, pose);
+    ``position_dim``: the positions the map is read at (default the box's dimension)."""
+    from casmag.errors import DataError
+    from casmag.gp.savedmap import map_from_solution
+
+    if not sol.success:
+        return None, {"saved": False, "reason": "the solve failed"}
+    n_z = sum(sol.x[n].size for n in ("W", "c") if n in sol.x)
+    if n_z > MAP_MAX_UNKNOWNS or nlp.x_layout.size > max_unknowns:
+        reason = f"{n_z} map unknowns, {nlp.x_layout.size} in all (limits {MAP_MAX_UNKNOWNS}, "
+        return None, {"saved": False, "reason": reason + f"{max_unknowns})"}
+    if (missing := without_hessian(nlp)) is not None:
+        return None, {"saved": False, "reason": missing["error"]}
+    x = {n: sol.x[n] for n in nlp.x_layout.entries}
+    try:
+        saved = map_from_solution(
+            nlp, x, params, kernel, basis, hyper, frame, tuple(sol.fixed), whitened, position_dim
+        )
+        saved.cholesky()
+    except (np.linalg.LinAlgError, RuntimeError, DataError) as exc:
+        return None, {"saved": False, "reason": f"posterior not positive definite ({exc})"}
+    return saved, {"saved": True, "unknowns": n_z, "kernel": kernel}
+
 
 def without_hessian(nlp: NLP) -> dict[str, Any] | None:
     """The summary ``{"error": reason}`` when the NLP builds no Hessian to take the Laplace

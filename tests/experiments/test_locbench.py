@@ -1,0 +1,47 @@
+"""The map-once-locate-later benchmark's later recording (casmag.experiments.locbench)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from casmag import strapdown as sd
+from casmag.experiments.locbench import LATER, later_recording, table
+from casmag.problem.oriented import load_oriented_problem
+from casmag.solver.oriented import simulate_oriented
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize("motion", ["planar", "pose"])
+def test_the_later_recording_has_the_same_path_and_its_own_odometry_errors(motion):
+    problem = load_oriented_problem(
+        ROOT / f"problems/{motion}/walk.yaml", ["simulation.trajectory.samples=200"]
+    )
+    rec, _ = simulate_oriented(problem)
+    later = later_recording(rec, 1)
+    np.testing.assert_array_equal(later.P_true, rec.P_true)
+    assert later.path.endswith("-later")
+    dU = later.increments - rec.increments
+    # the displacement bias, within the noise's standard error over 199 steps
+    np.testing.assert_allclose(dU[:, :2].mean(axis=0), LATER["bias_p"], atol=1e-3)
+    h = float(np.median(np.diff(rec.t)))
+    if motion == "planar":
+        turn = dU[:, 2]
+    else:  # the rotation added to each increment, about the body z axis
+        turn = 2.0 * np.arcsin(sd.quat_mul(sd.quat_conj(rec.increments[:, 3:]),
+                                           later.increments[:, 3:])[:, 3])  # fmt: skip
+    assert turn.mean() == pytest.approx(LATER["bias_w"] * h, abs=4e-4)
+    assert 0.03 < np.std(later.Y - rec.Y) < 0.07
+
+
+def test_the_table_has_a_row_per_seed_and_the_medians():
+    row = {"rmse_before": 0.5, "rmse_after": 0.04, "seconds": 9.0, "nees_mean": 2.1}
+    runs = [
+        {"motion": "planar", "seed": s, "scratch": dict(row), "joint": dict(row),
+         "located": {**row, "map_std_ratio": 0.7}}
+        for s in (1, 2)
+    ]  # fmt: skip
+    text = table(runs)
+    assert text.count("| planar |") == 2
+    assert "located 0.040 m in 9.0 s" in text
