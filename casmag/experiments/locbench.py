@@ -42,8 +42,9 @@ LATER = {"bias_p": (-0.002, 0.003), "bias_w": -3e-3, "noise_p": 3e-3, "noise_w":
 
 
 def later_recording(rec: Recording, seed: int) -> Recording:
-    """The same path and field as ``rec`` with :data:`LATER`'s odometry errors and fresh
-    magnetometer noise (seeded by ``seed``)."""
+    """The same path and field as ``rec``: its odometry with :data:`LATER`'s errors added
+    (so the biases are the sum of both), its magnetometer with fresh noise added (seeded
+    by ``seed``)."""
     rng = np.random.default_rng([seed, 99])
     h = np.diff(rec.t)
     U = np.array(rec.increments, dtype=float)
