@@ -315,7 +315,7 @@ def saved_field_map(
     result's ``info["map"]``: ``{"saved": True, "unknowns", "kernel"}``, or ``{"saved":
     False, "reason"}`` for a failed solve, too many unknowns (the map's above
     :data:`MAP_MAX_UNKNOWNS`, the NLP's above ``max_unknowns``) or a posterior that is not
-    positive definite. ``whitened``: the NLP solves for the whitened weights (planar, pose);
+    positive definite. ``whitened``: the NLP solves for the whitened weights (planar, pose, IMU);
     ``position_dim``: the positions the map is read at (default the box's dimension)."""
     from casmag.errors import DataError
     from casmag.gp.savedmap import map_from_solution
