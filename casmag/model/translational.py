@@ -320,9 +320,8 @@ def initial_weights(
 ) -> np.ndarray:
     """Ridge fit of the map weights to the data at the initial positions (the posterior mean
     of the weights given P): (A^T A / sigma_m^2 + diag(1 / S))^-1 A^T (y - c0) / sigma_m^2.
-    For the tiled map, (m, T), by conjugate gradients preconditioned with the diagonal (the
-    normal matrix holds one block per pair of neighbouring tiles; a direct factor of it
-    would fill in)."""
+    For the tiled map, (m, T), by a sparse direct solve
+    (:func:`casmag.model.tiledmap.ridge_tile_weights`)."""
     if s.form == "tiled":
         assert s.tiles is not None
         return ridge_tile_weights(cached_tiles(s.tiles), P, Y, c0, sigma_m, sigma_f, lengthscale)
@@ -441,23 +440,11 @@ def cached_nlp(structure: Structure) -> NLP:
     return cached_slam(structure.motion(), structure.field(), structure.solver)
 
 
-def parameters_and_guess(
-    problem: Problem,
-    data: Dataset,
-    s: Structure,
-    initial_positions: np.ndarray | None = None,
-    hyper_start: dict[str, float] | None = None,
-) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Parameter values and the initial guess: the dead reckoning (or the knot corrections
-    closest to ``initial_positions``), the field fitted there, zero bias, hyperparameters at
-    their assumed values (estimated ones at ``hyper_start`` where it names them, see
-    :func:`estimate_start`)."""
+def parameters(problem: Problem, data: Dataset, s: Structure) -> dict[str, Any]:
+    """The NLP's parameter values: the dead reckoning, the data, the anchor and the noise
+    levels, and the hyperparameters the problem does not estimate at their assumed values
+    (the guess is :func:`parameters_and_guess`'s)."""
     m = problem.spec.model
-    hyper = {
-        "sigma_f": problem.assumed_sigma_f,
-        "lengthscale": problem.assumed_lengthscale,
-        "sigma_m": problem.assumed_sigma_m,
-    }
     params: dict[str, Any] = {
         "Q": data.dead_reckoning(),
         "Y": data.Y,
@@ -467,6 +454,35 @@ def parameters_and_guess(
     }
     if s.bias_prior:
         params["sigma_bias"] = m.odometry.bias_prior_sigma
+    if s.form in ("reduced_rank", "tiled") and s.constant_field:
+        params["sigma_lin"] = m.gp.sigma_lin
+    for h, value in _assumed(problem).items():
+        if h not in s.estimate:
+            params[h] = value
+    return params
+
+
+def _assumed(problem: Problem) -> dict[str, float]:
+    return {
+        "sigma_f": problem.assumed_sigma_f,
+        "lengthscale": problem.assumed_lengthscale,
+        "sigma_m": problem.assumed_sigma_m,
+    }
+
+
+def parameters_and_guess(
+    problem: Problem,
+    data: Dataset,
+    s: Structure,
+    initial_positions: np.ndarray | None = None,
+    hyper_start: dict[str, float] | None = None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """:func:`parameters` and the initial guess: the dead reckoning (or the knot
+    corrections closest to ``initial_positions``), the field fitted there, zero bias,
+    hyperparameters at their assumed values (estimated ones at ``hyper_start`` where it
+    names them, see :func:`estimate_start`)."""
+    params = parameters(problem, data, s)
+    hyper = _assumed(problem)
     Q = params["Q"]
     if initial_positions is None:
         P0, C0 = Q, np.zeros((s.knots.count, s.dim))
@@ -481,7 +497,6 @@ def parameters_and_guess(
         )
         if s.constant_field:
             x0["c"] = c0.reshape(-1, 1)
-            params["sigma_lin"] = m.gp.sigma_lin
     else:
         x0["M"] = data.Y
     if s.estimate_bias:
@@ -489,6 +504,4 @@ def parameters_and_guess(
     for h, value in hyper.items():
         if h in s.estimate:
             x0[f"log_{h}"] = np.log((hyper_start or {}).get(h, value))
-        else:
-            params[h] = value
     return params, x0

@@ -22,7 +22,7 @@ from casmag.model.translational import (
     field_estimate,
     field_on_grid,
     field_std_on_grid,
-    parameters_and_guess,
+    parameters,
 )
 from casmag.problem.imu import ImuProblem, load_imu_problem
 from casmag.problem.oriented import OrientedProblem, load_oriented_problem
@@ -255,7 +255,7 @@ def _field_map(
     if structure.form != "reduced_rank" or structure.kernel not in ("se", "curl_free"):
         form = f"{structure.form} ({structure.kernel})"
         return None, {"saved": False, "reason": f"no reduced-rank map to save: {form}"}
-    params, _ = parameters_and_guess(problem, solved, structure)
+    params = parameters(problem, solved, structure)
     frame = f"anchored at the {anchor['kind']}: {anchor['position']} (sigma {anchor['sigma']} m)"
     return saved_field_map(
         nlp, sol, params, structure.kernel, structure.basis, hyper, frame,
@@ -288,7 +288,7 @@ def _uncertainty(
         return {"error": f"not computed: {reason}"}, None, None
     if (missing := without_hessian(nlp)) is not None:
         return missing, None, None
-    params, _ = parameters_and_guess(problem, solved, structure)
+    params = parameters(problem, solved, structure)
     sigma_o, sigma_m = problem.assumed_sigma_odometry, problem.assumed_sigma_m
     knots, dim = structure.knots, structure.dim
 

@@ -26,6 +26,7 @@ from casmag.model.translational import (
     cached_nlp,
     field_estimate,
     initial_weights,
+    parameters,
     parameters_and_guess,
     positions,
 )
@@ -195,7 +196,7 @@ def _solve_from(
     solution ``x`` of the same structure, at a fixed ``lengthscale``."""
     s = Structure.of(problem, data)
     nlp = cached_nlp(s)
-    params, _ = parameters_and_guess(problem, data, s)
+    params = parameters(problem, data, s)
     if "lengthscale" in params:  # fixed (coarse-to-fine refuses an estimated one)
         params["lengthscale"] = lengthscale
     x0 = {k: v for k, v in x.items() if k in nlp.x_layout.entries}

@@ -10,7 +10,13 @@ from casmag.data.simulate import simulate_problem
 from casmag.model.builder import build_slam
 from casmag.model.field import TiledField
 from casmag.model.planar import PlanarMotion
-from casmag.model.tiledmap import home_points, left_map_tiles, tile_grid
+from casmag.model.tiledmap import (
+    home_points,
+    left_map_tiles,
+    ridge_tile_weights,
+    tile_grid,
+    tile_normal_equations,
+)
 from casmag.model.translational import TranslationalMotion
 from casmag.problem.imu import load_planar_options
 from casmag.problem.spec import SolverSpec
@@ -108,6 +114,29 @@ def test_gradient_and_gauss_newton_hessian(knot_every):
     assert (
         np.abs(H[np.ix_(cols, knots)] - gn[np.ix_(cols, knots)]).max() > 1e-3 * np.abs(exact).max()
     )
+
+
+def test_ridge_weights_are_the_posterior_mean():
+    """The tiles' initial weights are the posterior mean given the field at the start
+    positions: the normal equations assembled from the dense group products equal the
+    design's A^T A and A^T r (a missing or mis-transposed off-diagonal block fails here),
+    and the weights solve them to 1e-9 of the largest weight."""
+    rng = np.random.default_rng(3)
+    P = np.cumsum(rng.normal(scale=0.15, size=(N, 2)), axis=0)
+    tiles = TiledField(tile_grid(P, ELL), home_points(tile_grid(P, ELL), P)).tiles()
+    R = rng.normal(size=(N, 3))
+    A = tiles.design(P)
+    AtA, Atr = tile_normal_equations(tiles, P, R)
+    ref = (A.T @ A).toarray()
+    assert np.abs(AtA.toarray() - ref).max() < 1e-12 * np.abs(ref).max()
+    np.testing.assert_allclose(Atr, A.T @ R.ravel(order="F"), rtol=1e-12, atol=1e-12)
+    c0, sigma_m, sigma_f = np.array([0.3, -0.2, 0.5]), 0.2, 1.5
+    S = np.tile(tiles.prior_variances(sigma_f, ELL), tiles.num_tiles)
+    G = ref / sigma_m**2 + np.diag(1.0 / S)
+    mean = np.linalg.solve(G, A.T @ R.ravel(order="F") / sigma_m**2)
+    W = ridge_tile_weights(tiles, P, R + c0, c0, sigma_m, sigma_f, ELL)
+    assert W.shape == (tiles.per_tile, tiles.num_tiles)
+    np.testing.assert_allclose(W.T.ravel(), mean, rtol=0, atol=1e-9 * np.abs(mean).max())
 
 
 def test_tiled_map_locates_like_the_exact_gp():

@@ -12,7 +12,7 @@ from casmag.data.recording import write_recording
 from casmag.data.simulate import simulate_problem
 from casmag.errors import DataError
 from casmag.gp.savedmap import MAP_FILE, load_map, map_from_solution
-from casmag.model.translational import WindowStructure, parameters_and_guess
+from casmag.model.translational import WindowStructure, parameters
 from casmag.result import Result
 from casmag.solver.api import solve
 from casmag.solver.ekf import localise_filter
@@ -35,7 +35,7 @@ def mapped():
     Y = data.M_true + rng.normal(0.0, problem.assumed_sigma_m, data.Y.shape)
     later = replace(data, U=U, Y=Y, bias_true=BIAS)
     sol, nlp, hyper, _, structure = solve_translational(problem, data)
-    params, _ = parameters_and_guess(problem, data, structure)
+    params = parameters(problem, data, structure)
     x = {n: sol.x[n] for n in nlp.x_layout.entries}
     return problem, data, result, later, (nlp, x, params, structure, hyper)
 

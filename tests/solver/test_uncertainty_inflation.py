@@ -14,7 +14,7 @@ from small_problems import tiny_walk
 
 import casmag
 from casmag.data.simulate import simulate_problem
-from casmag.model.translational import parameters_and_guess
+from casmag.model.translational import parameters
 from casmag.solver import uncertainty
 from casmag.solver.translational import solve_translational
 from casmag.solver.uncertainty import (
@@ -115,7 +115,7 @@ def test_magnetometer_correction_is_the_magnetometer_gauss_newton_block(override
     data = simulate_problem(prob)
     sol, nlp, _, _, s = solve_translational(prob, data)
     assert sol.success
-    params, _ = parameters_and_guess(prob, data, s)
+    params = parameters(prob, data, s)
     x = {k: v for k, v in sol.x.items() if k in nlp.x_layout.entries}
     H = nlp.hessian(x, params).toarray()
     sm = params["sigma_m"]
@@ -190,7 +190,7 @@ def test_the_sparse_factor_gives_the_dense_covariance(overrides, monkeypatch):
     data = simulate_problem(prob)
     sol, nlp, _, _, s = solve_translational(prob, data)
     assert sol.success, sol.status
-    params, _ = parameters_and_guess(prob, data, s)
+    params = parameters(prob, data, s)
     sigma_o = params["sigma_o"]
     if s.form == "tiled":
         x = nlp.x_layout.pack({k: v for k, v in sol.x.items() if k in nlp.x_layout.entries})
