@@ -476,13 +476,18 @@ def parameters_and_guess(
     s: Structure,
     initial_positions: np.ndarray | None = None,
     hyper_start: dict[str, float] | None = None,
+    lengthscale: float | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """:func:`parameters` and the initial guess: the dead reckoning (or the knot
     corrections closest to ``initial_positions``), the field fitted there, zero bias,
     hyperparameters at their assumed values (estimated ones at ``hyper_start`` where it
-    names them, see :func:`estimate_start`)."""
+    names them, see :func:`estimate_start`). ``lengthscale``: a fixed lengthscale other
+    than the assumed one (a coarse-to-fine stage), set in the parameters and used for the
+    fit; the map's basis stays the assumed lengthscale's."""
     params = parameters(problem, data, s)
     hyper = _assumed(problem)
+    if lengthscale is not None:
+        params["lengthscale"] = hyper["lengthscale"] = lengthscale
     Q = params["Q"]
     if initial_positions is None:
         P0, C0 = Q, np.zeros((s.knots.count, s.dim))

@@ -17,7 +17,6 @@ import numpy as np
 from casmag.data.simulate import Dataset
 from casmag.errors import ProblemError
 from casmag.gp.hyper import estimate_conditional
-from casmag.gp.kernels import FIELD_DIM
 from casmag.model.field import HYPERPARAMETERS
 from casmag.model.rrmap import make_basis
 from casmag.model.translational import (
@@ -25,7 +24,6 @@ from casmag.model.translational import (
     WindowStructure,
     cached_nlp,
     field_estimate,
-    initial_weights,
     parameters,
     parameters_and_guess,
     positions,
@@ -140,42 +138,27 @@ def solve_translational(
     s = Structure.of(problem, data, initial_positions)
     nlp = cached_nlp(s)
     start = estimate_start(problem, data, s, initial_positions)
+    other = lengthscale is not None and lengthscale != problem.assumed_lengthscale
+    if other and "lengthscale" in s.estimate:
+        raise ProblemError(
+            problem.source,
+            "solver.warm_start.strategy",
+            "coarse-to-fine fixes the lengthscale at each stage; it cannot be estimated",
+        )
     params, x0 = parameters_and_guess(
-        problem, data, s, initial_positions, None if start is None else start["values"]
+        problem,
+        data,
+        s,
+        initial_positions,
+        None if start is None else start["values"],
+        lengthscale if other else None,
     )
-    if lengthscale is not None and lengthscale != problem.assumed_lengthscale:
-        _with_lengthscale(problem, data, s, params, x0, lengthscale, initial_positions)
     sol = nlp.solve(params, x0, progress=progress)
     if start is not None and start["method"] == "both":
         sol = _better_of_two_starts(nlp, sol, params, x0, start, progress)
     if start is not None:
         sol.stats["estimate_start"] = start
     return _finish(s, nlp, sol, params)
-
-
-def _with_lengthscale(
-    problem: Problem,
-    data: Dataset,
-    s: Structure,
-    params: dict[str, Any],
-    x0: dict[str, Any],
-    lengthscale: float,
-    initial_positions: np.ndarray | None,
-) -> None:
-    """Set a fixed lengthscale in ``params`` and fit the map's weights in ``x0`` at it."""
-    if "lengthscale" in s.estimate:
-        raise ProblemError(
-            problem.source,
-            "solver.warm_start.strategy",
-            "coarse-to-fine fixes the lengthscale at each stage; it cannot be estimated",
-        )
-    params["lengthscale"] = lengthscale
-    if "W" in x0:
-        P0 = params["Q"] if initial_positions is None else s.knots.positions(params["Q"], x0["C"])
-        c0 = x0["c"].ravel() if "c" in x0 else np.zeros(FIELD_DIM)
-        x0["W"] = initial_weights(
-            s, P0, data.Y, problem.assumed_sigma_m, problem.assumed_sigma_f, lengthscale, c0
-        )
 
 
 def _finish(
