@@ -308,18 +308,21 @@ class HessianCallback(ca.Callback):
 
     ``mode``: ``gauss-newton`` (J^T J only), ``exact`` (plus the residuals' second-order
     terms) or ``hybrid``: Gauss-Newton while the block's cost falls fast, the exact Hessian
-    once it falls by less than :attr:`SWITCH` of itself between two Hessian evaluations
-    (Fletcher and Xu's switch): Gauss-Newton is the safer step far from the solution, where
-    large residuals make the exact Hessian indefinite and IPOPT's regularisation crawls;
-    near it the exact Hessian converges quadratically where Gauss-Newton is only linear.
+    once it falls by less than :attr:`SWITCH` of itself between two Hessian evaluations,
+    :attr:`SWITCH_AFTER` times in a row (Fletcher and Xu's switch): Gauss-Newton is the
+    safer step far from the solution, where large residuals make the exact Hessian
+    indefinite and IPOPT's regularisation crawls; near it the exact Hessian converges
+    quadratically where Gauss-Newton is only linear.
     ``exact_used`` records the choice per evaluation of the current solve."""
 
     MODES = ("gauss-newton", "exact", "hybrid")
     SWITCH = 0.2
+    SWITCH_AFTER = 1
 
     mode: str = "gauss-newton"
     exact_used: list[bool]
     _last_cost: float | None = None
+    _slow: int = 0
 
     def set_mode(self, mode: str) -> None:
         """Choose the mode (one of :attr:`MODES`) for the next solves."""
@@ -331,6 +334,7 @@ class HessianCallback(ca.Callback):
     def reset(self) -> None:
         """Forget the previous solve (the hybrid switch starts with Gauss-Newton)."""
         self._last_cost = None
+        self._slow = 0
         self.exact_used = []
 
     def _use_exact(self, cost: float) -> bool:
@@ -339,7 +343,9 @@ class HessianCallback(ca.Callback):
             exact = self.mode == "exact"
         else:
             last, self._last_cost = self._last_cost, cost
-            exact = last is not None and last - cost < self.SWITCH * last
+            slow = last is not None and last - cost < self.SWITCH * last
+            self._slow = self._slow + 1 if slow else 0
+            exact = self._slow >= self.SWITCH_AFTER
         self.exact_used.append(exact)
         return exact
 

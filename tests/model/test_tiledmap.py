@@ -10,7 +10,9 @@ from casmag.data.simulate import simulate_problem
 from casmag.model.builder import build_slam
 from casmag.model.field import TiledField
 from casmag.model.planar import PlanarMotion
+from casmag.model.rrmap import HessianCallback
 from casmag.model.tiledmap import (
+    TiledGaussNewton,
     home_points,
     left_map_tiles,
     ridge_tile_weights,
@@ -137,6 +139,25 @@ def test_ridge_weights_are_the_posterior_mean():
     W = ridge_tile_weights(tiles, P, R + c0, c0, sigma_m, sigma_f, ELL)
     assert W.shape == (tiles.per_tile, tiles.num_tiles)
     np.testing.assert_allclose(W.T.ravel(), mean, rtol=0, atol=1e-9 * np.abs(mean).max())
+
+
+@pytest.mark.parametrize("cls", [HessianCallback, TiledGaussNewton])
+def test_hybrid_switch_counts_slow_evaluations(cls):
+    """The hybrid Hessian adds the exact terms once the block's cost has fallen by less
+    than SWITCH (20 %) at SWITCH_AFTER evaluations in a row: the global box at the first
+    slow one, the tiles at the second (a lone slow step, then a fast one, keeps
+    Gauss-Newton), and a fast step starts the count again."""
+    hess = cls.__new__(cls)
+    hess.set_mode("hybrid")
+    costs = [100.0, 90.0, 50.0, 45.0, 44.0, 20.0, 19.0, 18.9]  # falls 10, 44, 10, 2, 55, 5, 0.5 %
+    used = [hess._use_exact(c) for c in costs]
+    if cls is HessianCallback:
+        assert used == [False, True, False, True, True, False, True, True]
+    else:
+        assert used == [False, False, False, False, True, False, False, True]
+    assert hess.exact_used == used
+    hess.reset()
+    assert not hess._use_exact(18.0)  # a new solve starts with Gauss-Newton
 
 
 def test_tiled_map_locates_like_the_exact_gp():
