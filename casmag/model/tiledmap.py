@@ -220,12 +220,12 @@ class TiledGaussNewton(HessianCallback):
     #: hybrid: the exact terms after two evaluations in a row whose cost fell by less
     #: than SWITCH (20 %), not after one: a first Gauss-Newton step that mostly fits the
     #: map falls little, and the exact Hessian there is indefinite (IPOPT regularised it
-    #: with 1e4, 10^3.5, 10^3, steps of 1e-2 against 3 m). Measured on 2026-11-28, each run
-    #: alone, no warm start: 4,000 samples over 6 x 6 m in the dipole field 21 -> 17
-    #: iterations (137 -> 97 s in IPOPT; Gauss-Newton alone 25); the 2,000-sample walk
-    #: (problems/bench/walk.yaml, curl-free) 22 -> 17 iterations (184 -> 135 s); the same
-    #: positions. The global box went the other way on the real field (seq5-drift0.5: 46
-    #: -> 65 iterations), so it keeps one.
+    #: with 1e4, 10^3.5, 10^3; steps of 1e-2 against 3 in IPOPT's ||d||). Measured on
+    #: 2026-11-28, each run alone, no warm start: 4,000 samples over 6 x 6 m in the dipole
+    #: field 21 -> 17 iterations (137 -> 97 s in IPOPT; Gauss-Newton alone 25); the
+    #: 2,000-sample walk (problems/bench/walk.yaml, curl-free) 22 -> 17 iterations (184 ->
+    #: 135 s); the same positions. The global box went the other way on the real field
+    #: (seq5-drift0.5: 46 -> 65 iterations), so it keeps one.
     SWITCH_AFTER = 2
 
     def __init__(
