@@ -25,7 +25,9 @@ rad/s, gyroscope-like), each estimated or held at zero. Named cost blocks:
 
 and the field model's blocks on y_k = R_k^T (m(p_k) + c) (casmag.model.field through the
 rotation, as the IMU model's). The map is 3-D, or ``map_dim`` 2 for motion that stays near a
-plane: the field is then a function of (x, y) only, the orientation still 3-D.
+plane: the field is then a function of (x, y) only, the orientation still 3-D. The map is
+the reduced-rank box or the tiles (casmag.model.field.TiledField: each sample touches the
+2^map_dim tiles around its position).
 """
 
 from __future__ import annotations
@@ -37,8 +39,9 @@ import numpy as np
 
 from casmag import strapdown as sd
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.gp.tiles import TiledBasis, TileGrid, cached_tiles
 from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
-from casmag.model.field import ReducedRankField, WindowField
+from casmag.model.field import ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rotated import imu_rotation_function, window_unknowns
 from casmag.nlp import NLP, NLPBuilder
@@ -158,24 +161,41 @@ class PoseMotion(MotionModel):
 @dataclass(frozen=True)
 class PoseStructure:
     """Everything that changes the pose NLP: samples, the map's dimension and its
-    reduced-rank ``basis`` key (center, half width, number of functions), kernel, Hessian
-    mode of the magnetometer block, the solver settings as JSON; ``window``: the box of a
-    sliding window, its prior carried from the earlier windows (a WindowField)."""
+    reduced-rank ``basis`` key (center, half width, number of functions) or, when the map
+    is tiled, its tile ``grid`` with each sample's ``home`` grid point (which fixes the
+    Hessian's pose-weight pattern), kernel, Hessian mode of the magnetometer block, the
+    solver settings as JSON; ``window``: the box of a sliding window, its prior carried
+    from the earlier windows (a WindowField)."""
 
     n: int
     map_dim: int
     kernel: str
-    basis: tuple
+    basis: tuple | None
     solver: str
     curvature: str = "hybrid"
     height: bool = False
     window: bool = False
     starts: tuple[int, ...] = (0,)
+    grid: TileGrid | None = None
+    home: tuple[int, ...] = ()
+
+    @property
+    def tiled(self) -> bool:
+        return self.grid is not None
 
     def hilbert_basis(self) -> HilbertBasis:
+        assert self.basis is not None, "a tiled map has no global basis"
         return cached_basis(self.basis)
 
-    def field(self) -> ReducedRankField:
+    def tiles(self) -> TiledBasis:
+        assert self.grid is not None
+        return cached_tiles(self.grid)
+
+    def field(self) -> ReducedRankField | TiledField:
+        if self.grid is not None:
+            if self.window:
+                raise ValueError("sliding windows need the reduced-rank map, not tiles")
+            return TiledField(self.grid, self.home, constant_field=True)
         if self.window:
             nz = window_unknowns(self.hilbert_basis(), self.kernel)
             return WindowField(

@@ -30,9 +30,8 @@ POSE_SOLVER_DEFAULTS: dict[str, Any] = PLANAR_SOLVER_DEFAULTS
 
 class PoseGPSpec(RecordingGPSpec):
     """The pose model's map (``model.gp``): :class:`~casmag.problem.imu.RecordingGPSpec`
-    with the curl-free kernel by default and the reduced-rank box only."""
+    with the curl-free kernel by default."""
 
-    form: Literal["reduced_rank"] = "reduced_rank"
     kernel: Literal["se", "curl_free"] = "curl_free"
 
 
@@ -86,7 +85,10 @@ class PoseOptions:
     orientation) [estimate]; kernel [curl_free: the field is the gradient of a potential];
     sigma_lin: constant-field prior (None: from the data); num_basis, margin: reduced-rank
     basis; curvature: Hessian mode of the magnetometer block (casmag.model.rotated) under
-    ``solver.hessian: auto`` (another value there chooses instead) [hybrid].
+    ``solver.hessian: auto`` (another value there chooses instead) [hybrid]; form: the map,
+    ``reduced_rank`` (one box around the dead reckoning) or ``tiled`` (casmag.gp.tiles:
+    tiles only where the path goes, each sample touching the 2^map_dim around it; kernel
+    ``curl_free``; its Hessian ``hybrid`` whatever ``curvature`` says) [reduced_rank].
 
     map_dim: 3, 2 (the field a function of x and y only: motion near a plane) or ``auto``
     (2 when the dead reckoning's height varies by less than one lengthscale over stretches
@@ -120,6 +122,7 @@ class PoseOptions:
     curvature: str = "hybrid"
     starts: int = 1
     start_heading_deg: float = 10.0
+    form: str = "reduced_rank"
     solver: SolverSpec = dataclasses.field(
         default_factory=lambda: SolverSpec(**POSE_SOLVER_DEFAULTS)
     )
@@ -134,6 +137,4 @@ def load_pose_options(
     sections) and ``key.path=value`` overrides. Raises ProblemError naming the file (or
     ``--set``), the key and the reason."""
     spec = load_recording_spec(PoseSpec, problem, overrides, source)
-    options = flat_options(spec.model)
-    del options["form"]  # the reduced-rank box, the one map the pose model takes
-    return PoseOptions(**options, solver=spec.solver)
+    return PoseOptions(**flat_options(spec.model), solver=spec.solver)

@@ -242,7 +242,7 @@ def solve_planar(
             "name": name,
             "samples": int(n),
             "num_basis": s.tiles().num_weights if s.tiled else s.hilbert_basis().num_basis,
-            "map": {**_map_info(s), **MAP_NOT_YET},
+            "map": {**structure_map_info(s), **MAP_NOT_YET},
             "anchor": {
                 "kind": anchor_kind,
                 "position": [float(v) for v in p0],
@@ -257,7 +257,7 @@ def solve_planar(
         },
         convergence=[sol.trace("GP-SLAM")],
         arrays={
-            **(_map_arrays(s, options, hyper, sol) if sol.success else {}),
+            **(structure_map_arrays(s, options.kernel, hyper, sol) if sol.success else {}),
             "t": np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
             "P_odometry": P_dr,
             "psi_odometry": psi_dr,
@@ -285,7 +285,7 @@ def solve_planar(
         f"anchored at the {anchor_kind}: {[float(v) for v in p0]}, heading {float(psi0)} rad "
         f"(sigma {options.sigma_anchor} m)"
     )
-    result.map_maker = StagedMap(final, options.kernel, hyper, frame, _map_info(s), 2)
+    result.map_maker = StagedMap(final, options.kernel, hyper, frame, structure_map_info(s), 2)
     if prior_map is not None:
         located(result, prior_map, map_source, sol.x["P"] if sol.success else None)
     return result
@@ -654,22 +654,23 @@ def hyperparameter_info(estimated: list[str], sigma_lin: float, given: bool) -> 
     }
 
 
-def _map_arrays(
-    s: PlanarStructure, options: PlanarOptions, hyper: dict[str, float], sol: Any
-) -> dict[str, np.ndarray]:
-    """The solved map on a grid with its posterior std (casmag.gp.fieldmap), for map.png
-    (the tiled map's field alone)."""
+def structure_map_arrays(s: Any, kernel: str, hyper: dict[str, float], sol: Any) -> dict:
+    """The solved planar map (the planar model's, or a pose model's with ``map_dim`` 2) on
+    a grid with its posterior std (casmag.gp.fieldmap), for map.png (the tiled map's field
+    alone); ``s`` a PlanarStructure or PoseStructure."""
+    P = sol.x["P"][:, :2]
     if s.tiled:
         tiles = s.tiles()
         W = sol.x["W"].T * np.sqrt(tiles.prior_variances(hyper["sigma_f"], hyper["lengthscale"]))
-        return tiled_map_arrays(tiles, W, sol.x["c"], hyper["lengthscale"], sol.x["P"])
+        return tiled_map_arrays(tiles, W, sol.x["c"], hyper["lengthscale"], P)
     basis = s.hilbert_basis()
-    W = unwhitened(basis, options.kernel, hyper, sol.x["W"])
-    return map_arrays(basis, options.kernel, W, sol.x["c"], hyper, sol.x["P"])
+    W = unwhitened(basis, kernel, hyper, sol.x["W"])
+    return map_arrays(basis, kernel, W, sol.x["c"], hyper, P)
 
 
-def _map_info(s: PlanarStructure) -> dict[str, Any]:
-    """The map of the kept solve: its form and size."""
+def structure_map_info(s: Any) -> dict[str, Any]:
+    """The map of the kept solve (a PlanarStructure's or PoseStructure's): its form and
+    size."""
     if s.tiled:
         tiles = s.tiles()
         return {

@@ -14,7 +14,6 @@ import numpy as np
 from casmag import strapdown as sd
 from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
-from casmag.gp.fieldmap import map_arrays, unwhitened
 from casmag.gp.savedmap import SavedMap
 from casmag.model.field import left_map_box
 from casmag.model.pose import (
@@ -25,6 +24,7 @@ from casmag.model.pose import (
 )
 from casmag.model.rotated import ridge_weights, rotated_design, whiten
 from casmag.model.rrmap import make_basis
+from casmag.model.tiledmap import home_points, left_map_tiles, ridge_tile_weights, tile_grid
 from casmag.nlp import Progress
 from casmag.problem.pose import PoseOptions
 from casmag.problem.spec import SolverSpec
@@ -36,6 +36,8 @@ from casmag.solver.planar import (
     hyperparameters_from_data,
     localisation_options,
     located,
+    structure_map_arrays,
+    structure_map_info,
 )
 from casmag.solver.sessions import (
     Stacked,
@@ -184,6 +186,8 @@ def solve_pose(
         "sigma": options.sigma_anchor,
     }
     if method == "ekf":
+        if options.form == "tiled":
+            raise DataError("model.gp.form: the filter baseline needs the box map (reduced_rank)")
         s_n = pose_structure(options, n, P_dr, ell, dim, height, options.solver)
         nav = PoseNav(
             U, dt, p0, q0, options.sigma_p, options.sigma_r, options.sigma_anchor,
@@ -230,8 +234,11 @@ def solve_pose(
         if flag is not None:
             flags.append(flag)
     if sol.success:
-        basis = s.hilbert_basis()
-        box = left_map_box(basis.domain.center, basis.domain.half_width, sol.x["P"][:, :dim])
+        if s.tiled:
+            box = left_map_tiles(s.tiles(), sol.x["P"][:, :dim])
+        else:
+            basis = s.hilbert_basis()
+            box = left_map_box(basis.domain.center, basis.domain.half_width, sol.x["P"][:, :dim])
         if box is not None:
             flags.append(box)
     P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
@@ -245,14 +252,9 @@ def solve_pose(
         if "q" in truth:
             att_before = attitude_rms_deg(Q_dr, truth["q"])
             att_after = attitude_rms_deg(Q_est, truth["q"]) if sol.success else None
-    basis = s.hilbert_basis()
     arrays: dict[str, Any] = {}
-    if sol.success:
-        W = unwhitened(basis, options.kernel, hyper, sol.x["W"])
-        if dim == 2:
-            arrays.update(
-                map_arrays(basis, options.kernel, W, sol.x["c"], hyper, sol.x["P"][:, :2])
-            )
+    if sol.success and dim == 2:
+        arrays.update(structure_map_arrays(s, options.kernel, hyper, sol))
     arrays.update(
         t=np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float),
         P_odometry=P_dr, Q_odometry=Q_dr, P_estimate=sol.x["P"], Q_estimate=Q_est,
@@ -261,12 +263,9 @@ def solve_pose(
         Q_true=None if truth is None or "q" not in truth else np.asarray(truth["q"], float),
     )  # fmt: skip
     form = {
-        "form": "reduced_rank",
+        **structure_map_info(s),
         "dim": dim,
         "height_prior_m": options.height_sigma if height else None,
-        "num_basis": basis.num_basis,
-        "box_center": [float(v) for v in basis.domain.center],
-        "box_half_width": [float(v) for v in basis.domain.half_width],
     }
     result = Result(
         motion="pose",
@@ -295,7 +294,7 @@ def solve_pose(
         info={
             "name": name,
             "samples": int(n),
-            "num_basis": basis.num_basis,
+            "num_basis": s.tiles().num_weights if s.tiled else s.hilbert_basis().num_basis,
             "map": {**form, **MAP_NOT_YET},
             "anchor": anchor_info,
             "kernel": options.kernel,
@@ -327,16 +326,23 @@ def pose_structure(
     options: PoseOptions, k: int, around: np.ndarray, ell: float, dim: int, height: bool,
     solver: Any, starts: tuple[int, ...] = (0,),
 ) -> PoseStructure:  # fmt: skip
-    """The first k samples' problem with the IPOPT settings ``solver``, its map box (for the
-    lengthscale ``ell``, in ``dim`` dimensions) around the positions ``around``; ``starts``:
-    the first sample of each session."""
+    """The first k samples' problem with the IPOPT settings ``solver``, its map (box or
+    tiles, for the lengthscale ``ell``, in ``dim`` dimensions) around the positions
+    ``around``; ``starts``: the first sample of each session."""
+    common = {
+        "n": k, "map_dim": dim, "kernel": options.kernel, "solver": solver.model_dump_json(),
+        "curvature": options.curvature, "height": height,
+        "starts": tuple(a for a in starts if a < k),
+    }  # fmt: skip
+    if options.form == "tiled":
+        grid = tile_grid(around[:, :dim], ell, reach=options.margin)
+        return PoseStructure(
+            **common, basis=None, grid=grid, home=home_points(grid, around[:, :dim])
+        )
     hb = make_basis(options.kernel, around[:, :dim], ell, options.num_basis, options.margin)
     return PoseStructure(
-        n=k, map_dim=dim, kernel=options.kernel,
-        basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis),
-        solver=solver.model_dump_json(), curvature=options.curvature, height=height,
-        starts=tuple(a for a in starts if a < k),
-    )  # fmt: skip
+        **common, basis=(tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
+    )
 
 
 class PoseStaged(StagedModel):
@@ -411,7 +417,9 @@ class PoseStaged(StagedModel):
         self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float
     ) -> Solved:
         P0, Q0, dim, kernel = start["P"], start["Q"], self.dim, self.options.kernel
-        around = self.P_dr if k == self.n else P0
+        # The full problem's box around the dead reckoning; tiles around the start (their
+        # Hessian pattern follows it), as casmag.solver.planar.PlanarStaged lays them.
+        around = self.P_dr if k == self.n and self.options.form != "tiled" else P0
         starts = self.session_starts[: len(self.sessions(k))]
         s_k = pose_structure(
             self.options, k, around, self.lengthscale, dim, self.height, solver, starts
@@ -430,12 +438,19 @@ class PoseStaged(StagedModel):
         }  # fmt: skip
         held: tuple[str, ...] = ()
         if self.prior_map is None:
-            basis = s_k.hilbert_basis()
             Yk = sd.rotate(Q0, self.Y[:k])
-            w = ridge_weights(
-                basis, kernel, P0[:, :dim], Yk, self.c0, sigma_m, sigma_f, lengthscale
-            )
-            x0["W"] = whiten(basis, kernel, sigma_f, lengthscale, w)
+            if s_k.tiled:  # whitened (casmag.model.tiledmap.RotatedTiledModel)
+                tiles = s_k.tiles()
+                w = ridge_tile_weights(
+                    tiles, P0[:, :dim], Yk, self.c0, sigma_m, sigma_f, lengthscale
+                )
+                x0["W"] = w / np.sqrt(tiles.prior_variances(sigma_f, lengthscale))[:, None]
+            else:
+                basis = s_k.hilbert_basis()
+                w = ridge_weights(
+                    basis, kernel, P0[:, :dim], Yk, self.c0, sigma_m, sigma_f, lengthscale
+                )
+                x0["W"] = whiten(basis, kernel, sigma_f, lengthscale, w)
             x0["c"] = self.c0.reshape(3, 1)
         else:  # the saved map's box under its posterior
             s_k, prior_params, map0, held = self.prior_map.solve_inputs(
@@ -457,6 +472,8 @@ class PoseStaged(StagedModel):
     def _window_structure(self, k: int, solver: SolverSpec) -> PoseStructure:
         """A window of k samples, its box around the whole dead reckoning (as the planar
         windows')."""
+        if self.options.form == "tiled":
+            raise ValueError("sliding windows need model.gp.form reduced_rank, not tiled")
         if len(self.session_starts) > 1:
             raise ValueError("sliding windows: one session at a time, not several")
         s = pose_structure(
