@@ -370,3 +370,38 @@ class TiledField(FieldModel):
         if solver.hessian == "limited-memory":
             return None
         return ("magnetometer", hessian())
+
+
+class BoxOrTiles:
+    """The map of a recording model's structure (the planar and pose models'), one of two:
+    a reduced-rank box, ``basis`` its key (center, half width, number of functions), or
+    tiles, ``grid`` with each sample's ``home`` grid point (which fixes the Hessian's
+    pose-weight pattern). A mixin of frozen dataclasses that declare those three fields."""
+
+    basis: tuple | None
+    grid: TileGrid | None
+    home: tuple[int, ...]
+
+    @property
+    def tiled(self) -> bool:
+        return self.grid is not None
+
+    def hilbert_basis(self) -> HilbertBasis:
+        assert self.basis is not None, "a tiled map has no global basis"
+        return cached_basis(self.basis)
+
+    def tiles(self) -> TiledBasis:
+        assert self.grid is not None
+        return cached_tiles(self.grid)
+
+    @property
+    def map_unknowns(self) -> int:
+        """The map's weights: the tiles' (every tile's functions) or the box's functions."""
+        return self.tiles().num_weights if self.tiled else self.hilbert_basis().num_basis
+
+    def tiled_field(self, window: bool) -> TiledField:
+        """The tiles with a constant field (``window``: refused, a window's map is a box)."""
+        if window:
+            raise ValueError("sliding windows need the reduced-rank map, not tiles")
+        assert self.grid is not None
+        return TiledField(self.grid, self.home, constant_field=True)

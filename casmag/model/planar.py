@@ -13,10 +13,9 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from casmag.gp.reduced_rank import HilbertBasis, cached_basis
-from casmag.gp.tiles import TiledBasis, TileGrid, cached_tiles
+from casmag.gp.tiles import TileGrid
 from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
-from casmag.model.field import ReducedRankField, TiledField, WindowField
+from casmag.model.field import BoxOrTiles, ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rotated import planar_rotation_function, window_unknowns
 from casmag.nlp import NLP, NLPBuilder
@@ -24,7 +23,7 @@ from casmag.nlp import NLP, NLPBuilder
 
 # --------------------------------------------------------------------------- planar model
 @dataclass(frozen=True)
-class PlanarStructure:
+class PlanarStructure(BoxOrTiles):
     """Everything that changes the planar NLP: samples, bias model, kernel, the map (a
     reduced-rank ``basis`` key, or a tile ``grid`` with each sample's ``home`` grid point
     when the map is tiled), the solver settings as JSON."""
@@ -40,27 +39,13 @@ class PlanarStructure:
     window: bool = False
     starts: tuple[int, ...] = (0,)
 
-    @property
-    def tiled(self) -> bool:
-        return self.grid is not None
-
-    def hilbert_basis(self) -> HilbertBasis:
-        assert self.basis is not None, "a tiled map has no global basis"
-        return cached_basis(self.basis)
-
-    def tiles(self) -> TiledBasis:
-        assert self.grid is not None
-        return cached_tiles(self.grid)
-
     def field(self) -> ReducedRankField | TiledField:
         """The map with a constant field: the tiles (Gauss-Newton Hessian), or the
         reduced-rank box; with ``curvature`` its Hessian callback carries the second-order
         terms from the start (exact), else Gauss-Newton. With ``window``, the box of a
         sliding window, its prior carried from the earlier windows (a WindowField)."""
-        if self.grid is not None:
-            if self.window:
-                raise ValueError("sliding windows need the reduced-rank map, not tiles")
-            return TiledField(self.grid, self.home, constant_field=True)
+        if self.tiled:
+            return self.tiled_field(self.window)
         mode = "exact" if self.curvature else "gauss-newton"
         if self.window:
             nz = window_unknowns(self.hilbert_basis(), self.kernel)

@@ -38,10 +38,9 @@ import casadi as ca
 import numpy as np
 
 from casmag import strapdown as sd
-from casmag.gp.reduced_rank import HilbertBasis, cached_basis
-from casmag.gp.tiles import TiledBasis, TileGrid, cached_tiles
+from casmag.gp.tiles import TileGrid
 from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
-from casmag.model.field import ReducedRankField, TiledField, WindowField
+from casmag.model.field import BoxOrTiles, ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rotated import imu_rotation_function, window_unknowns
 from casmag.nlp import NLP, NLPBuilder
@@ -159,7 +158,7 @@ class PoseMotion(MotionModel):
 
 
 @dataclass(frozen=True)
-class PoseStructure:
+class PoseStructure(BoxOrTiles):
     """Everything that changes the pose NLP: samples, the map's dimension and its
     reduced-rank ``basis`` key (center, half width, number of functions) or, when the map
     is tiled, its tile ``grid`` with each sample's ``home`` grid point (which fixes the
@@ -179,23 +178,9 @@ class PoseStructure:
     grid: TileGrid | None = None
     home: tuple[int, ...] = ()
 
-    @property
-    def tiled(self) -> bool:
-        return self.grid is not None
-
-    def hilbert_basis(self) -> HilbertBasis:
-        assert self.basis is not None, "a tiled map has no global basis"
-        return cached_basis(self.basis)
-
-    def tiles(self) -> TiledBasis:
-        assert self.grid is not None
-        return cached_tiles(self.grid)
-
     def field(self) -> ReducedRankField | TiledField:
-        if self.grid is not None:
-            if self.window:
-                raise ValueError("sliding windows need the reduced-rank map, not tiles")
-            return TiledField(self.grid, self.home, constant_field=True)
+        if self.tiled:
+            return self.tiled_field(self.window)
         if self.window:
             nz = window_unknowns(self.hilbert_basis(), self.kernel)
             return WindowField(

@@ -19,7 +19,7 @@ from casmag.errors import DataError
 from casmag.gp.fieldmap import map_arrays, tiled_map_arrays, unwhitened
 from casmag.gp.hyper import estimate_hyperparameters
 from casmag.gp.savedmap import SavedMap
-from casmag.model.field import left_map_box
+from casmag.model.field import BoxOrTiles, left_map_box
 from casmag.model.planar import (
     PlanarStructure,
     cached_planar_nlp,
@@ -241,7 +241,7 @@ def solve_planar(
         info={
             "name": name,
             "samples": int(n),
-            "num_basis": s.tiles().num_weights if s.tiled else s.hilbert_basis().num_basis,
+            "num_basis": s.map_unknowns,
             "map": {**structure_map_info(s), **MAP_NOT_YET},
             "anchor": {
                 "kind": anchor_kind,
@@ -654,7 +654,7 @@ def hyperparameter_info(estimated: list[str], sigma_lin: float, given: bool) -> 
     }
 
 
-def structure_map_arrays(s: Any, kernel: str, hyper: dict[str, float], sol: Any) -> dict:
+def structure_map_arrays(s: BoxOrTiles, kernel: str, hyper: dict[str, float], sol: Any) -> dict:
     """The solved planar map (the planar model's, or a pose model's with ``map_dim`` 2) on
     a grid with its posterior std (casmag.gp.fieldmap), for map.png (the tiled map's field
     alone); ``s`` a PlanarStructure or PoseStructure."""
@@ -668,7 +668,7 @@ def structure_map_arrays(s: Any, kernel: str, hyper: dict[str, float], sol: Any)
     return map_arrays(basis, kernel, W, sol.x["c"], hyper, P)
 
 
-def structure_map_info(s: Any) -> dict[str, Any]:
+def structure_map_info(s: BoxOrTiles) -> dict[str, Any]:
     """The map of the kept solve (a PlanarStructure's or PoseStructure's): its form and
     size."""
     if s.tiled:

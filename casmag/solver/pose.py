@@ -294,7 +294,7 @@ def solve_pose(
         info={
             "name": name,
             "samples": int(n),
-            "num_basis": s.tiles().num_weights if s.tiled else s.hilbert_basis().num_basis,
+            "num_basis": s.map_unknowns,
             "map": {**form, **MAP_NOT_YET},
             "anchor": anchor_info,
             "kernel": options.kernel,
