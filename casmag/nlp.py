@@ -9,6 +9,7 @@ warm starts), which is what sweeps and windowing rely on.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -45,6 +46,7 @@ class _Progress(ca.Callback):
         self._sizes = {"x": n_x, "f": 1, "g": 0, "lam_x": n_x, "lam_g": 0, "lam_p": n_p}
         self.sink: Callable[[int, float, float, float], None] | None = None
         self.stop_when_stalled = False
+        self.stop_when: Callable[[], bool] | None = None
         self.budget = budget
         self._reset()
         self.construct("casmag_progress", {})
@@ -55,10 +57,14 @@ class _Progress(ca.Callback):
         self.over_budget = False
 
     def start(
-        self, sink: Callable[[int, float, float, float], None] | None, stop_when_stalled: bool
+        self,
+        sink: Callable[[int, float, float, float], None] | None,
+        stop_when_stalled: bool,
+        stop_when: Callable[[], bool] | None = None,
     ) -> None:
         self.sink = sink
         self.stop_when_stalled = stop_when_stalled
+        self.stop_when = stop_when
         self._reset()
 
     def _stalled(self, cost: float) -> bool:
@@ -97,6 +103,7 @@ class _Progress(ca.Callback):
             interrupt.pending()
             or self.over_budget
             or (self.stop_when_stalled and self._stalled(cost))
+            or (self.stop_when is not None and self.stop_when())
         )
         return [1 if stop else 0]
 
@@ -455,6 +462,7 @@ class NLP:
         progress: Callable[[int, float, float, float], None] | None = None,
         stop_when_stalled: bool = False,
         fixed: Collection[str] = (),
+        stop_when: Callable[[], bool] | None = None,
     ) -> Solution:
         """Solve for the given parameters from the initial guess x0 (every variable named).
 
@@ -463,7 +471,8 @@ class NLP:
         :data:`STALLED`) once the objective no longer changes measurably (STALL_RELATIVE
         over STALL_ITERATIONS iterations), for a caller that re-centres and solves again.
         fixed: variables held at their x0 values (bounds lbx = ubx; IPOPT takes them out of
-        the problem it factorises), e.g. a known map's weights.
+        the problem it factorises), e.g. a known map's weights. stop_when: asked after every
+        iteration; True stops IPOPT (status :data:`STALLED`), for a caller that rebuilds.
         """
         p = self.p_layout.pack(params)
         x0v = self.x_layout.pack(x0)
@@ -484,7 +493,7 @@ class NLP:
             if estimate > budget:  # refused before IPOPT starts: nothing allocated for it
                 return self._refused(x0v, before, estimate, budget)
         if self.progress is not None:
-            self.progress.start(progress, stop_when_stalled)
+            self.progress.start(progress, stop_when_stalled, stop_when)
         if self.keep is not None and hasattr(self.keep[1], "reset"):
             self.keep[1].reset()
         t0 = time.perf_counter()
@@ -523,3 +532,20 @@ class NLP:
             params=params,
             fixed=tuple(fixed),
         )
+
+
+def merge_rounds(rounds: Sequence[Solution]) -> Solution:
+    """Solutions of one problem solved in rounds, each from the last one's x (re-centred or
+    rebuilt between them), as one: the last round's outcome with the iterations, seconds
+    and per-iteration records of all of them (``rounds`` says how many)."""
+    last = rounds[-1]
+    return dataclasses.replace(
+        last,
+        iterations=sum(s.iterations for s in rounds),
+        solve_seconds=sum(s.solve_seconds for s in rounds),
+        cost_per_iteration=[v for s in rounds for v in s.cost_per_iteration],
+        inf_pr_per_iteration=[v for s in rounds for v in s.inf_pr_per_iteration],
+        inf_du_per_iteration=[v for s in rounds for v in s.inf_du_per_iteration],
+        blocks_before=rounds[0].blocks_before,
+        rounds=sum(s.rounds for s in rounds),
+    )

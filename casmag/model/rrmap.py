@@ -438,10 +438,15 @@ class Pattern:
 
 
 def knot_chain_values(
-    knots: Knots, s_pp: dict[tuple[int, int], np.ndarray], d: int, scale: float
+    knots: Knots,
+    s_pp: dict[tuple[int, int], np.ndarray],
+    d: int,
+    scale: float,
+    own: dict[tuple[int, int], np.ndarray] | None = None,
 ) -> list[np.ndarray]:
     """Values of :meth:`Pattern.knot_chain`: A^T diag(s) A by bincount (diagonal and first
-    off-diagonals), s_pp[a, b] (N,) the per-sample products of the position Jacobians."""
+    off-diagonals), s_pp[a, b] (N,) the per-sample products of the position Jacobians;
+    ``own[a, b]`` (K,), when given, added to the knots' diagonal."""
     left, alpha, K = knots.left, knots.alpha, knots.count
     out = []
     for a in range(d):
@@ -450,6 +455,8 @@ def knot_chain_values(
             diag = np.bincount(left, (1 - alpha) ** 2 * s, K) + np.bincount(
                 left + 1, alpha**2 * s, K
             )
+            if own is not None:
+                diag = diag + own[a, b]
             off = np.bincount(left, (1 - alpha) * alpha * s, K - 1)
             out += [diag * scale, off * scale]
             if b > a:

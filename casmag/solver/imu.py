@@ -17,7 +17,6 @@ not (a homogeneous field), the result is the IMU-only adjustment
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -53,7 +52,7 @@ from casmag.model.rotated import (
     whiten,
 )
 from casmag.model.rrmap import make_basis
-from casmag.nlp import NLP, STALLED, Progress, Solution
+from casmag.nlp import NLP, STALLED, Progress, Solution, merge_rounds
 from casmag.problem.imu import HYPER_SECONDS, ImuProblem, load_imu_problem
 from casmag.problem.spec import SolverSpec
 from casmag.result import Result
@@ -237,18 +236,7 @@ def _solve_recentred(
             **{name: sol.x[name] for name in ("BW", "BA", *carry)},
             "zero_centre": sol.x.get("zero_centre", nominal["zero_centre"]),
         }
-    last = rounds[-1]
-    merged = dataclasses.replace(
-        last,
-        iterations=sum(s.iterations for s in rounds),
-        solve_seconds=sum(s.solve_seconds for s in rounds),
-        cost_per_iteration=[v for s in rounds for v in s.cost_per_iteration],
-        inf_pr_per_iteration=[v for s in rounds for v in s.inf_pr_per_iteration],
-        inf_du_per_iteration=[v for s in rounds for v in s.inf_du_per_iteration],
-        blocks_before=rounds[0].blocks_before,
-        rounds=len(rounds),
-    )
-    return merged, nominal
+    return merge_rounds(rounds), nominal
 
 
 def _terms_of(kf: Keyframes, n: int, T: float) -> Callable[[dict[str, Any]], dict[str, Any]]:

@@ -52,6 +52,7 @@ from casmag.solver.staged import (
     Window,
     WindowPrior,
     heading_bias_starts,
+    solve_rehomed,
     solve_staged,
     truth_check,
     uncertainty,
@@ -604,8 +605,9 @@ class PlanarStaged(StagedModel):
             )  # fmt: skip
             params_k.update(prior_params)
             x0.update(map0)
-        nlp_k = cached_planar_nlp(s_k)
-        sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=held)
+        sol, nlp_k, s_k = solve_rehomed(
+            s_k, cached_planar_nlp, params_k, x0, 2, progress=self.progress, fixed=held
+        )
         return Solved(sol, nlp_k, s_k, lengthscale)
 
 

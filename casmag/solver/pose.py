@@ -55,6 +55,7 @@ from casmag.solver.staged import (
     Window,
     WindowPrior,
     heading_bias_starts,
+    solve_rehomed,
     solve_staged,
     truth_check,
     uncertainty,
@@ -459,8 +460,10 @@ class PoseStaged(StagedModel):
             )  # fmt: skip
             params_k.update(prior_params)
             x0.update(map0)
-        nlp_k = cached_pose_nlp(s_k)
-        sol = nlp_k.solve(params_k, x0, progress=self.progress, fixed=[*self.fixed, *held])
+        sol, nlp_k, s_k = solve_rehomed(
+            s_k, cached_pose_nlp, params_k, x0, dim,
+            progress=self.progress, fixed=[*self.fixed, *held],
+        )  # fmt: skip
         return Solved(sol, nlp_k, s_k, lengthscale, nominal=Q0)
 
     # ------------------------------------------------------------ sliding windows

@@ -34,13 +34,15 @@ from __future__ import annotations
 
 import dataclasses
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from casmag.model.rotated import rotated_design, window_unknowns
-from casmag.nlp import NLP, Solution, lowest_cost
+from casmag.model.tiledmap import home_points
+from casmag.nlp import NLP, STALLED, Solution, lowest_cost, merge_rounds
 from casmag.problem.imu import STAGED_STRATEGIES
 from casmag.problem.spec import SolverSpec, WarmStartSpec
 from casmag.result.metrics import rmse_and_max
@@ -62,6 +64,47 @@ from casmag.solver.windowing import (
 #: recording: estimate 1.15 m from 2.33 m at cost 1,379.4; from the truth 0.22 m at cost
 #: 1,349.2 in 37 iterations (about 45 s beside the 4.1 min solve).
 TRUTH_START_RATIO = 0.25
+
+
+#: A tiled stage whose samples moved beyond the Hessian pattern laid around their
+#: ``home`` grid points is stopped and solved on from where it stopped with the pattern
+#: laid around the samples' new places, at most this many times (the last round keeps
+#: the dropped products' stand-ins, casmag.model.tiledmap.add_own_tiles).
+REHOMES = 4
+
+
+def solve_rehomed(
+    structure: Any,
+    nlp_of: Callable[[Any], NLP],
+    params: dict[str, Any],
+    x0: dict[str, np.ndarray],
+    dim: int,
+    **solve: Any,
+) -> tuple[Solution, NLP, Any]:
+    """Solve ``nlp_of(structure)`` from x0 (``solve``: :meth:`NLP.solve`'s options); for a
+    tiled map (``structure.tiled``) stop as soon as a Hessian evaluation drops samples'
+    border products and solve on from there with ``home`` moved to the samples' nearest
+    grid points (their first ``dim`` coordinates of ``P``), up to :data:`REHOMES` times.
+    Returns the rounds' merged solution, the last NLP and its structure."""
+    nlp = nlp_of(structure)
+    rounds: list[Solution] = []
+    for r in range(REHOMES + 1):
+        hess = nlp.keep[1] if structure.tiled and nlp.keep is not None else None
+
+        def moved(h: Any = hess) -> bool:
+            return bool(getattr(h, "dropped", None)) and h.dropped[-1] > 0
+
+        watch = hess is not None and r < REHOMES
+        sol = nlp.solve(params, x0, stop_when=moved if watch else None, **solve)
+        rounds.append(sol)
+        if not (watch and sol.status == STALLED and moved()):
+            break
+        home = home_points(structure.grid, sol.x["P"][:, :dim])
+        if home == structure.home:
+            break
+        structure = dataclasses.replace(structure, home=home)
+        nlp, x0 = nlp_of(structure), sol.x
+    return (rounds[0] if len(rounds) == 1 else merge_rounds(rounds)), nlp, structure
 
 
 @dataclass

@@ -325,3 +325,99 @@ def test_planar_tiled_map_needs_the_curl_free_kernel():
         load_planar_options(None, ["model.gp.form=tiled"])
     sets = ["model.gp.form=tiled", "model.gp.kernel=curl_free"]
     assert load_planar_options(None, sets).form == "tiled"
+
+
+def test_samples_beyond_their_home_keep_the_hessian_positive():
+    """A sample that moved more than a tile from the grid point its NLP was built around
+    (its ``home``) loses its border against the tiles outside the pattern. Those products
+    dropped alone leave the Gauss-Newton matrix indefinite (J^T J on the pattern, below);
+    the callback replaces each by the two factors' own products, so its matrix stays
+    positive semi-definite and equals J^T J on every entry no moved sample touches."""
+    rng = np.random.default_rng(3)
+    n = 30
+    P0 = np.cumsum(rng.normal(scale=0.04, size=(n, 2)), axis=0)
+    moved = np.arange(n) % 2 == 1
+    P1 = P0 + moved[:, None] * np.array([1.9, 0.8])  # 1.6 and 0.7 tile spacings
+    grid = tile_grid(np.vstack([P0, P1]), ELL)
+    field = TiledField(grid, home_points(grid, P0), constant_field=True)
+    nlp = build_slam(PlanarMotion(n, "random_walk"), field, SolverSpec())
+    x = rng.normal(scale=0.3, size=nlp.x_layout.size)
+    p = rng.uniform(0.5, 1.5, size=nlp.p_layout.size)
+    for name, v in {"sigma_f": 1.0, "lengthscale": ELL, "sigma_m": 0.2}.items():
+        p[nlp.p_layout.entries[name].offset] = v
+    e = nlp.x_layout.entries["P"]
+    x[e.offset : e.offset + e.size] = P1.ravel(order="F")
+    hess = next(k for k in nlp.keep if hasattr(k, "dropped"))
+    hess.set_mode("gauss-newton")
+    H = np.zeros((x.size, x.size))
+    H[hess._rows, hess._cols] = hess.values(x, p)
+    assert hess.dropped[-1] > 0
+    H = H + np.triu(H, 1).T
+    _, J = hess.residual_jacobian(x, p)
+    J = J.toarray()
+    G = J.T @ J
+    on = np.zeros(G.shape, dtype=bool)
+    on[hess._rows, hess._cols] = True
+    on |= on.T
+    _assert_dropped_alone_indefinite_kept_positive(G, H, on)
+    lay = hess.model.lay
+    still = np.flatnonzero(~moved)
+    free = np.concatenate([lay.pos[still].ravel(), lay.rot[still].ravel()])
+    # every position and heading of a sample that did not move is J^T J's
+    atol = 1e-9 * np.abs(G).max()
+    np.testing.assert_allclose(H[np.ix_(free, free)], G[np.ix_(free, free)], atol=atol)
+
+
+def _assert_dropped_alone_indefinite_kept_positive(G, H, on):
+    """J^T J ``G`` on the callback's pattern ``on`` alone (the dropped products left out) is
+    indefinite; the callback's matrix ``H`` is positive semi-definite (both on the
+    unknowns some sample touches)."""
+    live = np.flatnonzero((np.abs(G).sum(axis=0) > 0) | (np.abs(H).sum(axis=0) > 0))
+    G, H, on = (a[np.ix_(live, live)] for a in (G, H, on))
+    scale, eye = np.abs(G).max(), np.eye(live.size)
+    with pytest.raises(np.linalg.LinAlgError):  # an eigenvalue below -1e-3 scale
+        np.linalg.cholesky(np.where(on, G, 0.0) + 1e-3 * scale * eye)
+    np.linalg.cholesky(H + 1e-10 * scale * eye)  # none below -1e-10 scale
+
+
+@pytest.mark.parametrize("knot_every", [1, 3])
+def test_translational_samples_beyond_their_home_keep_the_hessian_positive(knot_every):
+    """As above for the translational model, whose positions interpolate knots: each
+    dropped (knot, tile) product is replaced by the knot's and the tile's own."""
+    rng = np.random.default_rng(4)
+    P0 = np.cumsum(rng.normal(scale=0.04, size=(N, 2)), axis=0)
+    moved = (np.arange(N) // 6) % 2 == 1  # runs of samples, so whole knots move
+    P1 = P0 + moved[:, None] * np.array([1.9, 0.8])
+    grid = tile_grid(np.vstack([P0, P1]), ELL)
+    field = TiledField(grid, home_points(grid, P0), constant_field=True)
+    nlp = build_slam(
+        TranslationalMotion(N, 2, knot_every=knot_every, estimate_bias=True), field, SolverSpec()
+    )
+    hess = nlp.keep[1]
+    x = rng.normal(scale=0.3, size=nlp.x_layout.size)
+    p = {
+        "Q": P0, "Y": rng.normal(size=(N, 3)), "anchor": P0[:1], "sigma_o": 0.05,
+        "sigma_anchor": 0.01, "sigma_m": 0.2, "sigma_f": 1.0, "lengthscale": ELL,
+        "sigma_lin": 10.0,
+    }  # fmt: skip
+    p = nlp.p_layout.pack(p)
+    e = nlp.x_layout.entries["C"]
+    knots = hess.knots
+    C = np.linalg.lstsq(
+        knots.matrix.toarray() if hasattr(knots.matrix, "toarray") else knots.matrix,
+        P1 - P0,
+        rcond=None,
+    )[0]
+    x[e.offset : e.offset + e.size] = C.ravel(order="F")
+    hess.set_mode("gauss-newton")
+    H = np.zeros((x.size, x.size))
+    H[hess._rows, hess._cols] = hess.values(x, p)
+    assert hess.dropped[-1] > 0
+    H = H + np.triu(H, 1).T
+    _, J = hess.residual_jacobian(x, p)
+    J = J.toarray()
+    G = J.T @ J
+    on = np.zeros(G.shape, dtype=bool)
+    on[hess._rows, hess._cols] = True
+    on |= on.T
+    _assert_dropped_alone_indefinite_kept_positive(G, H, on)
