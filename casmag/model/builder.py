@@ -150,6 +150,12 @@ def cached_slam(motion: MotionModel, field: FieldModel, solver: str) -> NLP:
     return build_slam(motion, field, SolverSpec.model_validate_json(solver))
 
 
+def uncached_slam(motion: MotionModel, field: FieldModel, solver: str) -> NLP:
+    """:func:`cached_slam`'s build without keeping it: for a structure solved once, whose
+    NLP (with IPOPT's and the Hessian callbacks' memory) the cache would hold on to."""
+    return build_slam(motion, field, SolverSpec.model_validate_json(solver))
+
+
 def build_slam(motion: MotionModel, field: FieldModel, solver: SolverSpec) -> NLP:
     """The MAP problem of a motion model and a field model as one NLP (use
     :func:`cached_slam` to build each structure once)."""

@@ -14,7 +14,7 @@ import casadi as ca
 import numpy as np
 
 from casmag.gp.tiles import TileGrid
-from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
+from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam, uncached_slam
 from casmag.model.field import BoxOrTiles, ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rotated import planar_rotation_function, window_unknowns
@@ -142,9 +142,11 @@ class PlanarMotion(MotionModel):
         return Pose(P, n, 2, "P", None, knots, rotation)
 
 
-def cached_planar_nlp(s: PlanarStructure) -> NLP:
-    """The planar model with the structure's map, built once per process."""
-    return cached_slam(PlanarMotion(s.n, s.bias, s.starts), s.field(), s.solver)
+def cached_planar_nlp(s: PlanarStructure, cache: bool = True) -> NLP:
+    """The planar model with the structure's map, built once per process (``cache``
+    False: built anew and not kept, e.g. a tiled map's pattern moved for one solve)."""
+    build = cached_slam if cache else uncached_slam
+    return build(PlanarMotion(s.n, s.bias, s.starts), s.field(), s.solver)
 
 
 def dead_reckon_planar(U: np.ndarray, p0: np.ndarray, psi0: float, bias_dt: Any = 0.0) -> tuple:

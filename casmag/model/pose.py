@@ -39,7 +39,7 @@ import numpy as np
 
 from casmag import strapdown as sd
 from casmag.gp.tiles import TileGrid
-from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam
+from casmag.model.builder import MotionModel, Pose, Rotation, cached_slam, uncached_slam
 from casmag.model.field import BoxOrTiles, ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rotated import imu_rotation_function, window_unknowns
@@ -192,9 +192,11 @@ class PoseStructure(BoxOrTiles):
         )
 
 
-def cached_pose_nlp(s: PoseStructure) -> NLP:
-    """The pose model with the structure's map, built once per process."""
-    return cached_slam(PoseMotion(s.n, s.map_dim, s.height, s.starts), s.field(), s.solver)
+def cached_pose_nlp(s: PoseStructure, cache: bool = True) -> NLP:
+    """The pose model with the structure's map, built once per process (``cache``
+    False: built anew and not kept, e.g. a tiled map's pattern moved for one solve)."""
+    build = cached_slam if cache else uncached_slam
+    return build(PoseMotion(s.n, s.map_dim, s.height, s.starts), s.field(), s.solver)
 
 
 # --------------------------------------------------------------------------- numpy

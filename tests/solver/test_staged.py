@@ -361,3 +361,63 @@ def test_every_strategy_solves_every_staged_model(model: str, strategy: str) -> 
     assert [s["kept"] for s in stages] == [False] * (len(stages) - 1) + [True]
     assert r.info["warm_start"] == (strategy if len(stages) > 1 else "none")
     assert r.rmse_after < 0.5 * r.rmse_before, (r.rmse_after, r.rmse_before)
+
+
+def test_a_tiled_stage_is_solved_on_around_where_its_samples_went():
+    """solve_rehomed stops a tiled solve whose Hessian dropped border products (samples
+    beyond their home tiles), lays the pattern around the samples' new places in a new,
+    uncached NLP, solves on from where it stopped, and merges the rounds; a solve whose
+    samples stay home is one round of the cached NLP."""
+    import dataclasses as dc
+
+    from casmag.model.tiledmap import home_points, tile_grid
+    from casmag.nlp import STALLED, Solution
+    from casmag.solver.staged import solve_rehomed
+
+    @dc.dataclass(frozen=True)
+    class Structure:
+        grid: Any
+        home: tuple[int, ...]
+        tiled: bool = True
+
+    P0 = np.column_stack([np.linspace(0.0, 3.0, 20), np.zeros(20)])
+    P1 = P0 + np.array([1.5, 0.5])
+    grid = tile_grid(np.vstack([P0, P1]), 0.3)
+
+    def solution(status, P, iterations):
+        return Solution(
+            x={"P": P}, lam_x=np.zeros(0), status=status, success=status != STALLED,
+            iterations=iterations, solve_seconds=1.0, objective=1.0,
+            cost_per_iteration=[1.0] * iterations, inf_pr_per_iteration=[0.0] * iterations,
+            blocks_before={"b": float(iterations)}, blocks_after={},
+        )  # fmt: skip
+
+    built = []
+
+    class FakeNLP:
+        def __init__(self, s, moves):
+            self.s, self.moves = s, moves
+            self.keep = (None, SimpleNamespace(dropped=[]))
+
+        def solve(self, params, x0, stop_when=None, **kw):
+            if self.moves:  # the samples go to P1; the next evaluation drops terms
+                self.keep[1].dropped = [0, 7]
+                assert stop_when is not None and stop_when()
+                return solution(STALLED, P1, 3)
+            self.keep[1].dropped = [0]
+            return solution("Solve_Succeeded", P1, 5)
+
+    def nlp_of(s, cache=True):
+        built.append((s.home, cache))
+        return FakeNLP(s, moves=len(built) == 1)
+
+    s0 = Structure(grid, home_points(grid, P0))
+    sol, nlp, s = solve_rehomed(s0, nlp_of, {}, {"P": P0}, 2)
+    assert built == [(s0.home, True), (home_points(grid, P1), False)]
+    assert s.home == home_points(grid, P1) != s0.home and nlp.s is s
+    assert sol.status == "Solve_Succeeded" and sol.iterations == 8 and sol.rounds == 2
+    assert sol.blocks_before == {"b": 3.0}
+    built.clear()
+    built.append("first done")  # nlp_of's next NLP does not move
+    sol, _, s = solve_rehomed(s0, nlp_of, {}, {"P": P0}, 2)
+    assert built[1:] == [(s0.home, True)] and sol.rounds == 1 and s is s0
