@@ -348,18 +348,7 @@ def test_samples_beyond_their_home_keep_the_hessian_positive():
     e = nlp.x_layout.entries["P"]
     x[e.offset : e.offset + e.size] = P1.ravel(order="F")
     hess = next(k for k in nlp.keep if hasattr(k, "dropped"))
-    hess.set_mode("gauss-newton")
-    H = np.zeros((x.size, x.size))
-    H[hess._rows, hess._cols] = hess.values(x, p)
-    assert hess.dropped[-1] > 0
-    H = H + np.triu(H, 1).T
-    _, J = hess.residual_jacobian(x, p)
-    J = J.toarray()
-    G = J.T @ J
-    on = np.zeros(G.shape, dtype=bool)
-    on[hess._rows, hess._cols] = True
-    on |= on.T
-    _assert_dropped_alone_indefinite_kept_positive(G, H, on)
+    H, G = _gauss_newton_where_samples_moved(hess, x, p)
     lay = hess.model.lay
     still = np.flatnonzero(~moved)
     free = np.concatenate([lay.pos[still].ravel(), lay.rot[still].ravel()])
@@ -368,10 +357,26 @@ def test_samples_beyond_their_home_keep_the_hessian_positive():
     np.testing.assert_allclose(H[np.ix_(free, free)], G[np.ix_(free, free)], atol=atol)
 
 
-def _assert_dropped_alone_indefinite_kept_positive(G, H, on):
-    """J^T J ``G`` on the callback's pattern ``on`` alone (the dropped products left out) is
-    indefinite; the callback's matrix ``H`` is positive semi-definite (both on the
-    unknowns some sample touches)."""
+def _gauss_newton_where_samples_moved(hess, x, p):
+    """The callback's Gauss-Newton matrix H at x (both triangles) and J^T J = G of its
+    residuals. Asserts that it dropped products, that G on the callback's pattern alone
+    (the dropped products left out) is indefinite, and that H is positive semi-definite
+    (both on the unknowns some sample touches)."""
+    hess.set_mode("gauss-newton")
+    H = np.zeros((x.size, x.size))
+    H[hess._rows, hess._cols] = hess.values(x, p)
+    assert hess.dropped[-1] > 0
+    H = H + np.triu(H, 1).T
+    G = hess.residual_jacobian(x, p)[1].toarray()
+    G = G.T @ G
+    on = np.zeros(G.shape, dtype=bool)
+    on[hess._rows, hess._cols] = True
+    on |= on.T
+    _indefinite_alone_positive_kept(G, H, on)
+    return H, G
+
+
+def _indefinite_alone_positive_kept(G, H, on):
     live = np.flatnonzero((np.abs(G).sum(axis=0) > 0) | (np.abs(H).sum(axis=0) > 0))
     G, H, on = (a[np.ix_(live, live)] for a in (G, H, on))
     scale, eye = np.abs(G).max(), np.eye(live.size)
@@ -409,15 +414,4 @@ def test_translational_samples_beyond_their_home_keep_the_hessian_positive(knot_
         rcond=None,
     )[0]
     x[e.offset : e.offset + e.size] = C.ravel(order="F")
-    hess.set_mode("gauss-newton")
-    H = np.zeros((x.size, x.size))
-    H[hess._rows, hess._cols] = hess.values(x, p)
-    assert hess.dropped[-1] > 0
-    H = H + np.triu(H, 1).T
-    _, J = hess.residual_jacobian(x, p)
-    J = J.toarray()
-    G = J.T @ J
-    on = np.zeros(G.shape, dtype=bool)
-    on[hess._rows, hess._cols] = True
-    on |= on.T
-    _assert_dropped_alone_indefinite_kept_positive(G, H, on)
+    _gauss_newton_where_samples_moved(hess, x, p)
