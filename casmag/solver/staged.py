@@ -97,8 +97,6 @@ def solve_rehomed(
         if not (watch and sol.status == STALLED and _dropped(nlp)()):
             break
         home = home_points(structure.grid, sol.x["P"][:, :dim])
-        if home == structure.home:
-            break
         structure = dataclasses.replace(structure, home=home)
         nlp, x0 = None, sol.x  # the last round's NLP freed before the next is built
         nlp = nlp_of(structure, cache=False)
