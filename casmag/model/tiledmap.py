@@ -86,6 +86,15 @@ def tile_grid(
     return TileGrid.around(X, h, reach, ((0.0,) * FIELD_DIM, tuple(half), m))
 
 
+def in_pattern(keys: np.ndarray, key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each ``key`` sits in the sorted pattern ``keys`` and whether it is there (an
+    empty pattern holds none: every sample left the tiles it was laid around)."""
+    pos = np.searchsorted(keys, key)
+    ok = pos < keys.size
+    ok[ok] = keys[pos[ok]] == key[ok]
+    return pos, ok
+
+
 def home_points(grid: TileGrid, P: np.ndarray) -> tuple[int, ...]:
     """The nearest grid point of each position P (N, d), flattened (a hashable key)."""
     n = np.rint((np.asarray(P, dtype=float) - np.array(grid.origin)) / grid.spacing)
@@ -344,8 +353,7 @@ class TiledGaussNewton(HessianCallback):
             lk, ak = left[r][kk], alpha[r][kk]
             for knot, factor in ((lk, 1.0 - ak), (lk + 1, ak)):
                 key = knot * T + ids[kk, oo]
-                pos = np.searchsorted(bd.keys, key)
-                ok = (pos < bd.keys.size) & (bd.keys[np.minimum(pos, bd.keys.size - 1)] == key)
+                pos, ok = in_pattern(bd.keys, key)
                 ok &= factor != 0.0
                 out_ = ~ok & (factor != 0.0)
                 dropped += int(np.sum(out_))
@@ -799,8 +807,7 @@ class RotatedTiledGaussNewton(HessianCallback):
             rows = np.einsum("kbi,kobm->koim", G, J)
             kk, oo = np.nonzero(ids >= 0)
             key = (r.start + kk) * T + ids[kk, oo]
-            pos = np.searchsorted(self._keys, key)
-            ok = (pos < self._keys.size) & (self._keys[np.minimum(pos, self._keys.size - 1)] == key)
+            pos, ok = in_pattern(self._keys, key)
             gn_out = LL[r.start + kk[~ok]].copy()  # Gauss-Newton products of the dropped
             if exact:
                 self._exact_rows(model, r, P, o, aux, W, c, Y, ids, LL, rows, c_loc, inv)

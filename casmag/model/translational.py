@@ -36,7 +36,7 @@ from casmag.gp.fieldmap import field_at, reduced_rank_std
 from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
 from casmag.gp.tiles import TileGrid, cached_tiles
-from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam
+from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam, uncached_slam
 from casmag.model.field import ExactField, ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rrmap import field_and_jacobians, make_basis
@@ -104,6 +104,15 @@ class Structure:
 
     def hilbert_basis(self) -> HilbertBasis:
         return cached_basis(self.basis)
+
+    @property
+    def tiled(self) -> bool:
+        return self.form == "tiled"
+
+    @property
+    def grid(self) -> TileGrid | None:
+        """The tiled map's grid (as the planar and pose structures name it)."""
+        return self.tiles
 
     @property
     def knots(self) -> Knots:
@@ -435,9 +444,11 @@ def field_std_on_grid(
     return std, np.full_like(std, np.sqrt(var0))
 
 
-def cached_nlp(structure: Structure) -> NLP:
-    """The built NLP for a structure, built once per process."""
-    return cached_slam(structure.motion(), structure.field(), structure.solver)
+def cached_nlp(structure: Structure, cache: bool = True) -> NLP:
+    """The built NLP for a structure, built once per process (``cache`` False: built anew
+    and not kept, e.g. a tiled map's pattern moved for one solve)."""
+    build = cached_slam if cache else uncached_slam
+    return build(structure.motion(), structure.field(), structure.solver)
 
 
 def parameters(problem: Problem, data: Dataset, s: Structure) -> dict[str, Any]:

@@ -166,6 +166,7 @@ def solve(
             "per_tile": tiles.per_tile,
             "spacing": structure.tiles.spacing,
             "hessian_terms_dropped": int(sol.stats.get("hessian_terms_dropped", 0)),
+            "rounds": sol.rounds,  # > 1: laid again around where the samples went
         }
         outside = left_map_tiles(tiles, P_est) if sol.success else None
         if outside is not None:

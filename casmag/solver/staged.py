@@ -78,13 +78,14 @@ def solve_rehomed(
     nlp_of: Callable[..., NLP],
     params: dict[str, Any],
     x0: dict[str, np.ndarray],
-    dim: int,
+    where: int | Callable[[Solution], np.ndarray],
     **solve: Any,
 ) -> tuple[Solution, NLP, Any]:
     """Solve ``nlp_of(structure)`` from x0 (``solve``: :meth:`NLP.solve`'s options); for a
     tiled map (``structure.tiled``) stop as soon as a Hessian evaluation drops samples'
     border products and solve on from there with ``home`` moved to the samples' nearest
-    grid points (their first ``dim`` coordinates of ``P``), up to :data:`REHOMES` times;
+    grid points (``where``: the samples' positions in a solution, or the number of leading
+    coordinates of its ``P`` that are), up to :data:`REHOMES` times;
     those rounds' NLPs are built with ``nlp_of(structure, cache=False)``, so that none
     outlives its use (measured on ``square``: 6.3 GiB peak when the process's NLP cache
     held them). Returns the rounds' merged solution, the last NLP and its structure."""
@@ -96,7 +97,8 @@ def solve_rehomed(
         rounds.append(sol)
         if not (watch and sol.status == STALLED and _dropped(nlp)()):
             break
-        home = home_points(structure.grid, sol.x["P"][:, :dim])
+        at = sol.x["P"][:, :where] if isinstance(where, int) else where(sol)
+        home = home_points(structure.grid, at)
         structure = dataclasses.replace(structure, home=home)
         nlp, x0 = None, sol.x  # the last round's NLP freed before the next is built
         nlp = nlp_of(structure, cache=False)
@@ -539,7 +541,8 @@ def solve_sliding(model: StagedModel, ws: WarmStartSpec, bias: float = 0.0) -> l
 
 def _record(st: Stage) -> dict[str, Any]:
     """What a result's ``stages`` record of every solve: samples, lengthscale, MAP cost,
-    IPOPT's status, iterations and seconds."""
+    IPOPT's status, iterations, seconds and rounds (IPOPT runs: more than one when a
+    tiled map was laid again around where its samples went, :func:`solve_rehomed`)."""
     so = st.solved.sol
     return {
         "samples": st.samples,
@@ -548,6 +551,7 @@ def _record(st: Stage) -> dict[str, Any]:
         "status": st.status,
         "iterations": so.iterations,
         "solve_seconds": so.solve_seconds,
+        "rounds": so.rounds,
     }
 
 

@@ -36,6 +36,7 @@ from casmag.solver.staged import (
     StagedModel,
     Window,
     WindowPrior,
+    solve_rehomed,
     solve_strategy,
 )
 from casmag.solver.windowing import continued
@@ -153,7 +154,7 @@ def solve_translational(
         None if start is None else start["values"],
         lengthscale if other else None,
     )
-    sol = nlp.solve(params, x0, progress=progress)
+    sol, nlp, s = _solve(s, params, x0, progress)
     if start is not None and start["method"] == "both":
         sol = _better_of_two_starts(nlp, sol, params, x0, start, progress)
     if start is not None:
@@ -183,7 +184,19 @@ def _solve_from(
     if "lengthscale" in params:  # fixed (coarse-to-fine refuses an estimated one)
         params["lengthscale"] = lengthscale
     x0 = {k: v for k, v in x.items() if k in nlp.x_layout.entries}
-    return _finish(s, nlp, nlp.solve(params, x0, progress=progress), params)
+    sol, nlp, s = _solve(s, params, x0, progress)
+    return _finish(s, nlp, sol, params)
+
+
+def _solve(
+    s: Structure, params: dict[str, Any], x0: dict[str, Any], progress: Any
+) -> tuple[Solution, NLP, Structure]:
+    """``s``'s NLP solved from x0; a tiled map's is laid again around where its samples
+    went when they leave its Hessian's pattern (casmag.solver.staged.solve_rehomed)."""
+    Q = params["Q"]
+    return solve_rehomed(
+        s, cached_nlp, params, x0, lambda sol: positions(s, sol, Q), progress=progress
+    )
 
 
 @dataclass
@@ -438,6 +451,7 @@ def stage_record(
         "status": st.status,
         "success": so.success,
         "iterations": so.iterations,
+        "rounds": so.rounds,
         "solve_seconds": so.solve_seconds,
         "build_seconds": nlp.build_seconds if build_seconds is None else build_seconds,
         "bias": [float(v) for v in np.ravel(bias)] if estimated else None,

@@ -415,3 +415,31 @@ def test_translational_samples_beyond_their_home_keep_the_hessian_positive(knot_
     )[0]
     x[e.offset : e.offset + e.size] = C.ravel(order="F")
     _gauss_newton_where_samples_moved(hess, x, p)
+
+
+def test_a_translational_solve_laid_around_the_wrong_tiles_is_laid_again():
+    """The tiny walk's tiled NLP with every sample's home three tiles away: the first
+    Hessian evaluation drops the samples' border products, so the solve stops and goes on
+    in an NLP laid around where the samples are (casmag.solver.staged.solve_rehomed via the
+    translational solve), and reaches the optimum of the NLP laid right from the start."""
+    import dataclasses
+
+    from casmag.model.translational import parameters_and_guess
+    from casmag.solver.translational import _solve, solve_translational
+
+    prob = tiny_walk(
+        ["model.gp.kernel=curl_free", "simulation.field.kernel=curl_free", "model.gp.form=tiled"]
+    )
+    data = simulate_problem(prob)
+    right, _, _, _, s = solve_translational(prob, data)
+    assert right.success and right.rounds == 1, right.status
+    DR = data.dead_reckoning()
+    far = DR + np.array([3 * s.tiles.spacing, 0.0])
+    wrong = dataclasses.replace(s, home=home_points(s.tiles, far))
+    params, x0 = parameters_and_guess(prob, data, wrong)
+    sol, nlp, laid = _solve(wrong, params, x0, None)
+    assert sol.success and sol.rounds >= 2, (sol.status, sol.rounds)
+    P = s.knots.positions(DR, sol.x["C"])
+    assert laid.home == home_points(s.tiles, P) and nlp.keep[1].dropped[-1] == 0
+    np.testing.assert_allclose(P, right.x["P"], atol=1e-4)
+    assert sol.objective == pytest.approx(right.objective, rel=1e-6)

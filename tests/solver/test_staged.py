@@ -62,6 +62,7 @@ class StandIn(StagedModel):
             status="Restoration_Failed" if failed else "Solve_Succeeded",
             iterations=3,
             solve_seconds=0.01,
+            rounds=1,
         )
         return Solved(sol, None, None, lengthscale)  # type: ignore[arg-type]
 
