@@ -154,7 +154,7 @@ def solve_translational(
         None if start is None else start["values"],
         lengthscale if other else None,
     )
-    sol, nlp, s = _solve(s, params, x0, progress)
+    sol, nlp, s = _solve(s, nlp, params, x0, progress)
     if start is not None and start["method"] == "both":
         sol = _better_of_two_starts(nlp, sol, params, x0, start, progress)
     if start is not None:
@@ -184,19 +184,20 @@ def _solve_from(
     if "lengthscale" in params:  # fixed (coarse-to-fine refuses an estimated one)
         params["lengthscale"] = lengthscale
     x0 = {k: v for k, v in x.items() if k in nlp.x_layout.entries}
-    sol, nlp, s = _solve(s, params, x0, progress)
+    sol, nlp, s = _solve(s, nlp, params, x0, progress)
     return _finish(s, nlp, sol, params)
 
 
 def _solve(
-    s: Structure, params: dict[str, Any], x0: dict[str, Any], progress: Any
+    s: Structure, nlp: NLP, params: dict[str, Any], x0: dict[str, Any], progress: Any
 ) -> tuple[Solution, NLP, Structure]:
-    """``s``'s NLP solved from x0; a tiled map's is laid again around where its samples
-    went when they leave its Hessian's pattern (casmag.solver.staged.solve_rehomed)."""
+    """``nlp`` (``s``'s) solved from x0; a tiled map's is laid again around where its
+    samples went when they leave its Hessian's pattern (casmag.solver.staged.solve_rehomed)."""
     Q = params["Q"]
     return solve_rehomed(
-        s, cached_nlp, params, x0, lambda sol: positions(s, sol, Q), progress=progress
-    )
+        s, lambda st, cache=True: nlp if st is s else cached_nlp(st, cache), params, x0,
+        lambda sol: positions(s, sol, Q), progress=progress,
+    )  # fmt: skip
 
 
 @dataclass

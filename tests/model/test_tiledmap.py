@@ -424,7 +424,7 @@ def test_a_translational_solve_laid_around_the_wrong_tiles_is_laid_again():
     translational solve), and reaches the optimum of the NLP laid right from the start."""
     import dataclasses
 
-    from casmag.model.translational import parameters_and_guess
+    from casmag.model.translational import cached_nlp, parameters_and_guess
     from casmag.solver.translational import _solve, solve_translational
 
     prob = tiny_walk(
@@ -437,7 +437,7 @@ def test_a_translational_solve_laid_around_the_wrong_tiles_is_laid_again():
     far = DR + np.array([3 * s.tiles.spacing, 0.0])
     wrong = dataclasses.replace(s, home=home_points(s.tiles, far))
     params, x0 = parameters_and_guess(prob, data, wrong)
-    sol, nlp, laid = _solve(wrong, params, x0, None)
+    sol, nlp, laid = _solve(wrong, cached_nlp(wrong), params, x0, None)
     assert sol.success and sol.rounds >= 2, (sol.status, sol.rounds)
     P = s.knots.positions(DR, sol.x["C"])
     assert laid.home == home_points(s.tiles, P) and nlp.keep[1].dropped[-1] == 0
