@@ -63,7 +63,7 @@ class Structure:
     constant_field: bool = False
     knot_every: int = 1
     starts: tuple[int, ...] = (0,)  # first sample of each session (casmag.solver.multisession)
-    tiles: TileGrid | None = None  # form "tiled": the grid around the initial positions
+    grid: TileGrid | None = None  # form "tiled": the tiles around the initial positions
     home: tuple[int, ...] = ()  # form "tiled": each sample's nearest grid point there
 
     @classmethod
@@ -98,7 +98,7 @@ class Structure:
             constant_field=m.gp.sigma_lin is not None,
             knot_every=m.trajectory.knot_every,
             starts=tuple(int(i) for i in data.starts),
-            tiles=tiles,
+            grid=tiles,
             home=home,
         )
 
@@ -108,11 +108,6 @@ class Structure:
     @property
     def tiled(self) -> bool:
         return self.form == "tiled"
-
-    @property
-    def grid(self) -> TileGrid | None:
-        """The tiled map's grid (as the planar and pose structures name it)."""
-        return self.tiles
 
     @property
     def knots(self) -> Knots:
@@ -136,8 +131,8 @@ class Structure:
         if self.form == "reduced_rank":
             return ReducedRankField(self.kernel, self.basis, self.estimate, self.constant_field)
         if self.form == "tiled":
-            assert self.tiles is not None
-            return TiledField(self.tiles, self.home, self.constant_field)
+            assert self.grid is not None
+            return TiledField(self.grid, self.home, self.constant_field)
         return ExactField(self.kernel, self.jitter, self.estimate, self.logdet)
 
 
@@ -332,8 +327,8 @@ def initial_weights(
     For the tiled map, (m, T), by a sparse direct solve
     (:func:`casmag.model.tiledmap.ridge_tile_weights`)."""
     if s.form == "tiled":
-        assert s.tiles is not None
-        return ridge_tile_weights(cached_tiles(s.tiles), P, Y, c0, sigma_m, sigma_f, lengthscale)
+        assert s.grid is not None
+        return ridge_tile_weights(cached_tiles(s.grid), P, Y, c0, sigma_m, sigma_f, lengthscale)
     basis = s.hilbert_basis()
     S = basis.prior_variances(s.kernel, sigma_f, lengthscale)
     M = basis.num_basis
@@ -366,8 +361,8 @@ def field_estimate(s: Structure, sol: Solution, P: np.ndarray) -> np.ndarray:
 
 def _tiled_field(s: Structure, sol: Solution, X: np.ndarray) -> np.ndarray:
     """(G, 3) the tiled map's field (with its constant) at points X (G, d)."""
-    assert s.tiles is not None
-    m = cached_tiles(s.tiles).field(X, sol.x["W"].T)
+    assert s.grid is not None
+    m = cached_tiles(s.grid).field(X, sol.x["W"].T)
     return m + (sol.x["c"].ravel() if s.constant_field else 0.0)
 
 

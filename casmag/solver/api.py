@@ -159,12 +159,12 @@ def solve(
         box = left_map_box(structure.basis[0], structure.basis[1], P_est)
         if box is not None:
             flags.append(box)
-    if structure.tiles is not None:
-        tiles = cached_tiles(structure.tiles)
+    if structure.grid is not None:
+        tiles = cached_tiles(structure.grid)
         info["tiles"] = {
             "tiles": tiles.num_tiles,
             "per_tile": tiles.per_tile,
-            "spacing": structure.tiles.spacing,
+            "spacing": structure.grid.spacing,
             "hessian_terms_dropped": int(sol.stats.get("hessian_terms_dropped", 0)),
             "rounds": sol.rounds,  # > 1: laid again around where the samples went
         }

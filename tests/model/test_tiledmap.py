@@ -434,12 +434,12 @@ def test_a_translational_solve_laid_around_the_wrong_tiles_is_laid_again():
     right, _, _, _, s = solve_translational(prob, data)
     assert right.success and right.rounds == 1, right.status
     DR = data.dead_reckoning()
-    far = DR + np.array([3 * s.tiles.spacing, 0.0])
-    wrong = dataclasses.replace(s, home=home_points(s.tiles, far))
+    far = DR + np.array([3 * s.grid.spacing, 0.0])
+    wrong = dataclasses.replace(s, home=home_points(s.grid, far))
     params, x0 = parameters_and_guess(prob, data, wrong)
     sol, nlp, laid = _solve(wrong, cached_nlp(wrong), params, x0, None)
     assert sol.success and sol.rounds >= 2, (sol.status, sol.rounds)
     P = s.knots.positions(DR, sol.x["C"])
-    assert laid.home == home_points(s.tiles, P) and nlp.keep[1].dropped[-1] == 0
+    assert laid.home == home_points(s.grid, P) and nlp.keep[1].dropped[-1] == 0
     np.testing.assert_allclose(P, right.x["P"], atol=1e-4)
     assert sol.objective == pytest.approx(right.objective, rel=1e-6)
