@@ -51,6 +51,7 @@ drawn from the seed; about the body z axis for pose), no clock shift (one device
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -75,6 +76,14 @@ SOURCE_RATE_TOLERANCE = 1e-3  # relative spread of the sample interval accepted 
 #: difference 1.77 uT on ``square`` (field RMS about its mean 8.3 uT; the next candidate
 #: 4.98) and 2.15 uT on ``library`` (next 16.5 uT).
 ARKIT_SENSOR_TO_BODY_DEG = 90.0
+
+#: Spacing [s] of the coarse grid of the clock search (:func:`clock_offset`), refined sample
+#: by sample around its best shift. The likelihood's peak is one smooth hump some 0.3 s wide
+#: at half its gain (sequences 1 and 4 evaluated at every shift; sequence 1 has a second,
+#: 720 lower, at +0.22 s). On sequences 1-5 (50 Hz) the search finds the same shifts and
+#: gains as every shift evaluated, with 19 evaluations instead of 51 (sequence 1: 27 -> 14 s
+#: with the hyperparameters' estimate).
+CLOCK_COARSE_SECONDS = 0.1
 
 
 @dataclass(frozen=True)
@@ -265,12 +274,31 @@ def log_marginal(
     return float(-0.5 * np.sum(Y * alpha) - Y.shape[1] * np.sum(np.log(np.diag(c[0]))))
 
 
+def coarse_to_fine_argmax(
+    f: Callable[[int], float], n: int, zero: int, step: int
+) -> tuple[int, dict[int, float]]:
+    """The index in range(n) of f's largest value, f evaluated on every ``step``-th index
+    counted from ``zero`` (and both ends), then on every index within ``step`` of the best of
+    those. Returns the index and the values evaluated (``zero`` among them). The likelihood
+    of a shift is smooth in it: its peak spans many fine steps, so that the coarse grid
+    lands on the peak's flank and the fine pass on its top."""
+    coarse = sorted({0, n - 1, *range(zero % step, n, step)})
+    values = {i: f(i) for i in coarse}
+    top = max(values, key=values.get)
+    for i in range(max(0, top - step + 1), min(n, top + step)):
+        if i not in values:
+            values[i] = f(i)
+    return max(values, key=values.get), values
+
+
 def clock_offset(
     seq: Sequence, max_shift: float = 0.5, stride: int = 5, hyper: Any = None
 ) -> tuple[int, dict[str, Any]]:
     """The magnetometer shift (in source samples; negative: the magnetometer lags the
     positions) that maximises the GP marginal likelihood over |shift| <= max_shift seconds,
-    evaluated on every ``stride``-th sample. Returns the shift and a record of the search."""
+    evaluated on every ``stride``-th sample; shifts searched :data:`CLOCK_COARSE_SECONDS`
+    apart, then sample by sample around the best (:func:`coarse_to_fine_argmax`). Returns
+    the shift and a record of the search."""
     n_max = round(max_shift * seq.rate)
     inner = np.arange(n_max, seq.t.shape[0] - n_max, stride)
     if hyper is None:
@@ -278,19 +306,20 @@ def clock_offset(
     sf, ell, sm = hyper.sigma_f, hyper.lengthscale, hyper.sigma_m
     sigma_lin = float(np.abs(seq.mag.mean(axis=0)).max() + seq.mag.std())
     shifts = np.arange(-n_max, n_max + 1)
+
+    def value(i: int) -> float:
+        return log_marginal(seq.loc[inner + shifts[i]], seq.mag[inner], sf, ell, sm, sigma_lin)
+
+    step = max(1, round(CLOCK_COARSE_SECONDS * seq.rate))
     with threadpool_limits(1):  # small factorisations: threads only contend
-        values = np.array(
-            [
-                log_marginal(seq.loc[inner + s], seq.mag[inner], sf, ell, sm, sigma_lin)
-                for s in shifts
-            ]
-        )
-    best = int(shifts[int(np.argmax(values))])
+        top, values = coarse_to_fine_argmax(value, shifts.size, n_max, step)
+    best = int(shifts[top])
     record = {
         "shift_samples": best,
         "shift_seconds": best / seq.rate,
-        "log_marginal_gain": float(values.max() - values[n_max]),
+        "log_marginal_gain": float(values[top] - values[n_max]),
         "hyperparameters": {"sigma_f": sf, "lengthscale": ell, "sigma_m": sm},
+        "shifts_evaluated": len(values),
     }
     return best, record
 

@@ -17,6 +17,7 @@ from casmag.data.realdata import (
     Sequence,
     align,
     clock_offset,
+    coarse_to_fine_argmax,
     convert,
     heading_of_motion,
     load_sequence,
@@ -70,6 +71,21 @@ def test_clock_offset_finds_a_known_lag():
     assert np.array_equal(aligned.mag[:100], seq.mag[7:107])
     assert np.array_equal(aligned.loc[:100], seq.loc[:100])
     assert aligned.loc.shape[0] == aligned.mag.shape[0] == seq.t.shape[0] - 7
+
+
+@pytest.mark.parametrize("top", [0, 3, 17, 22, 40, 50])
+def test_the_clock_search_finds_the_top_of_a_hump_with_fewer_evaluations(top):
+    """coarse_to_fine_argmax on one smooth hump over 51 shifts (zero at 25, step 5): the
+    top wherever it lies, the ends included, zero evaluated, fewer than 51 evaluations."""
+    calls = []
+
+    def f(i):
+        calls.append(i)
+        return -((i - top) ** 2) + 0.1 * np.cos(i)
+
+    best, values = coarse_to_fine_argmax(f, 51, 25, 5)
+    assert 25 in values and len(set(calls)) == len(calls) < 25
+    assert best == max(range(51), key=f)
 
 
 def test_convert_translational_drift_and_determinism():
