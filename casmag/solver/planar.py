@@ -51,6 +51,7 @@ from casmag.solver.staged import (
     StagedModel,
     Window,
     WindowPrior,
+    anchored_at_truth,
     heading_bias_starts,
     solve_rehomed,
     solve_staged,
@@ -196,7 +197,12 @@ def solve_planar(
     flags: list[dict[str, Any]] = []
     if truth is not None and "psi" in truth:
         true_states = {"P": np.asarray(truth["P"], float), "psi": np.asarray(truth["psi"], float)}
-        flag = truth_check(model, final, true_states, truth["P"], P_dr)
+        true_first = np.column_stack([true_states["P"][first], true_states["psi"][first]])
+        flag = (
+            truth_check(model, final, true_states, truth["P"], P_dr)
+            if anchored_at_truth(anchors, true_first)
+            else None
+        )
         if flag is not None:
             flags.append(flag)
     if sol.success:

@@ -54,6 +54,7 @@ from casmag.solver.staged import (
     StagedModel,
     Window,
     WindowPrior,
+    anchored_at_truth,
     heading_bias_starts,
     solve_rehomed,
     solve_staged,
@@ -231,7 +232,12 @@ def solve_pose(
     if truth is not None and "q" in truth:
         Qt = sd.quat_normalize(np.asarray(truth["q"], dtype=float))
         true_states = {"P": np.asarray(truth["P"], float), "Q": Qt}
-        flag = truth_check(model, final, true_states, truth["P"], P_dr)
+        same = sd.quat_angle(q0s, Qt[first]) < 1e-9  # q and -q are one attitude
+        flag = (
+            truth_check(model, final, true_states, truth["P"], P_dr)
+            if anchored_at_truth(p0s, true_states["P"][first]) and same.all()
+            else None
+        )
         if flag is not None:
             flags.append(flag)
     if sol.success:

@@ -772,6 +772,12 @@ def wrong_basin_flag(
     }
 
 
+def anchored_at_truth(anchors: np.ndarray, true_first: np.ndarray) -> bool:
+    """Whether each session's anchor (rows: the first state of a session) is its first true
+    state, to 1e-9."""
+    return bool(np.allclose(anchors, true_first, rtol=0.0, atol=1e-9))
+
+
 def truth_check(
     model: StagedModel,
     final: Solved,
@@ -782,7 +788,10 @@ def truth_check(
     """With truth (evaluation): when the final solve succeeded at a position RMSE above
     :data:`TRUTH_START_RATIO` of the dead reckoning's ``P_dr``, the same problem (its map
     box) solved again from the true states ``true_states`` (the per-sample states; the
-    biases are the final solve's); :func:`wrong_basin_flag` of the two."""
+    biases are the final solve's); :func:`wrong_basin_flag` of the two. The caller runs it
+    only where the estimate is anchored at the truth (:func:`anchored_at_truth`): anchored
+    elsewhere (``--anchor origin``) the true states are in another frame, so neither the
+    ratio nor the start means anything (as for the translational model)."""
     sol = final.sol
     if not sol.success:
         return None
