@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-lag bench-imu-mag-rate bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-localise bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-slow test-all test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-lag bench-imu-mag-rate bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-localise bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -30,8 +30,17 @@ demo: $(STAMP) ## Solve the paper's base case; writes results/demo/ (table, figu
 
 # One worker per core (pytest-xdist), a test file's tests on one worker so that a module's
 # fixtures are built once. PYTEST_ARGS=-n0 runs them in this process, one after another.
+# `make test` leaves out the tests marked slow (each over 12 s in a test run on 2 cores:
+# full-size problems, whole real recordings, process pools); `make test-slow` runs them, `make
+# test-all` both; CI (.ci/run) runs both.
 PYTEST_ARGS ?= -n auto --dist loadfile
-test: $(STAMP) ## Run the test suite (under 10 minutes)
+test: $(STAMP) ## Run the test suite without the slow tests (under 10 minutes on 2 cores)
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+test-slow: $(STAMP) ## Run the slow tests only (full-size problems, real recordings)
+	$(PY) -m pytest -q -m slow $(PYTEST_ARGS)
+
+test-all: $(STAMP) ## Run every test, the slow ones included
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 # uv resolves the lock for every platform (--universal) at Python 3.11; the lock's own tool

@@ -30,6 +30,7 @@ def test_translational_example_solves_saves_and_loads(tmp_path):
     assert "GP-SLAM: Solve_Succeeded" in listing and "P_estimate: (81, 2)" in listing
 
 
+@pytest.mark.slow
 def test_imu_example_reports_every_stage(tmp_path):
     out = _run("imu.py", tmp_path / "out")
     assert out.startswith("Solve_Succeeded")

@@ -247,6 +247,7 @@ def test_report_gives_the_recovered_imu_biases_in_the_papers_table_6_layout(tmp_
     assert "| 7.0 + 10.0 |" in text  # the IMU-only stage's iterations, from ``stages``
 
 
+@pytest.mark.slow
 def test_report_of_a_real_imu_result_folder(tmp_path):
     imu_out = tmp_path / "imu"
     res = _run(["imu", _imu_problem(tmp_path), "--out", imu_out, "-q", "--no-figures"])

@@ -184,6 +184,7 @@ def test_every_imu_file_is_solved_at_tiny_size(tmp_path, path):
     assert r["details"]["errors"]["imu_only"]["rmse"] < r["details"]["errors"]["strapdown"]["rmse"]
 
 
+@pytest.mark.slow
 def test_an_imu_map_lengthscale_longer_than_the_path_is_named(tmp_path):
     out = tmp_path / "out"
     sets = [

@@ -48,6 +48,7 @@ def test_too_short_a_recording_gives_no_estimate():
     assert estimate_lag(t[:150], P_dr[:150], Y[:150]) is None
 
 
+@pytest.mark.slow
 def test_slam_reports_a_lag_removes_it_on_request_or_when_asked_to_find_it(tmp_path):
     data = simulate_problem(tiny_walk(["simulation.trajectory.samples=600"]))
     arrays = dataset_to_recording_arrays(data, dt=0.1)
@@ -89,6 +90,7 @@ def test_slam_reports_a_lag_removes_it_on_request_or_when_asked_to_find_it(tmp_p
     assert res.exit_code == 2 and "expected seconds or 'auto', got 'x'" in res.output
 
 
+@pytest.mark.slow
 def test_refit_noise_solves_again_with_the_noise_that_does_not_repeat(tmp_path):
     """A slow magnetometer error (period 60 s, 6 sigma_m): the windowed likelihood reads it
     as field, the revisits do not; with --refit-noise the MAP is solved again from the

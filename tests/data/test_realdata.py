@@ -155,6 +155,7 @@ def test_convert_cli_writes_recording_and_record(tmp_path):
     assert not (tmp_path / "x.csv").exists()
 
 
+@pytest.mark.slow
 @needs_shared
 def test_real_sequence_magnetometer_lags_the_motion_capture():
     """Measured: the magnetometer of sequence 1 is 0.26 s late; aligning it gains hundreds
@@ -232,6 +233,7 @@ def _recording(tmp_path, constant: bool):
     return path
 
 
+@pytest.mark.slow
 def test_slam_falls_back_to_odometry_in_a_homogeneous_field(tmp_path):
     res = slam(_recording(tmp_path, constant=True))
     assert res.status == "Odometry_Only" and res.success
@@ -306,6 +308,7 @@ def test_jittered_time_stamps_are_brought_to_a_uniform_grid(tmp_path):
     assert json.loads(out.with_suffix(".json").read_text())["resampled"]["rows"] == t.size
 
 
+@pytest.mark.slow
 @needs_shared
 def test_the_real_benchmark_runs_the_filter_on_single_recordings(tmp_path):
     """``python -m casmag.experiments.realbench ... --method ekf``: the filter's row for a real

@@ -1,5 +1,7 @@
 """The MAP against the filter baseline over seeds (casmag.experiments.peers)."""
 
+import pytest
+
 from casmag.experiments.peers import DEFAULT_FILE, markdown, run_seed, summary
 
 
@@ -19,6 +21,7 @@ def test_one_seed_of_the_peers_setting_runs_both_methods():
     assert "| 3 |" in markdown([row], s, "peers")
 
 
+@pytest.mark.slow
 def test_one_seed_as_pose_odometry_runs_both_methods():
     """The same setting as pose odometry (6-DoF increments, a rotation noise, a body-frame
     displacement bias): both methods locate below the dead reckoning and report the

@@ -285,6 +285,7 @@ def test_several_files_share_one_pool_one_folder_each(tmp_path):
 
 
 # --------------------------------------------------------------------------- Dask
+@pytest.mark.slow
 def test_dask_local_cluster_on_loopback_matches_local_pool(tmp_path):
     distributed = pytest.importorskip("distributed")
     table = _table(tmp_path, TWO_ROWS)
@@ -382,6 +383,7 @@ def test_an_imu_problem_is_swept_and_reported_in_the_imu_table(tmp_path):
     assert "IMU-only RMSE [m] mean" in text and "2/2 solved" in text
 
 
+@pytest.mark.slow
 def test_planar_and_pose_problems_are_swept_and_reported(tmp_path):
     files = [ROOT / "problems/planar/walk.yaml", ROOT / "problems/pose/walk.yaml"]
     out = tmp_path / "runs"
@@ -478,6 +480,7 @@ def _pool_script(mode: str, count: int) -> Iterator[subprocess.Popen]:
             proc.communicate()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("mode", "raised"), [("cli", "Interrupted"), ("library", "KeyboardInterrupt")]
 )

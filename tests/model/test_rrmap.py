@@ -126,6 +126,7 @@ def test_reduced_rank_matches_exact_on_base_case():
     assert r.rmse_after <= 0.005
 
 
+@pytest.mark.slow
 def test_curl_free_reduced_rank_solves_base_case():
     prob = casmag.load_problem(
         ROOT / "problems/paper/base.yaml",

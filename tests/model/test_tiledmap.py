@@ -160,6 +160,7 @@ def test_hybrid_switch_counts_slow_evaluations(cls):
     assert not hess._use_exact(18.0)  # a new solve starts with Gauss-Newton
 
 
+@pytest.mark.slow
 def test_tiled_map_locates_like_the_exact_gp():
     """The 120-sample walk (curl-free field) solved with the tiled map: converges in a few
     iterations with the hybrid Hessian (4-6 measured on seeds 2-4; Gauss-Newton alone
@@ -290,6 +291,7 @@ def test_tiled_map_read_through_a_rotation():
     assert np.abs(H[:, local] - gn[:, local]).max() > 1e-3 * np.abs(exact).max()
 
 
+@pytest.mark.slow
 def test_planar_walk_with_the_tiled_map():
     """The planar walk of the tests (three loops of 2 x 1.5 m, heading-rate bias 0.5
     deg/s, seed 2) with ``model.gp.form: tiled``: converges to the tolerance in a few

@@ -140,6 +140,7 @@ def test_planar_results_draw_their_map_with_its_std(tmp_path):
     assert (tmp_path / "out" / "map.png").is_file()
 
 
+@pytest.mark.slow
 def test_imu_results_draw_their_map_at_the_path_height(tmp_path):
     from casmag.problem.imu import load_imu_problem
     from casmag.solver.imu import solve_imu

@@ -425,7 +425,6 @@ def test_coarse_to_fine_must_end_at_one():
         load_imu_problem(data)
 
 
-@pytest.mark.slow
 def test_rectangle_meets_the_done_criteria():
     """problems/imu/rectangle.yaml (about a minute): GP-SLAM error at most 1/5 of the
     strapdown's and of the IMU-only adjustment's, gyroscope biases within 20 % (or
@@ -509,6 +508,7 @@ def test_planar_recording_with_heading_rate_bias(tmp_path):
     assert r.odometry_bias[0] == pytest.approx(d.bias, rel=0.1)
 
 
+@pytest.mark.slow
 def test_planar_starts_keep_the_lowest_cost():
     """model.starts = 3: the dead reckoning and dead reckonings with +-0.54 deg/s removed
     (10 deg over the 18.6 s walk); the lowest MAP cost is kept. Measured on this walk

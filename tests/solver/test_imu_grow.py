@@ -172,6 +172,7 @@ def test_failed_prefix_is_reported_with_its_status(monkeypatch):
     assert only["grow"][0]["success"] is False
 
 
+@pytest.mark.slow
 def test_a_failed_schedule_is_recorded_and_the_coarse_to_fine_one_kept(monkeypatch):
     """The same failure with the coarse-to-fine schedule on (the default): it runs, reaches
     the truth, and is the result; the failed anneal schedule is recorded with its status."""

@@ -529,6 +529,7 @@ def test_a_lag_left_on_the_gp_slam_path_is_in_the_verdict(recording, monkeypatch
         assert r.verdict["trusted"] is trusted, r.verdict["reasons"]
 
 
+@pytest.mark.slow
 def test_each_imu_session_gets_its_own_lag_estimate(tmp_path, long_recording):
     """``casmag slam A B`` with IMU recordings: each session's lag is estimated on its own
     keyframes of the stacked result, on the recording's own clock: with no map the same
@@ -575,6 +576,7 @@ def test_imu_sessions_remove_each_ones_clear_lag_by_default(tmp_path, long_recor
         slam_sessions([long_recording, late], overrides=NO_MAP, mag_lag=0.15)
 
 
+@pytest.mark.slow
 def test_casmag_slam_draws_one_panel_per_imu_session(tmp_path, long_recording):
     """``casmag slam A B`` on IMU recordings writes its figures: sessions.png takes each
     session's keyframes (the IMU model's arrays are per keyframe)."""

@@ -179,6 +179,7 @@ def test_a_recording_off_the_map_is_flagged(mapped):
     assert not loc.trusted
 
 
+@pytest.mark.slow
 def test_the_command_line_maps_once_and_locates_later(mapped, tmp_path):
     _, data, _, later, _ = mapped
     t = np.arange(data.n_samples) * 0.1

@@ -151,6 +151,7 @@ def walks(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_a_planar_recording_is_located_against_a_planar_map_and_updates_it(walks):
     runner = CliRunner()
     saved = load_map(walks / "A")
@@ -211,6 +212,7 @@ def test_a_three_d_map_cannot_locate_a_planar_recording(walks):
         slam_oriented(read_recording(walks / "later.csv"), saved=box3, map_source="box3")
 
 
+@pytest.mark.slow
 def test_a_pose_recording_is_located_against_a_pose_map_and_updates_it():
     from dataclasses import replace
 

@@ -118,6 +118,7 @@ def test_extend_starts_a_new_session_from_its_known_start(room_sessions):
     np.testing.assert_allclose(model.start(n)["P"], P_dr)
 
 
+@pytest.mark.slow
 def test_slam_solves_planar_sessions_and_refuses_mixed_kinds(tmp_path, room_sessions):
     """A second session of the room improves the short one (B) beyond what it reaches
     alone; the session that revisits itself most (A, three loops) is added first."""
@@ -177,6 +178,7 @@ def test_imu_recordings_without_their_first_poses_are_refused_as_sessions(tmp_pa
     assert "i1.csv: several sessions need each one's first position and heading" in res.output
 
 
+@pytest.mark.slow
 def test_a_session_is_also_added_in_growing_prefixes_with_a_random_walk_bias(room_sessions):
     """B (61 samples) is longer than twice first_samples (20): it is also grown in prefixes
     of 20 and 40 samples beside A, each continued by the odometry with its bias so far."""
@@ -265,6 +267,7 @@ def pose_halves(tmp_path_factory):
     return paths
 
 
+@pytest.mark.slow
 def test_pose_sessions_share_one_map(tmp_path, pose_halves):
     first, second = pose_halves
     out = tmp_path / "out"

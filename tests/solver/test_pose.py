@@ -139,6 +139,7 @@ def _recording(tmp_path: Path, seed: int = 2) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_slam_on_a_pose_recording_map_ekf_and_both(tmp_path: Path) -> None:
     """``casmag slam`` reads the pose columns and solves the pose model from the dead
     reckoning (hyperparameters estimated): a fifth of the dead reckoning's position error,
@@ -216,6 +217,7 @@ def test_a_constant_magnetometer_gives_the_dead_reckoning(tmp_path: Path, motion
     assert res["rmse_after"] == res["rmse_before"] < 1e-9
 
 
+@pytest.mark.slow
 def test_a_pose_walk_with_the_tiled_map() -> None:
     """problems/pose/walk.yaml (80 samples, seed 2) with ``model.gp.form: tiled``: the
     pose model reads the tiles through its 3-D rotation as the planar model does, and

@@ -40,6 +40,7 @@ def recording(tmp_path_factory):
     return path, data
 
 
+@pytest.mark.slow
 def test_slam_on_a_recording_with_truth(recording, tmp_path):
     path, _ = recording
     out = tmp_path / "out"
@@ -92,6 +93,7 @@ def test_slam_refuses_a_simulation_section(recording, tmp_path):
     assert r.exit_code == 2 and "simulation" in r.output
 
 
+@pytest.mark.slow
 def test_growing_warm_start_recovers_drift_a_batch_does_not():
     """Strong drift: the batch from dead reckoning stalls far from the truth; growing
     prefixes (bias removed stage by stage) reach it."""

@@ -265,6 +265,7 @@ def test_every_pair_is_solved_somewhere() -> None:
         assert name in defined, f"{path}::{name}"
 
 
+@pytest.mark.slow
 def test_pose_starts_are_turned_dead_reckonings_and_the_lowest_cost_is_kept() -> None:
     """model.starts = 3 for the pose model: the dead reckoning and the dead reckoning turned
     about the vertical by +-10 deg over the recording (casmag.strapdown.turn_heading), each
