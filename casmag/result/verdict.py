@@ -40,6 +40,15 @@ so in their titles. The checks:
   ends worse than it started: measured at 1.5 m drift, sequences 1, 2, 4, one ended 0.87 ->
   1.44 m with the whole run at 0.86 -> 0.89 m).
 
+- ``covariance_against_truth`` (evaluation only, when the data have truth and the result a
+  Laplace covariance with its NEES summary, casmag.solver.uncertainty): the mean NEES at
+  most :data:`NEES_LIMIT_FACTOR` times the upper end of the range an honest covariance
+  gives it (``nees_interval_95``, which counts the independent values a smooth error
+  holds). Above, the covariance claims errors several times smaller than they are: the
+  estimate is not trusted and its covariance is withheld, even where the error itself is
+  no worse than the dead reckoning's (real sequence 4 at 0.5 m of drift: RMSE 0.288 ->
+  0.291 m, a mean NEES of 373 against an honest range up to 4.9).
+
 - ``magnetometer_lag`` (no truth needed): where the magnetometer's lag behind the motion
   was estimated on the estimated path itself (IMU recordings: the GP-SLAM path,
   casmag.solver.imurec), a significant lag left there means the magnetometer was read at
@@ -83,6 +92,11 @@ REVISIT_SEPARATION = 2.0
 #: 0 on the real sequence that never returns, 0.032 on the least revisiting one whose
 #: estimates reached 1/5 of the drift).
 MIN_REVISIT_FRACTION = 0.01
+
+#: A mean NEES above this many times the upper end of its honest 95 % range is not trusted
+#: (module docstring; the measurements behind the value are in NEES_LIMIT_FACTOR's note in
+#: the README's verdict section).
+NEES_LIMIT_FACTOR = 3.0
 
 #: The paths (``info["magnetometer_lag"]["path"]``) whose lag estimate is the estimate's
 #: own: a significant lag there is judged (module docstring).
@@ -234,7 +248,36 @@ def verdict(result: Any) -> dict[str, Any]:
                     f"(more than {WORSE_RATIO:g} x)"
                     for w in worse
                 )
+    nees = _nees_check(result) if result.success else None
+    if nees is not None:
+        checks["covariance_against_truth"] = nees
+        if not nees["passed"]:
+            reasons.append(
+                f"the covariance is far too confident against the truth: mean NEES "
+                f"{nees['nees_mean']:.3g}, where an honest covariance gives "
+                f"{nees['honest_range'][0]:.2g}-{nees['honest_range'][1]:.2g} (limit "
+                f"{nees['limit']:.3g})"
+            )
     return {"trusted": not reasons, "reasons": reasons, "checks": checks}
+
+
+def _nees_check(result: Any) -> dict[str, Any] | None:
+    """The ``covariance_against_truth`` check (module docstring), None when the result has
+    no NEES summary with its honest range (no truth, no covariance). A summary withheld by an
+    earlier verdict is read where it was kept (``computed``)."""
+    u = getattr(result, "uncertainty", None) or {}
+    u = u.get("computed", u)
+    mean, interval = u.get("nees_mean"), u.get("nees_interval_95")
+    if mean is None or not interval or not np.isfinite(mean):
+        return None
+    limit = NEES_LIMIT_FACTOR * float(interval[1])
+    return {
+        "passed": float(mean) <= limit,
+        "nees_mean": float(mean),
+        "honest_range": [float(v) for v in interval],
+        "limit": limit,
+        "limit_factor": NEES_LIMIT_FACTOR,
+    }
 
 
 def _lag_left(result: Any) -> dict[str, Any] | None:

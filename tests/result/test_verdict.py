@@ -14,7 +14,13 @@ from casmag.cli.main import main
 from casmag.data.imusim import simulate_planar
 from casmag.data.recording import write_recording
 from casmag.result import plotting
-from casmag.result.verdict import MISFIT_LIMIT, WORSE_RATIO, revisit_fraction, verdict
+from casmag.result.verdict import (
+    MISFIT_LIMIT,
+    NEES_LIMIT_FACTOR,
+    WORSE_RATIO,
+    revisit_fraction,
+    verdict,
+)
 from casmag.solver.recslam import revisit_noise
 
 
@@ -126,6 +132,7 @@ def test_the_base_case_is_trusted_and_says_so_in_result_json(tmp_path):
         "revisits",
         "flags",
         "against_truth",
+        "covariance_against_truth",
     }
     assert r.verdict["checks"]["flags"] == {"passed": True, "names": []}  # one Result, any model
     assert r.verdict["checks"]["revisits"]["fraction"] > 0.5  # the paper's path loops
@@ -251,3 +258,32 @@ def test_an_untrusted_result_gives_no_covariance(motion):
     trusted.flags.append(flag)
     trusted.judge()
     assert not trusted.verdict["trusted"] and trusted.arrays["P_cov"] is None
+
+
+def _with_nees(mean, interval=(0.4, 4.9), withheld=False):
+    summary = {"sigma_mean": 0.016, "nees_mean": mean, "nees_interval_95": list(interval)}
+    return _result(
+        uncertainty={"error": "withheld: ...", "computed": summary} if withheld else summary
+    )
+
+
+def test_a_covariance_far_too_confident_against_the_truth_is_not_trusted():
+    # real sequence 4 at 0.5 m of drift: RMSE no worse than the dead reckoning (0.288 ->
+    # 0.291 m), every other check passed, and a mean NEES of 373 against an honest range
+    # up to 4.87
+    v = verdict(_with_nees(372.97, (0.40, 4.87)))
+    check = v["checks"]["covariance_against_truth"]
+    assert not v["trusted"] and check["passed"] is False
+    assert check["limit"] == pytest.approx(NEES_LIMIT_FACTOR * 4.87)
+    assert "far too confident" in v["reasons"][0] and "373" in v["reasons"][0]
+    # at the limit it passes, above it not; an honest mean NEES passes
+    assert verdict(_with_nees(NEES_LIMIT_FACTOR * 4.87, (0.40, 4.87)))["trusted"]
+    assert not verdict(_with_nees(NEES_LIMIT_FACTOR * 4.87 * 1.01, (0.40, 4.87)))["trusted"]
+    assert verdict(_with_nees(2.2))["checks"]["covariance_against_truth"]["passed"] is True
+    # judged again after the covariance was withheld, the check reads the kept summary
+    assert not verdict(_with_nees(372.97, withheld=True))["trusted"]
+    # no truth (no NEES) or no honest range: the check is not made
+    assert "covariance_against_truth" not in verdict(_with_nees(None))["checks"]
+    assert (
+        "covariance_against_truth" not in verdict(_result(uncertainty={"nees_mean": 9e9}))["checks"]
+    )
