@@ -94,9 +94,14 @@ REVISIT_SEPARATION = 2.0
 MIN_REVISIT_FRACTION = 0.01
 
 #: A mean NEES above this many times the upper end of its honest 95 % range is not trusted
-#: (module docstring; the measurements behind the value are in NEES_LIMIT_FACTOR's note in
-#: the README's verdict section).
-NEES_LIMIT_FACTOR = 3.0
+#: (module docstring). Measured on 2026-11-28 as that ratio: right estimates 0.32-1.49 (20
+#: simulated planar and pose walks, problems/planar/walk.yaml, problems/pose/walk.yaml,
+#: seeds 1-10), 0.91-5.56 (`casmag slam` on the 900-sample walk of tests/solver/test_slam.py,
+#: seeds 1-8; 3.9 and 5.6 on the two whose RMSE was 2-3 times the others'), 0.25-0.46
+#: (real sequences 3 and 5 where they reach 1/4 of the drift); wrong real estimates 15-946
+#: (the MAP) and 9.9 and 12.3 (the filter on sequence 4 at 1.5 and 0.5 m of drift, no
+#: other check failed). 7 is about the geometric middle of the gap from 5.6 to 9.9.
+NEES_LIMIT_FACTOR = 7.0
 
 #: The paths (``info["magnetometer_lag"]["path"]``) whose lag estimate is the estimate's
 #: own: a significant lag there is judged (module docstring).
