@@ -273,14 +273,16 @@ def slam(
 ) -> None:
     """GP-SLAM on RECORDINGS (CSV: t, motion increments, mx,my,mz, optional truth).
 
-    Defaults: reduced-rank map, hyperparameters from the data's marginal likelihood,
-    odometry noise 2 % of the median step, one trajectory knot per second (per 5 s above
-    20,000 samples), growing warm starts. Writes result.json, trajectory.csv,
-    trajectory.png, cost.png and map.png. A planar recording (dfwd,dleft,dyaw) is solved
-    with the planar heading model instead (--set model.KEY=VALUE, casmag.problem.imu), a
-    pose recording (dpx..dqz) with the pose model, and an IMU recording (dqw..dqz,
-    dvx..dvz; at rest for its first 0.5 s) with the IMU model, the sensors' noise taken
-    from that rest (casmag.solver.imurec).
+    Defaults: a reduced-rank map on one box around the path, or on tiles with the
+    curl-free kernel where that box would be capped or too costly (model.gp.form: auto,
+    casmag.model.mapchoice; IMU recordings: the box), hyperparameters from the data's
+    marginal likelihood, odometry noise 2 % of the median step, one trajectory knot per
+    second (per 5 s above 20,000 samples), growing warm starts. Writes result.json,
+    trajectory.csv, trajectory.png, cost.png and map.png. A planar recording
+    (dfwd,dleft,dyaw) is solved with the planar heading model instead (--set
+    model.KEY=VALUE, casmag.problem.imu), a pose recording (dpx..dqz) with the pose model,
+    and an IMU recording (dqw..dqz, dvx..dvz; at rest for its first 0.5 s) with the IMU
+    model, the sensors' noise taken from that rest (casmag.solver.imurec).
 
     Several recordings of the same field (translational, planar or pose, one kind, each with
     its first position, and a planar or pose one's heading or orientation, in the common

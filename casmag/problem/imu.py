@@ -686,13 +686,16 @@ def no_truth_on_a_recording(value: Any) -> Any:
 class RecordingGPSpec(Strict):
     """The field map of a planar recording (a pose recording's is PoseGPSpec, with other
     defaults) in ``model.gp``, the section translational and IMU problems spell it in:
-    ``form`` ``reduced_rank`` (one box around the dead reckoning) or ``tiled``
-    (casmag.gp.tiles; kernel ``curl_free`` only); ``kernel``; ``sigma_f``, ``lengthscale``:
+    ``form`` ``auto`` (the default: the box, or the tiles where the box would be capped,
+    too costly or over the memory budget, casmag.model.mapchoice; a kernel other than
+    ``curl_free`` given here, or ``num_basis``, keeps the box), ``reduced_rank`` (one box
+    around the dead reckoning) or ``tiled`` (casmag.gp.tiles; kernel ``curl_free`` only);
+    ``kernel``; ``sigma_f``, ``lengthscale``:
     a value or ``estimate`` (the windowed marginal likelihood on the dead-reckoned path);
     ``sigma_lin``: the constant field's prior (None: from the data); ``num_basis``,
     ``margin``: the reduced-rank basis (None: casmag.model.rrmap's)."""
 
-    form: Literal["reduced_rank", "tiled"] = "reduced_rank"
+    form: Literal["auto", "reduced_rank", "tiled"] = "auto"
     kernel: Literal["se", "curl_free"] = "se"
     sigma_f: PositiveFloat | Literal["estimate"] = "estimate"
     lengthscale: PositiveFloat | Literal["estimate"] = "estimate"
@@ -708,6 +711,9 @@ class RecordingGPSpec(Strict):
             raise ValueError(
                 "form tiled needs kernel: curl_free (the tiles blend a scalar potential)"
             )
+        chosen_kernel = "kernel" in self.model_fields_set and self.kernel != "curl_free"
+        if self.form == "auto" and (chosen_kernel or self.num_basis is not None):
+            self.form = "reduced_rank"  # the tiles cannot keep what was chosen
         return self
 
 
@@ -827,12 +833,14 @@ class PlanarOptions:
     reckoning and pairs of +-heading-rate biases, each running ``solver.warm_start``'s
     strategy, the lowest MAP cost kept: casmag.solver.staged) [1];
     start_heading_deg: the heading the first pair's bias turns over the recording [10];
-    form: the map, ``reduced_rank`` (one box around the dead reckoning) or ``tiled``
+    form: the map, ``reduced_rank`` (one box around the dead reckoning), ``tiled``
     (casmag.gp.tiles: tiles only where the path goes, each sample touching the four
     around it; needs kernel ``curl_free``; the Hessian is Gauss-Newton, ``curvature``
-    applies to the box only) [reduced_rank]; solver: IPOPT settings. ``curvature``: the
-    box's magnetometer block with its exact Hessian (true) or Gauss-Newton (false) under
-    ``solver.hessian: auto`` (another value there chooses instead) [true]."""
+    applies to the box only) or ``auto`` (chosen once the lengthscale is known,
+    casmag.model.mapchoice; ``casmag slam``'s default) [reduced_rank]; solver: IPOPT
+    settings. ``curvature``: the box's magnetometer block with its exact Hessian (true)
+    or Gauss-Newton (false) under ``solver.hessian: auto`` (another value there chooses
+    instead) [true]."""
 
     sigma_disp: float = 0.01
     sigma_dyaw: float = 0.002
@@ -906,6 +914,8 @@ def load_recording_spec(
         spec.solver = spec.solver.model_copy(
             update={"warm_start": default.model_copy(update=given)}
         )
+    if spec.solver.warm_start.strategy == "sliding" and spec.model.gp.form == "auto":
+        spec.model.gp.form = "reduced_rank"  # a window's map is one box
     if spec.solver.warm_start.strategy == "sliding" and spec.model.gp.form == "tiled":
         raise ProblemError(
             source,

@@ -88,7 +88,9 @@ class PoseOptions:
     ``solver.hessian: auto`` (another value there chooses instead) [hybrid]; form: the map,
     ``reduced_rank`` (one box around the dead reckoning) or ``tiled`` (casmag.gp.tiles:
     tiles only where the path goes, each sample touching the 2^map_dim around it; kernel
-    ``curl_free``; its Hessian ``hybrid`` whatever ``curvature`` says) [reduced_rank].
+    ``curl_free``; its Hessian ``hybrid`` whatever ``curvature`` says) or ``auto``
+    (chosen once the lengthscale is known, casmag.model.mapchoice; ``casmag slam``'s
+    default) [reduced_rank].
 
     map_dim: 3, 2 (the field a function of x and y only: motion near a plane) or ``auto``
     (2 when the dead reckoning's height varies by less than one lengthscale over stretches

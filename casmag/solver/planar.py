@@ -20,6 +20,7 @@ from casmag.gp.fieldmap import map_arrays, tiled_map_arrays, unwhitened
 from casmag.gp.hyper import estimate_hyperparameters
 from casmag.gp.savedmap import SavedMap
 from casmag.model.field import BoxOrTiles, left_map_box
+from casmag.model.mapchoice import AUTO, box_only, resolve_options
 from casmag.model.planar import (
     PlanarStructure,
     cached_planar_nlp,
@@ -148,6 +149,14 @@ def solve_planar(
     P_dr, psi_dr = dead_reckon_sessions(U, anchors, starts)
     Y_local = sd.rotate(sd.quat_from_euler(0.0 * psi_dr, 0.0 * psi_dr, psi_dr), Y)
     sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_local)
+    kernel = options.kernel
+    options, choice = resolve_options(
+        options, P_dr, float(ell), 3 * n, box_only(S, method, prior_map is not None)
+    )
+    if options.kernel != kernel:  # the tiles' curl-free kernel: its own hyperparameters
+        sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(
+            options, P_dr, Y_local
+        )
 
     if method == "ekf":
         s = planar_structure(options, n, P_dr, float(ell), options.solver)
@@ -261,6 +270,7 @@ def solve_planar(
             "kernel": options.kernel,
             **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
             "warm_start": strategy,
+            **({} if choice is None else {"map_choice": choice.to_dict()}),
         },
         convergence=[sol.trace("GP-SLAM")],
         arrays={
@@ -308,9 +318,10 @@ def localisation_options(options: Any, saved: SavedMap, source: str, motion: str
     if motion == "planar" and saved.dim != 2:
         raise DataError(f"{where}: a {saved.dim}-D map cannot locate a planar recording")
     form = getattr(options, "form", "reduced_rank")
-    if form != "reduced_rank":
+    if form not in ("reduced_rank", AUTO):
         raise DataError(f"{where}: model.gp.form {form}: a saved map is one box")
     changes: dict[str, Any] = {
+        "form": "reduced_rank",
         "kernel": saved.kernel, "sigma_f": saved.sigma_f, "lengthscale": saved.lengthscale,
         "sigma_m": saved.sigma_m,
     }  # fmt: skip

@@ -16,6 +16,7 @@ from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
 from casmag.gp.savedmap import SavedMap
 from casmag.model.field import left_map_box
+from casmag.model.mapchoice import box_only, resolve_options
 from casmag.model.pose import (
     PoseStructure,
     cached_pose_nlp,
@@ -167,6 +168,15 @@ def solve_pose(
     Y_map = sd.rotate(Q_dr, Y)
     sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_map)
     dim = choose_map_dim(options, P_dr, ell)
+    kernel = options.kernel
+    options, choice = resolve_options(
+        options, P_dr[:, :dim], float(ell), 6 * n, box_only(S, method, prior_map is not None)
+    )
+    if options.kernel != kernel:  # the tiles' curl-free kernel: its own hyperparameters
+        sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(
+            options, P_dr, Y_map
+        )
+        dim = choose_map_dim(options, P_dr, ell)
     height = dim == 2 and options.height_sigma is not None
     c0 = Y_map.mean(axis=0)
     params: dict[str, Any] = {
@@ -308,6 +318,7 @@ def solve_pose(
             "biases_estimated": [b for b in _BIASES if b not in fixed],
             **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
             "warm_start": strategy,
+            **({} if choice is None else {"map_choice": choice.to_dict()}),
         },
         convergence=[sol.trace("GP-SLAM")],
         arrays=arrays,

@@ -23,6 +23,7 @@ from casmag.data.simulate import Dataset
 from casmag.errors import DataError, ProblemError
 from casmag.gp.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
 from casmag.gp.savedmap import SavedMap, load_map
+from casmag.model.mapchoice import AUTO, box_only, choose_map
 from casmag.problem.spec import (
     Problem,
     as_overrides,
@@ -70,6 +71,9 @@ solved in 308 s and 2.9 GB with RMSE 8.0 m -> 9.6 mm (make bench-scale)."""
 ODOMETRY_NOISE_FRACTION = 0.02
 """Default odometry noise of ``casmag slam``: 2 % of the median step length, per axis."""
 
+#: Where a problem names its map's form.
+FORM_PATH = ("model", "gp", "form")
+
 HYPER_PATHS = {
     "sigma_f": ("model", "gp", "sigma_f"),
     "lengthscale": ("model", "gp", "lengthscale"),
@@ -94,6 +98,7 @@ def recording_problem(
     problem: str | Path | None = None,
     overrides: str | Sequence[str] | Mapping[str, Any] = (),
     given: Mapping[str, Any] | None = None,
+    box_only: str | None = None,
 ) -> tuple[Problem, dict[str, Any]]:
     """The problem ``casmag slam`` solves on a recording, and how its values were chosen.
 
@@ -106,6 +111,13 @@ def recording_problem(
     hyperparameters it leaves null (or sets to ``estimate``, as for the planar and pose
     models) are still estimated. ``given``: settings that override
     the problem file's too (a saved map's kernel and hyperparameters).
+
+    The map: unless ``model.gp.form`` is given (or is ``auto``), the box, or the tiles
+    with the curl-free kernel (its hyperparameters estimated again) where the box would be
+    capped, too costly or over the memory budget (casmag.model.mapchoice; the choice and
+    why in ``how["map_choice"]``). A kernel or ``num_basis`` given, sliding windows and
+    ``box_only`` (why the caller needs the box: several sessions, a saved map, the
+    filter) keep the box.
     """
     overrides = as_overrides(overrides)
     check_recording_overrides(overrides)
@@ -125,7 +137,6 @@ def recording_problem(
         "name": name,
         "description": f"GP-SLAM on the recording {name}",
         "model": {
-            "gp": {"form": "reduced_rank", "kernel": "se"},
             "trajectory": {"knot_every": max(1, round(knot_seconds / dt))},
             "odometry": {"sigma": sigma_o, "estimate_bias": True},
             "anchor": {"sigma": 1.0e-3},
@@ -135,19 +146,42 @@ def recording_problem(
     merged = _merge(_merge(base, user), dict(given or {}))
     # ``estimate`` (in the file or as --set) means what null means here: from the data.
     from_data = {".".join(path) for path in HYPER_PATHS.values()}
-    kept = []
+    kept, chosen = [], {}
     for text in overrides:
         key, value = parse_override(text)
         if ".".join(key) in from_data and value == "estimate":
             _set(merged, tuple(key), None)
+        elif tuple(key) == FORM_PATH and value == AUTO:
+            _set(merged, FORM_PATH, None)
         else:
             kept.append(text)
+            chosen[tuple(key)] = value
     overrides = kept
+    if _get(merged, FORM_PATH) == AUTO:
+        _set(merged, FORM_PATH, None)
+    auto_form = _get(merged, FORM_PATH) is None and FORM_PATH not in chosen
+
+    def setting(path: tuple[str, ...]) -> Any:
+        """A setting as the problem will hold it: an override's value, else the merged."""
+        return chosen[path] if path in chosen else _get(merged, path)
+
+    kernel_given = setting(("model", "gp", "kernel"))
+    if auto_form and box_only is None:
+        if kernel_given not in (None, "curl_free"):
+            box_only = f"model.gp.kernel {kernel_given} given"
+        elif setting(("model", "gp", "num_basis")) is not None:
+            box_only = "model.gp.num_basis given"
+        elif setting(("solver", "warm_start", "strategy")) == "sliding":
+            box_only = "sliding windows carry one box"
+        elif kernel_given is None and any(
+            setting(HYPER_PATHS[h]) not in (None, "estimate") for h in ("sigma_f", "lengthscale")
+        ):
+            box_only = "sigma_f or lengthscale given for the se kernel"
     for path in HYPER_PATHS.values():
         if _get(merged, path) == "estimate":
             _set(merged, path, None)
-    kernel = merged["model"]["gp"].get("kernel") or "se"
-    merged["model"]["gp"]["kernel"] = kernel
+    kernel = setting(("model", "gp", "kernel")) or "se"
+    merged["model"].setdefault("gp", {})["kernel"] = kernel
     how: dict[str, Any] = {
         "odometry_sigma": "problem file"
         if user.get("model", {}).get("odometry", {}).get("sigma") is not None
@@ -171,6 +205,24 @@ def recording_problem(
             _set(merged, HYPER_PATHS[h], nominal[h])
     else:
         est = estimate_hyperparameters(data.dead_reckoning(), data.Y, kernel)
+        if auto_form:
+            ell = setting(HYPER_PATHS["lengthscale"]) or est.lengthscale
+            every = int(_get(merged, ("model", "trajectory", "knot_every")) or 1)
+            choice = choose_map(
+                kernel,
+                data.dead_reckoning(),
+                float(ell),
+                (-(-data.n_samples // every) + 2) * data.dim,
+                margin=setting(("model", "gp", "margin")),
+                memory_budget=setting(("solver", "memory_budget")),
+                box_only=box_only,
+            )
+            how["map_choice"] = choice.to_dict()
+            _set(merged, FORM_PATH, choice.form)
+            if choice.kernel != kernel:  # the tiles' curl-free kernel: its own estimate
+                kernel = choice.kernel
+                merged["model"]["gp"]["kernel"] = kernel
+                est = estimate_hyperparameters(data.dead_reckoning(), data.Y, kernel)
         how["field_evidence"] = field_evidence(data.dead_reckoning(), data.Y, kernel, est).to_dict()
         # Diagnostic: magnetometer residuals correlated over tau samples make a white-noise
         # sigma_m over-confident by about sqrt(tau) (measured on real sequence 5: tau 2.0).
@@ -188,9 +240,11 @@ def recording_problem(
             }
             for h in missing:
                 _set(merged, HYPER_PATHS[h], getattr(est, h))
-    if (
-        merged["model"]["gp"].get("sigma_lin") is None
-        and merged["model"]["gp"]["form"] == "reduced_rank"
+    if _get(merged, FORM_PATH) is None:  # no field to choose a map for
+        _set(merged, FORM_PATH, "reduced_rank")
+    if merged["model"]["gp"].get("sigma_lin") is None and setting(FORM_PATH) in (
+        "reduced_rank",
+        "tiled",
     ):
         sigma_lin = float(np.abs(data.Y.mean(axis=0)).max() + data.Y.std())
         merged["model"]["gp"]["sigma_lin"] = sigma_lin if sigma_lin > 0 else scale
@@ -441,7 +495,10 @@ def slam(
             saved, "" if map_file is None else str(map_file),
         )  # fmt: skip
     data = rec.to_dataset(anchor)
-    prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides, given)
+    keep_box = box_only(1, method, saved is not None)
+    prob, how = recording_problem(
+        data, rec.t, Path(recording).stem, problem, overrides, given, keep_box
+    )
     lag = estimate_lag(rec.t, data.dead_reckoning(), rec.Y, _assumed(prob))
     removed = None if auto else mag_lag
     if auto and lag is not None and lag.significant:
@@ -449,7 +506,9 @@ def slam(
         removed = lag.lag_seconds
         rec = with_lag_removed(raw, removed, "estimated from the dead reckoning")
         data = rec.to_dataset(anchor)
-        prob, how = recording_problem(data, rec.t, Path(recording).stem, problem, overrides, given)
+        prob, how = recording_problem(
+            data, rec.t, Path(recording).stem, problem, overrides, given, keep_box
+        )
     found = _plausibility(rec, data, prob) + (lag_warning(lag) if not removed else [])
     announce(recording, found, on_warning)
     if not field_check and how["field_evidence"].get("constant"):
@@ -717,6 +776,7 @@ def slam_sessions(
         label,
         problem,
         ["solver.warm_start.strategy=none", *overrides] if data.n_sessions > 1 else overrides,
+        box_only=box_only(data.n_sessions, "map", False),
     )
     found = []
     for path, rec, d in zip(recordings, recs, datasets, strict=True):
