@@ -131,9 +131,11 @@ class OrientedProblem:
     @property
     def sections(self) -> dict[str, Any]:
         """The ``model`` and ``solver`` sections, as a recording's problem file gives them
-        (``casmag slam``'s options loader reads them again)."""
+        (``casmag slam``'s options loader reads them again); the model's keys only where
+        the file gave them, so that what it left to the data (``model.gp.form: auto`` and
+        its kernel) is chosen as for a recording."""
         return {
-            "model": self.spec.model.model_dump(mode="python"),
+            "model": self.spec.model.model_dump(mode="python", exclude_unset=True),
             "solver": self.spec.solver.model_dump(mode="python"),
         }
 

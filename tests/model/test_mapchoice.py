@@ -102,6 +102,13 @@ def test_planar_and_pose_options_default_to_the_choice_and_keep_what_is_given():
     assert sliding.form == "reduced_rank"
     # The library API's own default stays the box.
     assert PlanarOptions().form == "reduced_rank"
+    # A simulated planar or pose problem file leaves the choice to the data as a recording.
+    for motion in ("planar", "pose"):
+        assert load_oriented_problem(ROOT / f"problems/{motion}/walk.yaml").options.form == "auto"
+    set_kernel = ["model.gp.kernel=se"]
+    assert load_oriented_problem(ROOT / "problems/planar/walk.yaml", set_kernel).options.form == (
+        "reduced_rank"
+    )
 
 
 def test_resolving_planar_options():
