@@ -46,7 +46,7 @@ import numpy as np
 
 from casmag import memory
 from casmag.gp.kernels import FIELD_DIM
-from casmag.gp.reduced_rank import MAX_NUM_BASIS, _ball_indices, domain_for
+from casmag.gp.reduced_rank import MAX_NUM_BASIS, default_num_basis, domain_for
 from casmag.model.rrmap import OMEGA_FACTOR
 
 #: Largest factor cost [flops] of a box map's KKT system :func:`choose_map` keeps: about
@@ -60,7 +60,7 @@ AUTO = "auto"
 @dataclass(frozen=True)
 class BoxCost:
     """What the box around a path would hold: ``functions`` the basis functions with
-    frequencies up to OMEGA_FACTOR / l (None: more than ``count_limit``), ``weights`` the
+    frequencies up to OMEGA_FACTOR / l (None: ``count_limit`` or more), ``weights`` the
     unknowns of the map (capped basis, constant field included), ``flops`` its KKT
     factor's cost, ``hessian_nonzeros`` its Hessian's upper triangle."""
 
@@ -85,8 +85,10 @@ def box_cost(
     """The box map's size and cost (module docstring) around positions X (N, d), for
     ``state_unknowns`` pose unknowns."""
     domain = domain_for(kernel, np.asarray(X, dtype=float), float(lengthscale), margin)
-    ball = _ball_indices(domain.half_width, OMEGA_FACTOR / float(lengthscale), limit=count_limit)
-    functions = None if ball is None else max(int(ball[1].size), 1)
+    count = default_num_basis(
+        domain, float(lengthscale), omega_factor=OMEGA_FACTOR, max_basis=count_limit
+    )
+    functions = None if count >= count_limit else count
     M = MAX_NUM_BASIS if functions is None else min(functions, MAX_NUM_BASIS)
     n_w = M * (FIELD_DIM if kernel == "se" else 1) + FIELD_DIM
     n_s = int(state_unknowns)
@@ -191,7 +193,7 @@ def resolve_options(
     return replace(options, form=choice.form, kernel=choice.kernel), choice
 
 
-def box_only(sessions: int, method: str, saved_map: bool) -> str | None:
+def box_needed(sessions: int, method: str, saved_map: bool) -> str | None:
     """Why a recording's solve needs the box whatever its size (None: it does not): a
     saved map to locate against, several sessions, or the filter baseline."""
     if saved_map:

@@ -20,7 +20,7 @@ from casmag.gp.fieldmap import map_arrays, tiled_map_arrays, unwhitened
 from casmag.gp.hyper import estimate_hyperparameters
 from casmag.gp.savedmap import SavedMap
 from casmag.model.field import BoxOrTiles, left_map_box
-from casmag.model.mapchoice import AUTO, box_only, resolve_options
+from casmag.model.mapchoice import AUTO, box_needed, resolve_options
 from casmag.model.planar import (
     PlanarStructure,
     cached_planar_nlp,
@@ -151,7 +151,7 @@ def solve_planar(
     sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_local)
     kernel = options.kernel
     options, choice = resolve_options(
-        options, P_dr, float(ell), 3 * n, box_only(S, method, prior_map is not None)
+        options, P_dr, float(ell), 3 * n, box_needed(S, method, prior_map is not None)
     )
     if options.kernel != kernel:  # the tiles' curl-free kernel: its own hyperparameters
         sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(

@@ -16,7 +16,7 @@ from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
 from casmag.gp.savedmap import SavedMap
 from casmag.model.field import left_map_box
-from casmag.model.mapchoice import box_only, resolve_options
+from casmag.model.mapchoice import box_needed, resolve_options
 from casmag.model.pose import (
     PoseStructure,
     cached_pose_nlp,
@@ -170,7 +170,7 @@ def solve_pose(
     dim = choose_map_dim(options, P_dr, ell)
     kernel = options.kernel
     options, choice = resolve_options(
-        options, P_dr[:, :dim], float(ell), 6 * n, box_only(S, method, prior_map is not None)
+        options, P_dr[:, :dim], float(ell), 6 * n, box_needed(S, method, prior_map is not None)
     )
     if options.kernel != kernel:  # the tiles' curl-free kernel: its own hyperparameters
         sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(

@@ -23,7 +23,7 @@ from casmag.data.simulate import Dataset
 from casmag.errors import DataError, ProblemError
 from casmag.gp.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
 from casmag.gp.savedmap import SavedMap, load_map
-from casmag.model.mapchoice import AUTO, box_only, choose_map
+from casmag.model.mapchoice import AUTO, box_needed, choose_map
 from casmag.problem.spec import (
     Problem,
     as_overrides,
@@ -495,7 +495,7 @@ def slam(
             saved, "" if map_file is None else str(map_file),
         )  # fmt: skip
     data = rec.to_dataset(anchor)
-    keep_box = box_only(1, method, saved is not None)
+    keep_box = box_needed(1, method, saved is not None)
     prob, how = recording_problem(
         data, rec.t, Path(recording).stem, problem, overrides, given, keep_box
     )
@@ -776,7 +776,7 @@ def slam_sessions(
         label,
         problem,
         ["solver.warm_start.strategy=none", *overrides] if data.n_sessions > 1 else overrides,
-        box_only=box_only(data.n_sessions, "map", False),
+        box_only=box_needed(data.n_sessions, "map", False),
     )
     found = []
     for path, rec, d in zip(recordings, recs, datasets, strict=True):

@@ -14,7 +14,7 @@ from casmag.gp.reduced_rank import MAX_NUM_BASIS
 from casmag.model.mapchoice import (
     BOX_FLOPS_LIMIT,
     box_cost,
-    box_only,
+    box_needed,
     choose_map,
     resolve_options,
 )
@@ -81,12 +81,12 @@ def test_a_box_over_the_memory_budget_takes_the_tiles():
 
 def test_a_reason_for_the_box_keeps_it_and_is_said():
     X = loop(30.0, 30.0, 500)
-    choice = choose_map("se", X, 0.3, 100, box_only=box_only(2, "map", False))
+    choice = choose_map("se", X, 0.3, 100, box_only=box_needed(2, "map", False))
     assert (choice.form, choice.kernel) == ("reduced_rank", "se")
     assert "several sessions" in choice.reason
-    assert "saved map" in box_only(1, "map", True)
-    assert "filter" in box_only(1, "ekf", False)
-    assert box_only(1, "map", False) is None
+    assert "saved map" in box_needed(1, "map", True)
+    assert "filter" in box_needed(1, "ekf", False)
+    assert box_needed(1, "map", False) is None
 
 
 def test_planar_and_pose_options_default_to_the_choice_and_keep_what_is_given():
