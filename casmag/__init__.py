@@ -14,6 +14,15 @@ by IPOPT.
                                             # (translational or planar)
 """
 
+import os
+
+# MUMPS (in casadi's wheel) writes a closing line to Fortran's standard output when a
+# casadi Linsol ends it (casmag.linalg); gfortran buffers that unit when it is not a
+# terminal and writes the buffer out when the process exits, past casmag.linalg's
+# redirection. Unbuffered, the line goes where the redirection sends it. Read once, when
+# casadi first loads a plugin linked to gfortran (IPOPT, MUMPS), which is after this.
+os.environ.setdefault("GFORTRAN_UNBUFFERED_PRECONNECTED", "y")
+
 from casmag.errors import CasmagError, DataError, ProblemError, SolverError
 from casmag.problem.spec import Problem, ProblemSpec, load_problem
 from casmag.result import Result

@@ -166,12 +166,13 @@ class TiledBasis:
         return np.all(self.tile_ids(self.cells(np.asarray(P, dtype=float))) >= 0, axis=1)
 
     def evaluate(
-        self, P: np.ndarray, W: np.ndarray, jacobians: bool = True
+        self, P: np.ndarray, W: np.ndarray, jacobians: bool = True, positions: bool = True
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """At positions P (N, d) with weights W (T, m): the field m (N, 3), the corner tile
         ids (N, 2^d), the weight Jacobians J (N, 2^d, 3, m) (dm_b / dv_t for each corner
         tile; zero for an absent tile) and the position Jacobian D (N, 3, d) = dm / dp.
-        Without ``jacobians`` the last two are None (the field alone, cheaper)."""
+        Without ``jacobians`` the last two are None (the field alone, cheaper); without
+        ``positions`` D is None (no second derivatives of the basis)."""
         P = np.asarray(P, dtype=float)
         N, d = P.shape
         g, basis = self.grid, self.basis
@@ -181,7 +182,7 @@ class TiledBasis:
         ids = self.tile_ids(cells)
         field = np.zeros((N, FIELD_DIM))
         J = np.zeros((N, n_c, FIELD_DIM, m_)) if jacobians else None
-        D = np.zeros((N, FIELD_DIM, d)) if jacobians else None
+        D = np.zeros((N, FIELD_DIM, d)) if jacobians and positions else None
         for o, off in enumerate(self.corners):
             live = ids[:, o] >= 0
             if not live.any():
@@ -202,6 +203,8 @@ class TiledBasis:
             if not jacobians:
                 continue
             J[rows, o] = gw[:, :, None] * phi[:, None, :] + wgt[:, None, None] * grads
+            if D is None:
+                continue
             sec = basis.second_derivatives(x)
             for a in range(d):
                 # d^2 w / dp_b dp_a for b < d (zero beyond)
@@ -237,7 +240,7 @@ class TiledBasis:
         N = P.shape[0]
         m_ = self.per_tile
         zero = np.zeros((self.num_tiles, m_))
-        _, ids, J, _ = self.evaluate(P, zero)
+        _, ids, J, _ = self.evaluate(P, zero, positions=False)
         rows, cols, vals = [], [], []
         for o in range(ids.shape[1]):
             live = np.flatnonzero(ids[:, o] >= 0)

@@ -16,6 +16,14 @@ Hessian (the gradient stays exact, so IPOPT still converges, more slowly);
 :attr:`TiledGaussNewton.dropped` counts the (sample, tile, knot) terms left out per
 evaluation, and the solve's statistics carry the largest count
 (``hessian_terms_dropped``).
+
+A thinner pattern, only the 2^d tiles of the cell each sample was in, makes a cheaper KKT
+factor but drops far more terms. Measured 2026-11-29, each run alone: on ``library``
+(ARKit, 74 tiles, 4 IPOPT iterations from the dead reckoning) IPOPT's search directions
+took 17 s against 31-42 s; but the planar walk of ``problems/planar/walk.yaml`` with 1,500
+samples over 30 x 20 m (seed 1, curl-free tiles, growing warm start) went from 584 s,
+28 final iterations and RMSE 7.90 -> 0.31 m to every stage ending in its five re-homed
+rounds and the last at the iteration limit (1,175 s, cost 43,435 against 2,847).
 """
 
 from __future__ import annotations
@@ -27,11 +35,11 @@ from typing import Any
 import casadi as ca
 import numpy as np
 import scipy.sparse as sps
-import scipy.sparse.linalg as spla
 
 from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.reduced_rank import Domain, default_num_basis
 from casmag.gp.tiles import TiledBasis, TileGrid
+from casmag.linalg import solve_spd
 from casmag.model.knots import Knots
 from casmag.model.rotated import RotatedMapLayout
 from casmag.model.rrmap import (
@@ -465,7 +473,7 @@ def tile_normal_equations(
     P, R = np.asarray(P, dtype=float), np.asarray(R, dtype=float)
     for s in range(0, P.shape[0], TiledMapModel.CHUNK):
         r = slice(s, s + TiledMapModel.CHUNK)
-        _, ids, J, _ = tiles.evaluate(P[r], zero)
+        _, ids, J, _ = tiles.evaluate(P[r], zero, positions=False)
         add_weight_pairs(WW, pair_key, T, ids, J)
         contrib = np.einsum("kobm,kb->kom", J, R[r])
         for o in range(ids.shape[1]):
@@ -495,19 +503,18 @@ def ridge_tile_weights(
 ) -> np.ndarray:
     """Posterior mean of the tiles' weights given the field Y (N, 3) in the map frame at
     positions P (N, d), with the constant c0 removed: (m, T), the NLP's ``W``. A direct
-    sparse solve of the normal equations (:func:`tile_normal_equations`; SuperLU with its
-    COLAMD ordering, 3.3 s against 4.3 s for minimum degree on A^T + A and 5.2 s for a
-    nested dissection of the tile grid, at 49 tiles). Conjugate gradients preconditioned
+    sparse solve of the normal equations (:func:`tile_normal_equations`) with MUMPS
+    (casmag.linalg.solve_spd: 32.5 s against SuperLU's 189.5 s at 261 tiles, 2.9 against
+    14.3 s on ``library``'s 74). Conjugate gradients preconditioned
     with the diagonal were used before and did not converge: at their 1,000 iterations
     the weights were 32 % (4,000 samples over 6 x 6 m, 49 tiles, 52 s) and 19 % (10,000
     samples over 20 x 20 m, 290 tiles, 264 s, 1.5 GiB) of the largest weight away from
-    the solution; the direct solve takes 6 s and 208 s (4.5 GiB) there. Preconditioned
+    the solution; SuperLU took 6 s and 208 s (4.5 GiB) there. Preconditioned
     per tile instead, they needed 1,793 iterations (25 s) to 1e-8 at 49 tiles."""
     AtA, Atr = tile_normal_equations(tiles, P, np.asarray(Y) - c0)
     S_t = np.tile(tiles.prior_variances(sigma_f, lengthscale), tiles.num_tiles)
     G = (AtA / sigma_m**2 + sps.diags(1.0 / S_t)).tocsc()
-    lu = spla.splu(G, permc_spec="COLAMD")
-    w = lu.solve(Atr / sigma_m**2)
+    w = solve_spd(G, Atr / sigma_m**2)
     return w.reshape(tiles.num_tiles, tiles.per_tile).T
 
 

@@ -43,6 +43,19 @@ def test_field_jacobians(dim):
         assert np.allclose(D[:, :, a], fd, rtol=1e-6, atol=1e-6 * np.abs(D).max())
 
 
+def test_weight_jacobians_without_the_position_jacobian():
+    """``positions=False`` gives the same field and weight Jacobians, and no D."""
+    rng = np.random.default_rng(5)
+    X = rng.uniform(0.0, 1.5, size=(20, 2))
+    tiles = TiledBasis(tile_grid(X, ELL, reach=0.2))
+    W = rng.normal(size=(tiles.num_tiles, tiles.per_tile))
+    full = tiles.evaluate(X, W)
+    lean = tiles.evaluate(X, W, positions=False)
+    assert lean[3] is None and full[3] is not None
+    for a, b in zip(full[:3], lean[:3], strict=True):
+        assert np.array_equal(a, b)
+
+
 def test_neighbour_pairs_cover_every_shared_point():
     """Tiles touched by one point are neighbours (the weight block's pattern)."""
     rng = np.random.default_rng(7)
