@@ -27,11 +27,12 @@ The tiles (casmag.gp.tiles) took 2.6-5.4 s per iteration on those recordings and
    here, 2-5 times what the tiles took); or
 3. its Hessian would not fit the memory budget (casmag.memory).
 
-It keeps the box where the tiles measured slower or worse: on the real robot sequences
+It keeps the box where the tiles measured slower: on the real robot sequences
 (``results/real``: SE boxes of 580-1,185 functions over about 5 x 4 m with knots, at most
-2e10 flops) the box solved sequence 5 in 25 s where the tiles took 17 minutes, and reached
-0.168 m on sequence 2 where the tiles ended at 0.455 m; in a room of a few metres the box
-has fewer unknowns than the four tiles around a sample. The tiles need the curl-free
+2e10 flops) the box solved sequence 5 (0.5 m drift) in 25 s to 0.012 m where the tiles
+took 6:26 to 0.017 m; on sequence 2 the tiles reached 0.107 m against the box's 0.168 m,
+but in 14:40 (README, Tiled map); in a room of a few metres the box has fewer unknowns than
+the four tiles around a sample. The tiles need the curl-free
 kernel, so choosing them changes an SE default to curl-free (and the caller estimates the
 hyperparameters again for it); a kernel the user chose, several sessions, a saved map,
 the filter baseline and sliding windows keep the box (``box_only``).
