@@ -7,6 +7,7 @@ wrong-basin check, the result."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from casmag.gp.fieldmap import map_arrays, tiled_map_arrays, unwhitened
 from casmag.gp.hyper import estimate_hyperparameters
 from casmag.gp.savedmap import SavedMap
 from casmag.model.field import BoxOrTiles, left_map_box
-from casmag.model.mapchoice import AUTO, box_needed, resolve_options
+from casmag.model.mapchoice import AUTO, MapChoice, box_needed, resolve_options
 from casmag.model.planar import (
     PlanarStructure,
     cached_planar_nlp,
@@ -148,15 +149,10 @@ def solve_planar(
     p0, psi0 = anchors[0, :2], float(anchors[0, 2])
     P_dr, psi_dr = dead_reckon_sessions(U, anchors, starts)
     Y_local = sd.rotate(sd.quat_from_euler(0.0 * psi_dr, 0.0 * psi_dr, psi_dr), Y)
-    sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_local)
-    kernel = options.kernel
-    options, choice = resolve_options(
-        options, P_dr, float(ell), 3 * n, box_needed(S, method, prior_map is not None)
+    options, choice, hyper = hyperparameters_and_map(
+        options, P_dr, Y_local, 3 * n, box_needed(S, method, prior_map is not None)
     )
-    if options.kernel != kernel:  # the tiles' curl-free kernel: its own hyperparameters
-        sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(
-            options, P_dr, Y_local
-        )
+    sigma_f, ell, sigma_m, sigma_lin, estimated = hyper
 
     if method == "ekf":
         s = planar_structure(options, n, P_dr, float(ell), options.solver)
@@ -659,6 +655,28 @@ def hyperparameters_from_data(
         float(values["sigma_f"]), float(values["lengthscale"]), float(values["sigma_m"]),
         float(sigma_lin), estimated,
     )  # fmt: skip
+
+
+def hyperparameters_and_map(
+    options: Any,
+    P: np.ndarray,
+    Y_map: np.ndarray,
+    state_unknowns: int,
+    box_only: str | None,
+    positions: Callable[[Any, float], np.ndarray] | None = None,
+) -> tuple[Any, MapChoice | None, tuple[float, float, float, float, list[str]]]:
+    """The options with the map's form resolved (casmag.model.mapchoice.resolve_options,
+    box or tiles for the map laid around ``positions(options, lengthscale)``, default P,
+    against ``state_unknowns`` pose unknowns), the choice, and the hyperparameters
+    (:func:`hyperparameters_from_data`): estimated again when the tiles changed the
+    kernel to curl-free, whose hyperparameters differ from the SE kernel's."""
+    hyper = hyperparameters_from_data(options, P, Y_map)
+    kernel, ell = options.kernel, hyper[1]
+    X = P if positions is None else positions(options, ell)
+    options, choice = resolve_options(options, X, ell, state_unknowns, box_only)
+    if options.kernel != kernel:
+        hyper = hyperparameters_from_data(options, P, Y_map)
+    return options, choice, hyper
 
 
 def hyperparameter_info(estimated: list[str], sigma_lin: float, given: bool) -> dict[str, Any]:

@@ -16,7 +16,7 @@ from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
 from casmag.gp.savedmap import SavedMap
 from casmag.model.field import left_map_box
-from casmag.model.mapchoice import box_needed, resolve_options
+from casmag.model.mapchoice import box_needed
 from casmag.model.pose import (
     PoseStructure,
     cached_pose_nlp,
@@ -34,6 +34,7 @@ from casmag.result.metrics import rmse_and_max
 from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
 from casmag.solver.planar import (
     hyperparameter_info,
+    hyperparameters_and_map,
     hyperparameters_from_data,
     localisation_options,
     located,
@@ -166,17 +167,12 @@ def solve_pose(
     for a, e, pa, qa in zip(starts, ends, p0s, q0s, strict=True):
         P_dr[a:e], Q_dr[a:e] = sd.dead_reckon_pose(U[a : e - 1], pa, qa)
     Y_map = sd.rotate(Q_dr, Y)
-    sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(options, P_dr, Y_map)
+    options, choice, hyper = hyperparameters_and_map(
+        options, P_dr, Y_map, 6 * n, box_needed(S, method, prior_map is not None),
+        lambda o, ell: P_dr[:, : choose_map_dim(o, P_dr, ell)],
+    )  # fmt: skip
+    sigma_f, ell, sigma_m, sigma_lin, estimated = hyper
     dim = choose_map_dim(options, P_dr, ell)
-    kernel = options.kernel
-    options, choice = resolve_options(
-        options, P_dr[:, :dim], float(ell), 6 * n, box_needed(S, method, prior_map is not None)
-    )
-    if options.kernel != kernel:  # the tiles' curl-free kernel: its own hyperparameters
-        sigma_f, ell, sigma_m, sigma_lin, estimated = hyperparameters_from_data(
-            options, P_dr, Y_map
-        )
-        dim = choose_map_dim(options, P_dr, ell)
     height = dim == 2 and options.height_sigma is not None
     c0 = Y_map.mean(axis=0)
     params: dict[str, Any] = {
