@@ -5,17 +5,18 @@ is missing.
 SuperLU (scipy) factors the tiled map's weight normal equations in one front at a time;
 MUMPS's dense fronts use the wheel's OpenBLAS. Measured on this project's 2-core machine
 (casadi 3.8.2), each run alone, the same right-hand side, relative residuals 1e-14 to
-1e-15 for both:
+1e-15 for both; MUMPS given both triangles and, as here, the upper one (casadi's symmetric
+interface reads that one; the last column's walks: the whole initial-weight solve less
+its assembly):
 
-| system | unknowns | non-zeros | SuperLU (COLAMD) | MUMPS |
-|---|---|---|---|---|
-| 10,000-sample walk over 6 x 6 m, 49 tiles | 8,134 | 4.7 M | 1.9 s | 2.3 s |
-| ``library`` (ARKit), 74 tiles | 12,284 | 10.0 M | 14.3 s | 2.9 s |
-| 10,000-sample walk over 20 x 20 m, 261 tiles | 43,326 | 43.7 M | 189.5 s | 32.5 s |
+| system | unknowns | non-zeros | SuperLU (COLAMD) | MUMPS, both | MUMPS, upper |
+|---|---|---|---|---|---|
+| 10,000-sample walk over 6 x 6 m, 49 tiles | 8,134 | 4.7 M | 1.9 s | 2.3 s | 0.8 s |
+| ``library`` (ARKit), 74 tiles | 12,284 | 10.0 M | 14.3 s | 3.7 s | 2.9 s |
+| 10,000-sample walk over 20 x 20 m, 261 tiles | 43,326 | 43.7 M | 189.5 s | 32.5 s | 16.7 s |
 
 SuperLU with minimum degree on A^T + A in symmetric mode took 13.9 s on ``library``, and
-CSparse's Cholesky (casadi's ``csparsecholesky``) 14.1 s. MUMPS is given the upper
-triangle only (casadi's symmetric interface reads that one).
+CSparse's Cholesky (casadi's ``csparsecholesky``) 14.1 s.
 """
 
 from __future__ import annotations

@@ -510,7 +510,7 @@ def ridge_tile_weights(
     """Posterior mean of the tiles' weights given the field Y (N, 3) in the map frame at
     positions P (N, d), with the constant c0 removed: (m, T), the NLP's ``W``. A direct
     sparse solve of the normal equations (:func:`tile_normal_equations`) with MUMPS
-    (casmag.linalg.solve_spd: 32.5 s against SuperLU's 189.5 s at 261 tiles, 2.9 against
+    (casmag.linalg.solve_spd: 16.7 s against SuperLU's 189.5 s at 261 tiles, 2.9 against
     14.3 s on ``library``'s 74). Conjugate gradients preconditioned
     with the diagonal were used before and did not converge: at their 1,000 iterations
     the weights were 32 % (4,000 samples over 6 x 6 m, 49 tiles, 52 s) and 19 % (10,000
