@@ -431,14 +431,17 @@ class HilbertBasis:
         for order in orders:
             if len(order) != self.input_dim or min(order) < 0:
                 raise ValueError(f"derivative orders {order} do not fit a {self.input_dim}-D basis")
-            g = np.full((Xp.shape[0], self.num_basis), self._scale)
+            g = None
             for k, o in enumerate(order):
                 if (k, o) not in tables:
                     freq = self._axis_freq[k]
                     arg = (Xp[:, k] - self.domain.lower[k])[:, None] * freq[None, :]
                     vals = freq[None, :] ** o * np.sin(arg + o * math.pi / 2)
                     tables[k, o] = np.take(vals, self.indices[:, k] - 1, axis=1)
-                g = g * tables[k, o]
+                if g is None:  # one new (N, M) array per order, the products in place
+                    g = tables[k, o] * self._scale
+                else:
+                    g *= tables[k, o]
             out[tuple(order)] = g
         return out
 

@@ -142,6 +142,7 @@ class MapModel:
     ) -> None:
         self.basis, self.kernel, self.knots, self.dim, self.lay = basis, kernel, knots, dim, layout
         self.n_w = basis.num_basis * (FIELD_DIM if kernel == "se" else 1)
+        self._last_cost: tuple[np.ndarray, np.ndarray, float] | None = None
 
     def unpack(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, ...]:
         """Positions P (N, d), weights (n_w,), constant field (3,), samples Y (N, 3),
@@ -163,13 +164,19 @@ class MapModel:
         return [slice(s, min(N, s + self.CHUNK)) for s in range(0, N, self.CHUNK)]
 
     def cost(self, x: np.ndarray, p: np.ndarray) -> float:
-        """0.5 sum_k |(y_k - m(p_k) - c) / sigma_m|^2."""
+        """0.5 sum_k |(y_k - m(p_k) - c) / sigma_m|^2. The last point's value is kept: the
+        Hessian callback's switch reads the cost at the point IPOPT just evaluated."""
+        last = self._last_cost
+        if last is not None and np.array_equal(last[0], x) and np.array_equal(last[1], p):
+            return last[2]
         P, w, c, Y, sigma = self.unpack(x, p)
         total = 0.0
         for r in self.chunks():
             m = evaluate_map(self.basis, self.kernel, P[r], w)
             total += float(np.sum((Y[r] - m - c) ** 2))
-        return 0.5 * total / sigma**2
+        value = 0.5 * total / sigma**2
+        self._last_cost = (np.array(x, copy=True), np.array(p, copy=True), value)
+        return value
 
     def gradient(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         """(n_x,) gradient of :meth:`cost` with respect to x (zero outside C, W and c)."""
@@ -532,6 +539,62 @@ class GaussNewtonHessian(HessianCallback):
             pat.constant_field(cidx, widx, lay.c)
         self._set_pattern(*pat.arrays(), lay.n_x, lay.n_p)
 
+    def _se_chunk(
+        self,
+        P: np.ndarray,
+        wts: np.ndarray,
+        Yc: np.ndarray | None,
+        Ar: Any,
+        s_pp: dict[tuple[int, int], np.ndarray],
+        r: slice,
+    ) -> tuple[list[np.ndarray], np.ndarray]:
+        """One chunk of samples of the SE map: fills ``s_pp`` at rows ``r`` and returns
+        ([phi (n, M), border of each axis (k, 3 M)], dm/dp (n, 3, d)); ``Yc`` the samples
+        less the constant field for the exact Hessian's residual terms (None: Gauss-Newton).
+
+        The border of axis a holds, for component c, A^T diag(dm_c/dp_a) phi minus, exact,
+        A^T diag(r_c) dphi/dp_a: sparse products over the (n, M) basis arrays, each sample
+        on its two knots, without forming the (n, 3 M) rows of the residuals' Jacobian
+        (measured on a 16,000-sample walk, 787 functions, 1,600 knots: 2.3 -> 1.0 s per
+        exact evaluation, 0.9 -> 0.6 s per Gauss-Newton one)."""
+        d, M, D_in = self.dim, self.basis.num_basis, self.basis.input_dim
+
+        def o(*axes: int) -> tuple[int, ...]:
+            t = [0] * D_in
+            for a in axes:
+                t[a] += 1
+            return tuple(t)
+
+        pairs = [(a, b) for a in range(d) for b in range(a, d)]
+        orders = [o()] + [o(a) for a in range(d)]
+        if Yc is not None:
+            orders += [o(a, b) for a, b in pairs]
+        der = self.basis.derivatives(P, orders)
+        W = wts.reshape(-1, FIELD_DIM, order="F")
+        Phi = der[o()]
+        D = np.stack([der[o(a)] @ W for a in range(d)], axis=2)  # (n, 3, d)
+        R = None if Yc is None else Yc - Phi @ W
+        for a, b in pairs:
+            s_pp[a, b][r] = np.einsum("kc,kc->k", D[:, :, a], D[:, :, b])
+            if R is not None:
+                s_pp[a, b][r] -= np.einsum("kc,kc->k", der[o(a, b)] @ W, R)
+        T = sps.csr_matrix(Ar.T)  # (k, n): each sample's column on its two knots
+        cols = T.indices
+
+        def weighted(v: np.ndarray) -> Any:
+            return sps.csr_matrix((T.data * v[cols], cols, T.indptr), shape=T.shape)
+
+        borders = []
+        for a in range(d):
+            blk = np.empty((T.shape[0], FIELD_DIM * M))
+            for c in range(FIELD_DIM):
+                part = weighted(D[:, c, a]) @ Phi
+                if R is not None:
+                    part -= weighted(R[:, c]) @ der[o(a)]
+                blk[:, c * M : (c + 1) * M] = part
+            borders.append(blk)
+        return [Phi, *borders], D
+
     def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The Gauss-Newton entries in the order of the pattern's triplets."""
         kn, d, M, lay = self.knots, self.dim, self.basis.num_basis, self.lay
@@ -539,15 +602,8 @@ class GaussNewtonHessian(HessianCallback):
         P, wts, c0, Y, sigma = self.model.unpack(x, p)
         inv2 = 1.0 / sigma**2
         chunks = self.model.chunks()
-        residuals = [None] * len(chunks)
-        if self.mode != "gauss-newton":
-            cost = 0.0
-            for i, r in enumerate(chunks):
-                residuals[i] = Y[r] - evaluate_map(self.basis, self.kernel, P[r], wts) - c0
-                cost += float(np.sum(residuals[i] ** 2))
-            exact = self._use_exact(0.5 * cost * inv2)
-        else:
-            exact = self._use_exact(0.0)
+        # The cost IPOPT evaluated at this point (MapModel.cost keeps its last value).
+        exact = self._use_exact(self.model.cost(x, p) if self.mode == "hybrid" else 0.0)
         left = kn.left
         A = kn.matrix
         pairs = [(a, b) for a in range(d) for b in range(a, d)]
@@ -556,24 +612,30 @@ class GaussNewtonHessian(HessianCallback):
         G = np.zeros((M, M))
         c_knot = np.zeros((FIELD_DIM, d, K)) if lay.c is not None else None
         c_w = np.zeros((FIELD_DIM, self.n_w)) if lay.c is not None else None
-        for i, r in enumerate(chunks):
-            _, Aw, D = field_and_jacobians(self.basis, self.kernel, P[r], wts)
-            if exact:
-                s2, rows2 = curvature_terms(self.basis, self.kernel, P[r], wts, residuals[i])
-            for a, b in pairs:
-                s_pp[a, b][r] = np.einsum("kc,kc->k", D[:, :, a], D[:, :, b])
-                if exact:
-                    s_pp[a, b][r] -= s2[a, b]
+        for r in chunks:
             j0, j1 = int(left[r.start]), int(left[r.stop - 1]) + 2
             Ar = A[r][:, j0:j1]
-            for a in range(d):
-                if self.kernel == "se":
-                    rows = (D[:, :, a][:, :, None] * Aw[0][:, None, :]).reshape(Aw[0].shape[0], -1)
-                else:
-                    rows = sum(D[:, b, a][:, None] * Aw[b] for b in range(FIELD_DIM))
+            if self.kernel == "se":
+                Aw, D = self._se_chunk(P[r], wts, Y[r] - c0 if exact else None, Ar, s_pp, r)
+                for a in range(d):
+                    border[a][j0:j1] += Aw[1 + a]
+                Aw = Aw[:1]
+            else:
+                R = None
                 if exact:
-                    rows = rows - rows2[a]
-                border[a][j0:j1] += Ar.T @ rows
+                    R = Y[r] - evaluate_map(self.basis, self.kernel, P[r], wts) - c0
+                _, Aw, D = field_and_jacobians(self.basis, self.kernel, P[r], wts)
+                if exact:
+                    s2, rows2 = curvature_terms(self.basis, self.kernel, P[r], wts, R)
+                for a, b in pairs:
+                    s_pp[a, b][r] = np.einsum("kc,kc->k", D[:, :, a], D[:, :, b])
+                    if exact:
+                        s_pp[a, b][r] -= s2[a, b]
+                for a in range(d):
+                    rows = sum(D[:, b, a][:, None] * Aw[b] for b in range(FIELD_DIM))
+                    if exact:
+                        rows = rows - rows2[a]
+                    border[a][j0:j1] += Ar.T @ rows
             if self.kernel == "se":
                 G += Aw[0].T @ Aw[0]
             else:

@@ -301,9 +301,12 @@ def _uncertainty(
         _, J = nlp.keep[1].residual_jacobian(x, nlp.p_layout.pack(params))
         return whitened_correction(J, factors)
 
+    reuse: dict[str, Any] = {}  # the plain covariance's solve, read again by the sandwich
     try:
         return laplace_positions(
-            lambda meat: position_uncertainty(nlp, sol, params, knots, dim, sigma_o, meat=meat),
+            lambda meat: position_uncertainty(
+                nlp, sol, params, knots, dim, sigma_o, meat=meat, reuse=reuse
+            ),
             lambda: solved.Y - field_estimate(structure, sol, P_est),
             correction,
             knots.bounds,

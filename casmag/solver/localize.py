@@ -357,9 +357,17 @@ def localise(
         try:
             if updated is not None:  # the map's unknowns free: as for a mapping run
                 sol.x["P"] = P_est
+                reuse: dict[str, Any] = {}
                 uncertainty, arrays["P_cov"], arrays["P_cov_uninflated"] = laplace_positions(
                     lambda meat: position_uncertainty(
-                        nlp, sol, params, knots, data.dim, params["sigma_o"], meat=meat
+                        nlp,
+                        sol,
+                        params,
+                        knots,
+                        data.dim,
+                        params["sigma_o"],
+                        meat=meat,
+                        reuse=reuse,
                     ),
                     lambda: data.Y - mean_map.field(P_est),
                     lambda factors: magnetometer_correction(nlp, sol, s, factors, saved.sigma_m),

@@ -166,3 +166,25 @@ def test_div_free_has_no_reduced_rank_form():
         casmag.load_problem(
             {"seed": 1, "model": {"gp": {"form": "reduced_rank", "kernel": "div_free"}}}
         )
+
+
+@pytest.mark.parametrize("kernel", ["se", "curl_free"])
+@pytest.mark.parametrize("hessian", ["gauss-newton", "exact"])
+def test_map_hessian_is_the_same_over_chunks_of_samples(kernel, hessian, monkeypatch):
+    """Samples taken in chunks whose edges fall between the two knots of a sample (4
+    samples a chunk, a knot every 3) give the Hessian of one chunk, to rounding."""
+    from casmag.model.rrmap import MapModel
+
+    prob = _small(kernel, True, n=11, knot_every=3, hessian=hessian)
+    data = simulate_problem(prob)
+    s = Structure.of(prob, data)
+    nlp = cached_nlp(s)
+    H = nlp.keep[1]
+    params, x0 = parameters_and_guess(prob, data, s)
+    rng = np.random.default_rng(5)
+    x = nlp.x_layout.pack(x0) + 0.01 * rng.standard_normal(nlp.x_layout.size)
+    p = nlp.p_layout.pack(params)
+    whole = H.values(x, p)
+    monkeypatch.setattr(MapModel, "CHUNK", 4)
+    assert len(H.model.chunks()) == 3
+    np.testing.assert_allclose(H.values(x, p), whole, rtol=1e-12, atol=1e-12)

@@ -211,3 +211,46 @@ def test_the_sparse_factor_gives_the_dense_covariance(overrides, monkeypatch):
         scale = np.abs(dense.cov).max()
         assert np.abs(sparse.cov - dense.cov).max() < 1e-9 * scale
     assert np.all(np.linalg.eigvalsh(dense.cov) > 0)
+
+
+def test_dense_product_of_a_sparse_correction(monkeypatch):
+    """_dense_product gives S @ Z for a sparse S expanded in slabs of rows (forced here to
+    two rows a slab), for a sparse S below the fill it expands (a diagonal) and for a
+    dense S."""
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(3)
+    n = 9
+    dense = rng.standard_normal((n, n))
+    dense[np.abs(dense) < 0.5] = 0.0
+    Z = rng.standard_normal((n, 4))
+    monkeypatch.setattr(uncertainty, "DENSE_SLAB_BYTES", 8 * n * 2)
+    for S in (sp.csr_matrix(dense), sp.diags(rng.standard_normal(n)).tocsc(), dense):
+        want = (S.toarray() if hasattr(S, "toarray") else S) @ Z
+        np.testing.assert_allclose(uncertainty._dense_product(S, Z), want, rtol=1e-13)
+
+
+def test_the_sandwich_reuses_the_plain_covariance_solve(monkeypatch):
+    """With ``reuse``, the second covariance of a solution (the sandwich) evaluates and
+    factors no Hessian, and equals the one computed from scratch."""
+    prob = tiny_walk([])
+    data = simulate_problem(prob)
+    sol, nlp, _, _, s = solve_translational(prob, data)
+    params = parameters(prob, data, s)
+    meat = magnetometer_correction(
+        nlp, sol, s, np.full((data.n_samples, 3), 2.0), params["sigma_m"]
+    )
+    fresh = position_uncertainty(nlp, sol, params, s.knots, s.dim, params["sigma_o"], meat=meat)
+    reuse: dict = {}
+    plain = position_uncertainty(nlp, sol, params, s.knots, s.dim, params["sigma_o"], reuse=reuse)
+    assert "Z" in reuse
+
+    def no_hessian(*args, **kwargs):
+        raise AssertionError("the Hessian was evaluated again")
+
+    monkeypatch.setattr(nlp, "hessian", no_hessian)
+    again = position_uncertainty(
+        nlp, sol, params, s.knots, s.dim, params["sigma_o"], meat=meat, reuse=reuse
+    )
+    np.testing.assert_allclose(again.cov, fresh.cov, rtol=1e-12, atol=0)
+    assert not np.allclose(again.cov, plain.cov)
