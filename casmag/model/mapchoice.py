@@ -54,6 +54,16 @@ from casmag.model.rrmap import OMEGA_FACTOR
 #: 12 s per IPOPT iteration at the 4 GFLOP/s measured here (module docstring).
 BOX_FLOPS_LIMIT = 5.0e10
 
+#: The same for the translational model's box (casmag.model.rrmap), whose Hessian and KKT
+#: solve ran at about 10 GFLOP/s of this cost model on 16,000-sample walks in a dipole field
+#: over 6 x 6 m (casmag.experiments.dipolewalk, 2026-12-01, each run alone): 2.2e10 flops
+#: 4.1 s per iteration (seed 1), 5.4e10 flops 5.8 s (seed 2), where the tiles took 12.8 s
+#: per iteration on seed 2 and ended at 0.113 m (not trusted) against the box's 0.017 m.
+#: 1e11 is about 10-11 s per iteration, below the tiles' time on that walk; the planar and
+#: pose models' rotated box is slower per flop (library: 9.7e10 flops, 30.4 s) and keeps
+#: :data:`BOX_FLOPS_LIMIT`.
+TRANSLATIONAL_BOX_FLOPS_LIMIT = 1.0e11
+
 #: ``model.gp.form`` value that asks for this choice (the default of ``casmag slam``).
 AUTO = "auto"
 
@@ -135,12 +145,15 @@ def choose_map(
     margin: float | None = None,
     memory_budget: float | None = None,
     box_only: str | None = None,
+    flops_limit: float = BOX_FLOPS_LIMIT,
 ) -> MapChoice:
     """Box or tiles for a map around positions X (N, d) at ``lengthscale`` with
     ``state_unknowns`` pose unknowns (module docstring). ``kernel``: the one the problem
     would use with the box; ``memory_budget``: ``solver.memory_budget`` [GiB] (None: the
     machine's default); ``box_only``: why the tiles cannot serve (a kernel the user
-    chose, several sessions, a saved map, the filter), which keeps the box and says why."""
+    chose, several sessions, a saved map, the filter), which keeps the box and says why;
+    ``flops_limit``: the largest factor cost of the box kept (the motion model's:
+    :data:`BOX_FLOPS_LIMIT`, :data:`TRANSLATIONAL_BOX_FLOPS_LIMIT`)."""
     box = box_cost(kernel, X, lengthscale, state_unknowns, margin)
     needed = f"more than {MAX_NUM_BASIS:,}" if box.functions is None else f"{box.functions:,}"
     if box_only is not None:
@@ -151,10 +164,10 @@ def choose_map(
             f"up to {OMEGA_FACTOR:g} / l (l = {lengthscale:.3g} m) and holds {MAX_NUM_BASIS:,}, "
             "a map smoother than the field"
         )
-    elif box.flops > BOX_FLOPS_LIMIT:
+    elif box.flops > flops_limit:
         why = (
             f"the box's {box.weights:,} weights, each touched by every sample, make a KKT "
-            f"factor of about {box.flops:.2g} flops per iteration (limit {BOX_FLOPS_LIMIT:.2g})"
+            f"factor of about {box.flops:.2g} flops per iteration (limit {flops_limit:.2g})"
         )
     elif memory.solve_estimate(box.hessian_nonzeros) > memory.budget_bytes(memory_budget):
         why = (

@@ -23,7 +23,12 @@ from casmag.data.simulate import Dataset
 from casmag.errors import DataError, ProblemError
 from casmag.gp.hyper import estimate_hyperparameters, field_evidence, noise_correlation_time
 from casmag.gp.savedmap import SavedMap, load_map
-from casmag.model.mapchoice import AUTO, box_needed, choose_map
+from casmag.model.mapchoice import (
+    AUTO,
+    TRANSLATIONAL_BOX_FLOPS_LIMIT,
+    box_needed,
+    choose_map,
+)
 from casmag.problem.spec import (
     Problem,
     as_overrides,
@@ -68,6 +73,16 @@ LONG_KNOT_SECONDS = 5.0
 second made a 35-million-entry Hessian border (13 GB, stopped after 9 minutes); one per 5 s
 solved in 308 s and 2.9 GB with RMSE 8.0 m -> 9.6 mm (make bench-scale)."""
 
+GROWTH = 2.0
+"""Growth of ``casmag slam``'s growing prefixes on a translational recording (4,000, 8,000,
+16,000, ... samples; the solver's default growth is 4). Measured on 16,000-sample walks in a
+dipole field over 6 x 6 m (casmag.experiments.dipolewalk, 2026-12-01, each run alone),
+growth 4 -> 2: seed 1, 0.5 m drift: 161 -> 101 s wall, RMSE 0.0157 -> 0.0134 m (26 -> 14
+iterations in the full stage); seed 1, 1.5 m: 159 -> 105 s, 0.0146 -> 0.0142 m; seed 3:
+76 -> 61 s, 0.0198 -> 0.0199 m; seed 2 on tiles: 312 -> 389 s, 0.113 m either way (its box,
+now chosen: 202 s, 0.017 m at growth 2). Each longer prefix starts closer to its optimum, so
+the full problem, the costly one, takes fewer iterations."""
+
 ODOMETRY_NOISE_FRACTION = 0.02
 """Default odometry noise of ``casmag slam``: 2 % of the median step length, per axis."""
 
@@ -106,10 +121,10 @@ def recording_problem(
     lengthscale and sigma_m estimated from the data by the windowed marginal likelihood at
     the dead-reckoned positions (casmag.gp.hyper; the windows are short, so their drift is
     small); odometry noise ODOMETRY_NOISE_FRACTION of the median step; one knot per
-    KNOT_SECONDS (LONG_KNOT_SECONDS above LONG_RECORDING samples); growing warm starts. A
-    problem file (its ``model`` and ``solver`` sections) overrides any of these;
-    hyperparameters it leaves null (or sets to ``estimate``, as for the planar and pose
-    models) are still estimated. ``given``: settings that override
+    KNOT_SECONDS (LONG_KNOT_SECONDS above LONG_RECORDING samples); growing warm starts,
+    prefixes GROWTH times longer. A problem file (its ``model`` and ``solver`` sections)
+    overrides any of these; hyperparameters it leaves null (or sets to ``estimate``, as
+    for the planar and pose models) are still estimated. ``given``: settings that override
     the problem file's too (a saved map's kernel and hyperparameters).
 
     The map: unless ``model.gp.form`` is given (or is ``auto``), the box, or the tiles
@@ -141,7 +156,7 @@ def recording_problem(
             "odometry": {"sigma": sigma_o, "estimate_bias": True},
             "anchor": {"sigma": 1.0e-3},
         },
-        "solver": {"warm_start": {"strategy": "growing"}},
+        "solver": {"warm_start": {"strategy": "growing", "growth": GROWTH}},
     }
     merged = _merge(_merge(base, user), dict(given or {}))
     # ``estimate`` (in the file or as --set) means what null means here: from the data.
@@ -216,6 +231,7 @@ def recording_problem(
                 margin=setting(("model", "gp", "margin")),
                 memory_budget=setting(("solver", "memory_budget")),
                 box_only=box_only,
+                flops_limit=TRANSLATIONAL_BOX_FLOPS_LIMIT,
             )
             how["map_choice"] = choice.to_dict()
             _set(merged, FORM_PATH, choice.form)

@@ -186,3 +186,18 @@ def test_a_wide_walk_is_solved_on_the_tiles_it_chose(motion):
     assert choice["form"] == "tiled" and choice["box"]["functions_needed"] > MAX_NUM_BASIS
     assert result.info["map"]["form"] == "tiled" and result.info["kernel"] == "curl_free"
     assert result.iterations is not None
+
+
+def test_the_translational_box_keeps_a_costlier_factor():
+    """Between BOX_FLOPS_LIMIT and TRANSLATIONAL_BOX_FLOPS_LIMIT the translational model
+    keeps its box, whose factor it solves faster than the tiles; the planar and pose limit
+    takes the tiles there."""
+    from casmag.model.mapchoice import TRANSLATIONAL_BOX_FLOPS_LIMIT
+
+    # A 16,000-sample walk's size: 6 x 6 m at l = 0.315 m, SE, a knot per 10 samples.
+    X, knots = loop(6.0, 6.0, 2000), 2 * (16_000 // 10 + 2)
+    tiles = choose_map("se", X, 0.315, knots)
+    box = choose_map("se", X, 0.315, knots, flops_limit=TRANSLATIONAL_BOX_FLOPS_LIMIT)
+    assert BOX_FLOPS_LIMIT < box.box.flops < TRANSLATIONAL_BOX_FLOPS_LIMIT
+    assert tiles.tiled and "limit 5e+10" in tiles.reason
+    assert (box.form, box.kernel) == ("reduced_rank", "se")
