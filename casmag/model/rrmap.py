@@ -553,9 +553,9 @@ class GaussNewtonHessian(HessianCallback):
         Ar: Any,
         s_pp: dict[tuple[int, int], np.ndarray],
         r: slice,
-    ) -> tuple[list[np.ndarray], np.ndarray]:
+    ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
         """One chunk of samples of the SE map: fills ``s_pp`` at rows ``r`` and returns
-        ([phi (n, M), border of each axis (k, 3 M)], dm/dp (n, 3, d)); ``Yc`` the samples
+        phi (n, M), the border of each axis (k, 3 M) and dm/dp (n, 3, d); ``Yc`` the samples
         less the constant field for the exact Hessian's residual terms (None: Gauss-Newton).
 
         The border of axis a holds, for component c, A^T diag(dm_c/dp_a) phi minus, exact,
@@ -593,7 +593,7 @@ class GaussNewtonHessian(HessianCallback):
                     part -= weighted(R[:, c]) @ der[o(a)]
                 blk[:, c * M : (c + 1) * M] = part
             borders.append(blk)
-        return [Phi, *borders], D
+        return Phi, borders, D
 
     def values(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The Gauss-Newton entries in the order of the pattern's triplets."""
@@ -616,15 +616,15 @@ class GaussNewtonHessian(HessianCallback):
             j0, j1 = int(left[r.start]), int(left[r.stop - 1]) + 2
             Ar = A[r][:, j0:j1]
             if self.kernel == "se":
-                Aw, D = self._se_chunk(P[r], wts, Y[r] - c0 if exact else None, Ar, s_pp, r)
+                Phi, rows_se, D = self._se_chunk(
+                    P[r], wts, Y[r] - c0 if exact else None, Ar, s_pp, r
+                )
                 for a in range(d):
-                    border[a][j0:j1] += Aw[1 + a]
-                Aw = Aw[:1]
+                    border[a][j0:j1] += rows_se[a]
+                Aw = [Phi]
             else:
-                R = None
-                if exact:
-                    R = Y[r] - evaluate_map(self.basis, self.kernel, P[r], wts) - c0
-                _, Aw, D = field_and_jacobians(self.basis, self.kernel, P[r], wts)
+                m, Aw, D = field_and_jacobians(self.basis, self.kernel, P[r], wts)
+                R = Y[r] - m - c0 if exact else None
                 if exact:
                     s2, rows2 = curvature_terms(self.basis, self.kernel, P[r], wts, R)
                 for a, b in pairs:
