@@ -37,9 +37,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cached_property
 from itertools import product
+from typing import Any
 
+import casadi as ca
 import numpy as np
 import scipy.sparse as sps
 
@@ -102,6 +104,9 @@ class TiledBasis:
     order."""
 
     CHUNK = 1024
+    #: Cells beyond the two around a sample's home grid point whose tiles its Hessian
+    #: pattern holds (casmag.model.tiledmap.home_tiles): none for these tiles of 4 l.
+    home_slack = 0
 
     def __init__(self, grid: TileGrid) -> None:
         self.grid = grid
@@ -131,11 +136,15 @@ class TiledBasis:
 
     @cached_property
     def neighbours(self) -> np.ndarray:
-        """(pairs, 2) tile ids t <= t' of tiles that can share a point (indices differ by at
-        most one along every axis), sorted."""
+        """(pairs, 2) tile ids t <= t' of tiles that can share a point (their index
+        difference is one between two of a cell's corner tiles: at most one along every
+        axis here), sorted."""
         lut = self._lookup
         pairs = []
-        for off in product((-1, 0, 1), repeat=self.grid.dim):
+        diffs = np.unique(
+            (self.corners[:, None, :] - self.corners[None, :, :]).reshape(-1, self.grid.dim), axis=0
+        )
+        for off in diffs:
             j = self.tile_index + np.array(off) - self._lo
             ok = np.all((j >= 0) & (j < np.array(lut.shape)), axis=1)
             other = np.full(self.num_tiles, -1)
@@ -166,19 +175,27 @@ class TiledBasis:
         return np.all(self.tile_ids(self.cells(np.asarray(P, dtype=float))) >= 0, axis=1)
 
     def evaluate(
-        self, P: np.ndarray, W: np.ndarray, jacobians: bool = True, positions: bool = True
+        self,
+        P: np.ndarray,
+        W: np.ndarray,
+        jacobians: bool = True,
+        positions: bool = True,
+        cells: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """At positions P (N, d) with weights W (T, m): the field m (N, 3), the corner tile
         ids (N, 2^d), the weight Jacobians J (N, 2^d, 3, m) (dm_b / dv_t for each corner
         tile; zero for an absent tile) and the position Jacobian D (N, 3, d) = dm / dp.
         Without ``jacobians`` the last two are None (the field alone, cheaper); without
-        ``positions`` D is None (no second derivatives of the basis)."""
+        ``positions`` D is None (no second derivatives of the basis). ``cells`` (N, d)
+        reads each point in the given grid cell instead of its own (a point just outside
+        the cell gets the blend of the cell's corners, which is the field's to second order
+        there: difference quotients across a cell's edge)."""
         P = np.asarray(P, dtype=float)
         N, d = P.shape
         g, basis = self.grid, self.basis
         h, m_ = g.spacing, basis.num_basis
         n_c = self.corners.shape[0]
-        cells = self.cells(P)
+        cells = self.cells(P) if cells is None else cells
         ids = self.tile_ids(cells)
         field = np.zeros((N, FIELD_DIM))
         J = np.zeros((N, n_c, FIELD_DIM, m_)) if jacobians else None
@@ -253,9 +270,11 @@ class TiledBasis:
             shape=(FIELD_DIM * N, self.num_weights),
         )
 
-    def prior_variances(self, sigma_f: float, lengthscale: float) -> np.ndarray:
-        """(m,) prior variances of one tile's weights (every tile has the same)."""
-        return np.asarray(self.basis.prior_variances("curl_free", sigma_f, lengthscale))
+    def prior_variances(self, sigma_f: Any, lengthscale: Any) -> Any:
+        """(m,) prior variances of one tile's weights (every tile has the same): numpy for
+        numbers, a CasADi (m, 1) column when either is a CasADi symbol."""
+        S = self.basis.prior_variances("curl_free", sigma_f, lengthscale)
+        return S if isinstance(S, (ca.MX, ca.SX, ca.DM)) else np.asarray(S)
 
     def covariance(
         self, X1: np.ndarray, X2: np.ndarray, sigma_f: float, lengthscale: float
@@ -265,9 +284,3 @@ class TiledBasis:
         S = np.tile(self.prior_variances(sigma_f, lengthscale), self.num_tiles)
         A1, A2 = self.design(X1), self.design(X2)
         return np.asarray((A1.multiply(S[None, :]) @ A2.T).todense())
-
-
-@lru_cache(maxsize=8)
-def cached_tiles(grid: TileGrid) -> TiledBasis:
-    """The :class:`TiledBasis` of a grid, built once per process."""
-    return TiledBasis(grid)

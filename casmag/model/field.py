@@ -27,8 +27,9 @@ import casadi as ca
 import numpy as np
 
 from casmag.gp.kernels import FIELD_DIM, get_kernel
+from casmag.gp.localmaps import cached_tiles
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
-from casmag.gp.tiles import TiledBasis, TileGrid, cached_tiles
+from casmag.gp.tiles import TiledBasis, TileGrid
 from casmag.model.builder import FieldModel, HessianPart, Pose
 from casmag.model.exact import add_exact_prior
 from casmag.model.rotated import add_rotated_map, rotated_gauss_newton, rotated_layout
@@ -340,7 +341,7 @@ class TiledField(FieldModel):
         W = b.variable("W", (tiles.per_tile, tiles.num_tiles))
         c = b.variable("c", (FIELD_DIM, 1)) if self.constant_field else None
         sigma_lin = b.parameter("sigma_lin", (1, 1)) if c is not None else None
-        S = tiles.basis.prior_variances("curl_free", sigma_f, ell)  # (m, 1)
+        S = tiles.prior_variances(sigma_f, ell)  # (m, 1)
         if pose.rotation is None:
             model: Any = map_frame_block(
                 b, pose, self.constant_field, "magnetometer",

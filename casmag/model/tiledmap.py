@@ -30,12 +30,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from itertools import product
 from typing import Any
 
 import casadi as ca
 import numpy as np
 import scipy.sparse as sps
 
+from casmag.gp.bumps import bump_key
 from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.reduced_rank import Domain, default_num_basis
 from casmag.gp.tiles import TiledBasis, TileGrid
@@ -79,19 +81,67 @@ TILE_DEPTH = 2.0
 TILE_OMEGA = 3.5
 
 
+#: The tiled map's basis: ``bumps`` (casmag.gp.bumps: compactly supported bumps on a
+#: lattice of BUMP_SPACING l, radius BUMP_RADIUS l; the default) or ``hilbert`` (one
+#: reduced-rank Hilbert basis per tile of TILE_SPACING l, blended). Measured 2026-12-02,
+#: each run alone: the building-floor walk (``problems/planar/walk.yaml``, 1,500 samples
+#: over 30 x 20 m, curl-free tiles, seed 1) 66 s wall, 1.5 GiB, RMSE 7.90 -> 0.165 m with
+#: the bumps against 420 s, 4.6 GiB, 0.313 m with the Hilbert tiles; seed 2 3:22 to a wrong
+#: basin (4.74 m, flagged) where the Hilbert tiles took 1,909 s to 11.36 m (2026-11-29);
+#: the 120-sample walk of the tests, seeds 2 / 3: 0.0106 / 0.0104 m and mean 1-sigma
+#: 0.0131 / 0.0101 m against the exact GP's 0.0102 / 0.0105 m and 0.0132 / 0.0101 m.
+TILE_BASES = ("bumps", "hilbert")
+TILE_BASIS = "bumps"
+
+#: The bump lattice's spacing and the bumps' radius in lengthscales, where the taper
+#: starts (a fraction of R^2) and the cells of slack in the Hessian's pattern
+#: (:func:`home_tiles`). Spacing, radius and taper chosen by the field covariance against
+#: the exact curl-free kernel at 200 points over 3 x 3 m (l = 0.4 m, planar; largest entry
+#: error over the largest entry, the variance ratio's range): h = l, R = 2 l: 0.21,
+#: 0.79-1.17; h = 0.75 l, R = 2.2 l: 0.049, 0.98-1.02; h = 0.75 l, R = 3 l (60 nodes a
+#: sample): 0.0054, 0.995-1.005; h = l, R = 3 l: 0.14; the Hilbert tiles: 0.51, 0.95-1.51.
+#: R = 2.2 l located the 120-sample walk (seed 2) at 0.0060 m with a mean 1-sigma of
+#: 0.0095 m against the exact GP's 0.0102 and 0.0132 m: a bump cut short is a prior with
+#: more high-frequency power than the squared exponential; R = 2.8-3 l agree with it.
+#: The slack: with none, the building-floor walk needed five re-homed rounds in its last
+#: stage (the samples left their pattern) and ``library`` (ARKit) ended at the iteration
+#: limit; with 2 cells, one round each on the walk (66 s, the same estimate) and
+#: ``library`` converged.
+BUMP_SPACING = 0.75
+BUMP_RADIUS = 3.0
+BUMP_TAPER = 0.6
+BUMP_SLACK = 2
+
+
 def tile_grid(
     X: np.ndarray,
     lengthscale: float,
     spacing: float | None = None,
     reach: float | None = None,
+    basis: str | None = None,
 ) -> TileGrid:
-    """The tiles for positions X (N, d): spacing h (default TILE_SPACING l), every tile
-    whose support comes within ``reach`` (default 3 l, as the box margin of the global
-    map) of a position, and the tile basis (curl-free, frequencies up to TILE_OMEGA / l)."""
+    """The tiles for positions X (N, d): spacing h (default TILE_SPACING l, or BUMP_SPACING
+    l for bumps), every tile whose support comes within ``reach`` (default 3 l, as the box
+    margin of the global map) of a position, and the tile basis (``basis``, default
+    TILE_BASIS: curl-free, frequencies up to TILE_OMEGA / l, or bumps of radius BUMP_RADIUS
+    l)."""
     X = np.asarray(X, dtype=float)
     ell = float(lengthscale)
-    h = TILE_SPACING * ell if spacing is None else float(spacing)
     reach = 3.0 * ell if reach is None else float(reach)
+    kind = TILE_BASIS if basis is None else basis
+    if kind not in TILE_BASES:
+        raise ValueError(f"tile basis {kind!r} is not one of {', '.join(TILE_BASES)}")
+    if kind == "bumps":
+        h = BUMP_SPACING * ell if spacing is None else float(spacing)
+        radius = BUMP_RADIUS * ell
+        # nodes whose bump reaches a point within `reach` of a position
+        return TileGrid.around(
+            X,
+            h,
+            max(reach + radius - h, 0.0),
+            bump_key(ell, BUMP_RADIUS, BUMP_TAPER, BUMP_SLACK),
+        )
+    h = TILE_SPACING * ell if spacing is None else float(spacing)
     mg = TILE_MARGIN * ell
     d = X.shape[1]
     half = [h + mg] * d + ([TILE_DEPTH * ell] if d == 2 else [])
@@ -107,6 +157,21 @@ def in_pattern(keys: np.ndarray, key: np.ndarray) -> tuple[np.ndarray, np.ndarra
     ok = pos < keys.size
     ok[ok] = keys[pos[ok]] == key[ok]
     return pos, ok
+
+
+def home_tiles(tiles: TiledBasis, home: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The tiles a sample whose nearest grid point is ``home`` (N, d) touches from any
+    point within h / 2 + s h of it (s the basis' ``home_slack``): the corner tiles of the
+    (2 + 2 s)^d cells around that grid point (for the Hilbert tiles, s = 0: those within
+    one index along every axis). As (samples, tile ids) pairs of flat arrays, one per
+    cell, tiles the map lacks left out (a tile may come more than once)."""
+    out = []
+    s = tiles.home_slack
+    for e in product(range(-1 - s, s + 1), repeat=home.shape[1]):
+        ids = tiles.tile_ids(home + np.array(e))  # (N, corners)
+        k, o = np.nonzero(ids >= 0)
+        out.append((k, ids[k, o]))
+    return out
 
 
 def home_points(grid: TileGrid, P: np.ndarray) -> tuple[int, ...]:
@@ -137,13 +202,18 @@ class TiledMapModel(MapModel):
         return 0.5 * total / sigma**2
 
     def sample_gradients(
-        self, P: np.ndarray, W: np.ndarray, c: np.ndarray, Y: np.ndarray
+        self,
+        P: np.ndarray,
+        W: np.ndarray,
+        c: np.ndarray,
+        Y: np.ndarray,
+        cells: np.ndarray | None = None,
     ) -> tuple[np.ndarray, ...]:
         """Each sample's own gradient of 0.5 |y - m - c|^2 (not divided by sigma_m^2) at
         rows P (k, d): its corner tiles (k, 2^d), the gradients in its position (k, d) and
         in its corner tiles' weights (k, 2^d, m), the residuals (k, 3), dm/dv (k, 2^d, 3,
-        m) and dm/dp (k, 3, d)."""
-        field, ids, J, D = self.tiles.evaluate(P, W)
+        m) and dm/dp (k, 3, d). ``cells``: read in these grid cells (TiledBasis.evaluate)."""
+        field, ids, J, D = self.tiles.evaluate(P, W, cells=cells)
         R = Y - field - c
         g_p = -np.einsum("kc,kca->ka", R, D)
         return ids, g_p, -np.einsum("kobm,kb->kom", J, R), R, J, D
@@ -283,12 +353,9 @@ class TiledGaussNewton(HessianCallback):
         tiles, kn = self.tiles, self.knots
         T = tiles.num_tiles
         keys = []
-        offsets = np.array(list(np.ndindex(*(3,) * self.dim))) - 1
-        for off in offsets:
-            ids = tiles.tile_ids(home + off)[:, 0]  # the tile at home + off (corner 0)
-            ok = ids >= 0
-            for j in (kn.left[ok], kn.left[ok] + 1):
-                keys.append(j * T + ids[ok])
+        for k, ids in home_tiles(tiles, home):
+            for j in (kn.left[k], kn.left[k] + 1):
+                keys.append(j * T + ids)
         k = np.unique(np.concatenate(keys))
         return _Border(k, k // T, k % T)
 
@@ -302,12 +369,8 @@ class TiledGaussNewton(HessianCallback):
         bd = self._border
         for a in range(d):  # (pair, weight) order
             pat.add((lay.C + a * K + bd.knot)[:, None], lay.W + bd.tile[:, None] * m + wm)
-        iu = np.triu_indices(m)
-        for t1, t2 in self._pairs:  # pair after pair, row-major within the block
-            if t1 == t2:
-                pat.add(lay.W + t1 * m + iu[0], lay.W + t1 * m + iu[1])
-            else:
-                pat.add(lay.W + t1 * m + wm[:, None], lay.W + t2 * m + wm[None, :])
+        rows, cols, self._ww_flat = weight_pair_pattern(self._pairs, m)
+        pat.add(lay.W + rows, lay.W + cols)
         if lay.c is not None:
             pat.constant_field(cidx, lay.W + np.arange(T * m), lay.c)
         self._set_pattern(*pat.arrays(), lay.n_x, lay.n_p)
@@ -325,10 +388,11 @@ class TiledGaussNewton(HessianCallback):
         rows_a: np.ndarray,
     ) -> None:
         """Replace the Gauss-Newton position products and border rows of the samples ``r``
-        by their exact second derivatives (samples whose corner tiles change within the
-        difference step keep Gauss-Newton)."""
+        by their exact second derivatives (the differences read in each sample's own
+        cell, so that its corner tiles stay those of ``ids``)."""
+        cells = self.tiles.cells(P)
         (H_p, H_w), same = local_derivatives(
-            lambda P_: self.model.sample_gradients(P_, W, c, Y)[:3], [P], ids, self.STEP
+            lambda P_: self.model.sample_gradients(P_, W, c, Y, cells)[:3], [P], ids, self.STEP
         )
         idx = np.flatnonzero(same)
         for a, b in pairs:
@@ -396,9 +460,7 @@ class TiledGaussNewton(HessianCallback):
         self.dropped.append(dropped)
         out = knot_chain_values(kn, s_pp, d, inv2, own)
         out += [border[:, a, :] * inv2 for a in range(d)]
-        iu = np.triu_indices(m)
-        for i, (t1, t2) in enumerate(self._pairs):
-            out.append((WW[i][iu] if t1 == t2 else WW[i]) * inv2)
+        out.append(WW.ravel()[self._ww_flat] * inv2)
         if c_knot is not None:
             out += constant_field_values(c_knot, c_w.reshape(FIELD_DIM, -1), N, inv2)
         return np.concatenate([np.ravel(v) for v in out])
@@ -416,20 +478,42 @@ def add_weight_pairs(
     inverse = inverse.ravel()
     order = np.argsort(inverse, kind="stable")
     bounds = np.searchsorted(inverse[order], np.arange(groups.shape[0] + 1))
+    o1, o2 = np.triu_indices(n_c)
     for g in range(groups.shape[0]):
         k = order[bounds[g] : bounds[g + 1]]
         Jg = J[k].transpose(0, 2, 1, 3).reshape(k.size * FIELD_DIM, n_c * m)
-        G = Jg.T @ Jg
+        G = (Jg.T @ Jg).reshape(n_c, m, n_c, m)
         tid = groups[g]
-        for o1 in range(n_c):
-            for o2 in range(o1, n_c):
-                t1, t2 = tid[o1], tid[o2]
-                if t1 < 0 or t2 < 0:
-                    continue
-                blk = G[o1 * m : (o1 + 1) * m, o2 * m : (o2 + 1) * m]
-                if t1 > t2:
-                    t1, t2, blk = t2, t1, blk.T
-                WW[int(np.searchsorted(pair_key, t1 * T + t2))] += blk
+        t1, t2 = tid[o1], tid[o2]
+        ok = (t1 >= 0) & (t2 >= 0)
+        a, b = o1[ok], o2[ok]
+        blk = G[a, :, b, :]  # (pairs, m, m): rows of corner a, columns of corner b
+        swap = t1[ok] > t2[ok]
+        blk[swap] = blk[swap].transpose(0, 2, 1)
+        lo, hi = np.minimum(t1[ok], t2[ok]), np.maximum(t1[ok], t2[ok])
+        WW[np.searchsorted(pair_key, lo * T + hi)] += blk  # distinct pairs within a group
+
+
+def weight_pair_pattern(pairs: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The weight block's upper triangle over the tile pairs (pairs, 2) (t <= t'), pair
+    after pair, row-major within a block (a tile with itself: its upper triangle): the
+    rows and columns among the weights (tile t's at t m .. t m + m - 1) and, for values
+    kept as WW (pairs, m, m), where each entry is in ``WW.ravel()``."""
+    diag = pairs[:, 0] == pairs[:, 1]
+    iu = np.triu_indices(m)
+    full = np.divmod(np.arange(m * m), m)
+    lengths = np.where(diag, iu[0].size, m * m)
+    start = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    a = np.empty(int(lengths.sum()), dtype=np.int64)
+    b = np.empty_like(a)
+    for sel, (la, lb) in ((diag, iu), (~diag, full)):
+        at = (start[sel][:, None] + np.arange(la.size)[None, :]).ravel()
+        a[at] = np.tile(la, int(sel.sum()))
+        b[at] = np.tile(lb, int(sel.sum()))
+    pair = np.repeat(np.arange(pairs.shape[0]), lengths)
+    rows = pairs[pair, 0] * m + a
+    cols = pairs[pair, 1] * m + b
+    return rows, cols, pair * m * m + a * m + b
 
 
 def add_own_tiles(
@@ -608,13 +692,15 @@ class RotatedTiledModel:
         W: np.ndarray,
         c: np.ndarray,
         Y: np.ndarray,
+        cells: np.ndarray | None = None,
     ) -> tuple[np.ndarray, ...]:
         """Each sample's own gradient of 0.5 |y - R^T (m + c)|^2 (not divided by
         sigma_m^2) at rows P (k, d), o (k, r): its corner tiles (k, 2^d) and the gradients
         in its position and orientation (k, d + r), in its corner tiles' weights (k, 2^d,
         m) and in the constant field (k, 3); plus the block's Jacobian pieces R (k, 3, 3),
-        dm/dp (k, 3, d), d(R^T u)/do (k, 3, r) and dm/dv (k, 2^d, 3, m)."""
-        field, ids, J, D = self.tiles.evaluate(P, W)
+        dm/dp (k, 3, d), d(R^T u)/do (k, 3, r) and dm/dv (k, 2^d, 3, m). ``cells``: read in
+        these grid cells (TiledBasis.evaluate)."""
+        field, ids, J, D = self.tiles.evaluate(P, W, cells=cells)
         u = field + c
         R, Jo = self.rotations(o, aux, u)
         e = Y - np.einsum("kba,kb->ka", R, u)
@@ -722,11 +808,7 @@ class RotatedTiledGaussNewton(HessianCallback):
         self.local = np.hstack([self.lay.pos, self.lay.rot])  # (n, nl)
         home_arr = np.array(home, dtype=np.int64).reshape(-1, self.d)
         T = self.tiles.num_tiles
-        keys = []
-        for off in np.array(list(np.ndindex(*(3,) * self.d))) - 1:
-            ids = self.tiles.tile_ids(home_arr + off)[:, 0]
-            ok = ids >= 0
-            keys.append(np.flatnonzero(ok) * T + ids[ok])
+        keys = [k * T + ids for k, ids in home_tiles(self.tiles, home_arr)]
         self._keys = np.unique(np.concatenate(keys))
         self._pairs = self.tiles.neighbours
         self._pair_key = self._pairs[:, 0] * T + self._pairs[:, 1]
@@ -753,12 +835,8 @@ class RotatedTiledGaussNewton(HessianCallback):
         wm = np.arange(m)
         for i in range(nl):  # (pair, weight) order
             pat.add(local[sample, i][:, None], lay.W + tile[:, None] * m + wm)
-        iu = np.triu_indices(m)
-        for t1, t2 in self._pairs:
-            if t1 == t2:
-                pat.add(lay.W + t1 * m + iu[0], lay.W + t1 * m + iu[1])
-            else:
-                pat.add(lay.W + t1 * m + wm[:, None], lay.W + t2 * m + wm[None, :])
+        rows, cols, self._ww_flat = weight_pair_pattern(self._pairs, m)
+        pat.add(lay.W + rows, lay.W + cols)
         if lay.c is not None:
             pat.constant_field([local[:, i] for i in range(nl)], lay.W + np.arange(T * m), lay.c)
         self._set_pattern(*pat.arrays(), lay.n_x, lay.n_p)
@@ -780,10 +858,11 @@ class RotatedTiledGaussNewton(HessianCallback):
         inv: float,
     ) -> None:
         """Replace the Gauss-Newton local, border and constant-field rows of the samples
-        ``r`` by their exact second derivatives (samples whose corner tiles change within
-        the difference step keep Gauss-Newton)."""
+        ``r`` by their exact second derivatives (the differences read in each sample's
+        own cell, so that its corner tiles stay those of ``ids``)."""
+        cells = self.tiles.cells(P[r])
         (H_loc, H_w, H_c), same = local_derivatives(
-            lambda P_, o_: model.sample_gradients(P_, o_, aux[r], W, c, Y[r])[:4],
+            lambda P_, o_: model.sample_gradients(P_, o_, aux[r], W, c, Y[r], cells)[:4],
             [P[r], o[r]],
             ids,
             self.STEP,
@@ -834,10 +913,8 @@ class RotatedTiledGaussNewton(HessianCallback):
         self.dropped.append(dropped)
         out = [LL[:, i, j] for i in range(nl) for j in range(i, nl)]
         out += [border[:, i, :] * sc[None, :] for i in range(nl)]  # (pair, weight) order
-        iu = np.triu_indices(m)
-        ss = np.outer(sc, sc) * (inv * inv)
-        for i, (t1, t2) in enumerate(self._pairs):
-            out.append((WW[i][iu] * ss[iu]) if t1 == t2 else WW[i] * ss)
+        ss = np.outer(sc, sc).ravel() * (inv * inv)
+        out.append(WW.ravel()[self._ww_flat] * ss[self._ww_flat % (m * m)])
         if lay.c is not None:
             for b in range(FIELD_DIM):
                 out += [c_loc[b, :, i] for i in range(nl)]

@@ -34,8 +34,9 @@ import scipy.sparse.linalg
 from casmag.data.simulate import Dataset
 from casmag.gp.fieldmap import field_at, reduced_rank_std
 from casmag.gp.kernels import FIELD_DIM, get_kernel
+from casmag.gp.localmaps import cached_tiles
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
-from casmag.gp.tiles import TileGrid, cached_tiles
+from casmag.gp.tiles import TileGrid
 from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam, uncached_slam
 from casmag.model.field import ExactField, ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
@@ -79,7 +80,9 @@ class Structure:
             )
             basis = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
         elif m.gp.form == "tiled":
-            tiles = tile_grid(X0, problem.assumed_lengthscale, m.gp.tile_spacing, m.gp.margin)
+            tiles = tile_grid(
+                X0, problem.assumed_lengthscale, m.gp.tile_spacing, m.gp.margin, m.gp.tile_basis
+            )
             home = home_points(tiles, X0)
         return cls(
             n=data.n_samples,

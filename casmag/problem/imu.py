@@ -693,7 +693,8 @@ class RecordingGPSpec(Strict):
     ``kernel``; ``sigma_f``, ``lengthscale``:
     a value or ``estimate`` (the windowed marginal likelihood on the dead-reckoned path);
     ``sigma_lin``: the constant field's prior (None: from the data); ``num_basis``,
-    ``margin``: the reduced-rank basis (None: casmag.model.rrmap's)."""
+    ``margin``: the reduced-rank basis (None: casmag.model.rrmap's); ``tile_basis``: the
+    tiled map's basis, ``bumps`` or ``hilbert`` (None: casmag.model.tiledmap.TILE_BASIS)."""
 
     form: Literal["auto", "reduced_rank", "tiled"] = "auto"
     kernel: Literal["se", "curl_free"] = "se"
@@ -702,6 +703,7 @@ class RecordingGPSpec(Strict):
     sigma_lin: PositiveFloat | None = None
     num_basis: Annotated[int, Field(ge=1, le=5000)] | None = None
     margin: PositiveFloat | None = None
+    tile_basis: Literal["bumps", "hilbert"] | None = None
 
     _no_truth = field_validator("sigma_f", "lengthscale", mode="before")(no_truth_on_a_recording)
 
@@ -733,7 +735,16 @@ FIELD_SECTIONS = {
     "sigma_m": "magnetometer",
     **{
         k: "gp"
-        for k in ("form", "kernel", "sigma_f", "lengthscale", "sigma_lin", "num_basis", "margin")
+        for k in (
+            "form",
+            "kernel",
+            "sigma_f",
+            "lengthscale",
+            "sigma_lin",
+            "num_basis",
+            "margin",
+            "tile_basis",
+        )
     },
 }
 
@@ -837,7 +848,8 @@ class PlanarOptions:
     (casmag.gp.tiles: tiles only where the path goes, each sample touching the four
     around it; needs kernel ``curl_free``; the Hessian is Gauss-Newton, ``curvature``
     applies to the box only) or ``auto`` (chosen once the lengthscale is known,
-    casmag.model.mapchoice; ``casmag slam``'s default) [reduced_rank]; solver: IPOPT
+    casmag.model.mapchoice; ``casmag slam``'s default) [reduced_rank]; tile_basis: the
+    tiles' basis (None: casmag.model.tiledmap.TILE_BASIS); solver: IPOPT
     settings. ``curvature``: the box's magnetometer block with its exact Hessian (true)
     or Gauss-Newton (false) under ``solver.hessian: auto`` (another value there chooses
     instead) [true]."""
@@ -854,6 +866,7 @@ class PlanarOptions:
     sigma_lin: float | None = None
     num_basis: int | None = None
     margin: float | None = None
+    tile_basis: str | None = None
     sigma_anchor: float = 1e-3
     sigma_psi0: float = 1e-3
     curvature: bool = True

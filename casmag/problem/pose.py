@@ -117,6 +117,7 @@ class PoseOptions:
     sigma_lin: float | None = None
     num_basis: int | None = None
     margin: float | None = None
+    tile_basis: str | None = None
     map_dim: int | str = "auto"
     height_sigma: float | None = 0.2
     sigma_anchor: float = 1e-3

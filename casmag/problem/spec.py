@@ -124,8 +124,11 @@ class GPSpec(Strict):
     (Hilbert-space basis on a box around the initial trajectory, casmag.model.rrmap) or
     ``tiled`` (curl-free only: reduced-rank potentials on a grid of tiles blended smoothly,
     casmag.gp.tiles; each sample touches the tiles around it, for areas much larger than
-    the lengthscale). tile_spacing: the tiles' grid spacing [m] (null: 4 l); margin is then
-    how far beyond the initial trajectory the tiles reach.
+    the lengthscale). tile_basis: ``bumps`` (casmag.gp.bumps: compactly supported bumps on a
+    lattice, each sample touching the nodes within a few lengthscales) or ``hilbert`` (a
+    reduced-rank basis per tile) (null: casmag.model.tiledmap.TILE_BASIS); tile_spacing:
+    the tiles' or lattice's spacing [m] (null: 4 l for hilbert, 0.75 l for bumps); margin
+    is then how far beyond the initial trajectory the tiles reach.
     num_basis, margin: reduced-rank basis size and box margin [m] (null: frequencies up to
     5 / l, margin 3 l). sigma_lin: prior standard deviation of a constant field added to the
     reduced-rank map (null: no constant term).
@@ -145,6 +148,7 @@ class GPSpec(Strict):
     margin: PositiveFloat | None = None
     sigma_lin: PositiveFloat | None = None
     tile_spacing: PositiveFloat | None = None
+    tile_basis: Literal["bumps", "hilbert"] | None = None
 
 
 class MagnetometerModelSpec(Strict):

@@ -14,8 +14,8 @@ from casmag.data.imusim import ImuData
 from casmag.data.simulate import Dataset, simulate_problem
 from casmag.errors import ProblemError
 from casmag.gp.fieldmap import grid_over
+from casmag.gp.localmaps import cached_tiles
 from casmag.gp.savedmap import SavedMap
-from casmag.gp.tiles import cached_tiles
 from casmag.model.field import HYPERPARAMETERS, left_map_box
 from casmag.model.tiledmap import left_map_tiles
 from casmag.model.translational import (

@@ -363,7 +363,7 @@ def planar_structure(
         "solver": solver.model_dump_json(), "starts": tuple(a for a in starts if a < k),
     }  # fmt: skip
     if options.form == "tiled":
-        grid = tile_grid(around, ell, reach=options.margin)
+        grid = tile_grid(around, ell, reach=options.margin, basis=options.tile_basis)
         return PlanarStructure(**common, basis=None, grid=grid, home=home_points(grid, around))
     hb = make_basis(options.kernel, around, ell, options.num_basis, options.margin)
     return PlanarStructure(

@@ -31,7 +31,7 @@ def test_field_jacobians(dim):
     central differences of the field."""
     rng = np.random.default_rng(dim)
     X = rng.uniform(0.0, 1.5, size=(25, dim))
-    tiles = TiledBasis(tile_grid(X, ELL, reach=0.2))
+    tiles = TiledBasis(tile_grid(X, ELL, reach=0.2, basis="hilbert"))
     W = rng.normal(size=(tiles.num_tiles, tiles.per_tile))
     field, ids, _, D = tiles.evaluate(X, W)
     assert ids.shape == (25, 2**dim) and np.all(ids >= 0) and tiles.inside(X).all()
@@ -47,7 +47,7 @@ def test_weight_jacobians_without_the_position_jacobian():
     """``positions=False`` gives the same field and weight Jacobians, and no D."""
     rng = np.random.default_rng(5)
     X = rng.uniform(0.0, 1.5, size=(20, 2))
-    tiles = TiledBasis(tile_grid(X, ELL, reach=0.2))
+    tiles = TiledBasis(tile_grid(X, ELL, reach=0.2, basis="hilbert"))
     W = rng.normal(size=(tiles.num_tiles, tiles.per_tile))
     full = tiles.evaluate(X, W)
     lean = tiles.evaluate(X, W, positions=False)
@@ -60,7 +60,7 @@ def test_neighbour_pairs_cover_every_shared_point():
     """Tiles touched by one point are neighbours (the weight block's pattern)."""
     rng = np.random.default_rng(7)
     X = rng.uniform(0.0, 3.0, size=(200, 2))
-    tiles = TiledBasis(tile_grid(X, ELL))
+    tiles = TiledBasis(tile_grid(X, ELL, basis="hilbert"))
     pairs = {tuple(p) for p in tiles.neighbours}
     ids = tiles.tile_ids(tiles.cells(X))
     for row in ids:
@@ -80,7 +80,7 @@ def test_covariance_against_the_exact_curl_free_kernel():
     exact = get_kernel("curl_free").matrix(X, X, 0.5, ELL)
     errors = []
     for h in (2.0, 3.0, 4.0, 6.0):
-        tiles = TiledBasis(tile_grid(X, ELL, spacing=h * ELL, reach=0.5 * ELL))
+        tiles = TiledBasis(tile_grid(X, ELL, spacing=h * ELL, reach=0.5 * ELL, basis="hilbert"))
         K = tiles.covariance(X, X, 0.5, ELL)
         errors.append(np.abs(K - exact).max() / (0.5**2 / ELL**2))
         assert np.all(np.diag(K) > 0.9 * np.diag(exact))
