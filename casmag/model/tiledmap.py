@@ -90,8 +90,15 @@ TILE_OMEGA = 3.5
 #: basin (4.74 m, flagged) where the Hilbert tiles took 1,909 s to 11.36 m (2026-11-29);
 #: the 120-sample walk of the tests, seeds 2 / 3: 0.0106 / 0.0104 m and mean 1-sigma
 #: 0.0131 / 0.0101 m against the exact GP's 0.0102 / 0.0105 m and 0.0132 / 0.0101 m.
+#: The translational model keeps the Hilbert tiles (:data:`TRANSLATIONAL_TILE_BASIS`): on
+#: walks over 6 x 6 m in the dipole field (``problems/bench/walk.yaml``, curl-free, l =
+#: 0.35 m) the bumps ended in worse optima, 4,000 samples RMSE 0.465 -> 0.0415 m (MAP cost
+#: odometry 2,660, magnetometer 11,725) against 0.0097 m (152, 5,411), 10,000 samples
+#: 1.303 -> 0.0193 m in 83 s against 0.0082 m in 191 s (2026-11-28), though both maps
+#: predict the field at the true positions equally (held-out RMS 0.1086 for both).
 TILE_BASES = ("bumps", "hilbert")
 TILE_BASIS = "bumps"
+TRANSLATIONAL_TILE_BASIS = "hilbert"
 
 #: The bump lattice's spacing and the bumps' radius in lengthscales, where the taper
 #: starts (a fraction of R^2) and the cells of slack in the Hessian's pattern

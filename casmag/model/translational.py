@@ -41,7 +41,12 @@ from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam, unc
 from casmag.model.field import ExactField, ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rrmap import field_and_jacobians, make_basis
-from casmag.model.tiledmap import home_points, ridge_tile_weights, tile_grid
+from casmag.model.tiledmap import (
+    TRANSLATIONAL_TILE_BASIS,
+    home_points,
+    ridge_tile_weights,
+    tile_grid,
+)
 from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.problem.spec import Problem
 
@@ -81,7 +86,11 @@ class Structure:
             basis = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
         elif m.gp.form == "tiled":
             tiles = tile_grid(
-                X0, problem.assumed_lengthscale, m.gp.tile_spacing, m.gp.margin, m.gp.tile_basis
+                X0,
+                problem.assumed_lengthscale,
+                m.gp.tile_spacing,
+                m.gp.margin,
+                m.gp.tile_basis or TRANSLATIONAL_TILE_BASIS,
             )
             home = home_points(tiles, X0)
         return cls(

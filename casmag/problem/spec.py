@@ -126,7 +126,8 @@ class GPSpec(Strict):
     casmag.gp.tiles; each sample touches the tiles around it, for areas much larger than
     the lengthscale). tile_basis: ``bumps`` (casmag.gp.bumps: compactly supported bumps on a
     lattice, each sample touching the nodes within a few lengthscales) or ``hilbert`` (a
-    reduced-rank basis per tile) (null: casmag.model.tiledmap.TILE_BASIS); tile_spacing:
+    reduced-rank basis per tile) (null: casmag.model.tiledmap.TRANSLATIONAL_TILE_BASIS,
+    hilbert); tile_spacing:
     the tiles' or lattice's spacing [m] (null: 4 l for hilbert, 0.75 l for bumps); margin
     is then how far beyond the initial trajectory the tiles reach.
     num_basis, margin: reduced-rank basis size and box margin [m] (null: frequencies up to
