@@ -45,7 +45,6 @@ from itertools import product
 import casadi as ca
 import numpy as np
 
-from casmag.gp.kernels import FIELD_DIM
 from casmag.gp.tiles import TiledBasis, TileGrid
 
 #: Key of a bump lattice in :attr:`TileGrid.basis`: (BUMPS, lengthscale, radius / l,
@@ -176,17 +175,9 @@ class BumpBasis(TiledBasis):
         """As :meth:`TiledBasis.evaluate`: the field m (N, 3), the node ids (N, n_c) (-1
         where the lattice lacks the node), J (N, n_c, 3, m) and D (N, 3, d) = dm / dp;
         ``cells`` as there."""
-        P = np.asarray(P, dtype=float)
-        N, d = P.shape
-        g_, h = self.grid, self.grid.spacing
-        m_ = self.per_tile
-        n_c = self.corners.shape[0]
-        cells = self.cells(P) if cells is None else cells
-        ids = self.tile_ids(cells)
-        field = np.zeros((N, FIELD_DIM))
-        J = np.zeros((N, n_c, FIELD_DIM, m_)) if jacobians else None
-        D = np.zeros((N, FIELD_DIM, d)) if jacobians and positions else None
-        origin = np.array(g_.origin)
+        P, cells, ids, field, J, D = self._outputs(P, jacobians, positions, cells)
+        d, h = P.shape[1], self.grid.spacing
+        origin = np.array(self.grid.origin)
         for o, off in enumerate(self.corners):
             live = ids[:, o] >= 0
             if not live.any():

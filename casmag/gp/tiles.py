@@ -174,6 +174,22 @@ class TiledBasis:
         """(N,) bool: the position has every corner tile in the map (the blend is whole)."""
         return np.all(self.tile_ids(self.cells(np.asarray(P, dtype=float))) >= 0, axis=1)
 
+    def _outputs(
+        self, P: np.ndarray, jacobians: bool, positions: bool, cells: np.ndarray | None
+    ) -> tuple[np.ndarray, ...]:
+        """What :meth:`evaluate` fills: the positions as floats, their cells and corner
+        tile ids, and zeroed field (N, 3), J (N, corners, 3, m) and D (N, 3, d) (None where
+        not asked for)."""
+        P = np.asarray(P, dtype=float)
+        N, d = P.shape
+        cells = self.cells(P) if cells is None else cells
+        ids = self.tile_ids(cells)
+        n_c = self.corners.shape[0]
+        field = np.zeros((N, FIELD_DIM))
+        J = np.zeros((N, n_c, FIELD_DIM, self.per_tile)) if jacobians else None
+        D = np.zeros((N, FIELD_DIM, d)) if jacobians and positions else None
+        return P, cells, ids, field, J, D
+
     def evaluate(
         self,
         P: np.ndarray,
@@ -190,16 +206,10 @@ class TiledBasis:
         reads each point in the given grid cell instead of its own (a point just outside
         the cell gets the blend of the cell's corners, which is the field's to second order
         there: difference quotients across a cell's edge)."""
-        P = np.asarray(P, dtype=float)
-        N, d = P.shape
+        P, cells, ids, field, J, D = self._outputs(P, jacobians, positions, cells)
+        d = P.shape[1]
         g, basis = self.grid, self.basis
-        h, m_ = g.spacing, basis.num_basis
-        n_c = self.corners.shape[0]
-        cells = self.cells(P) if cells is None else cells
-        ids = self.tile_ids(cells)
-        field = np.zeros((N, FIELD_DIM))
-        J = np.zeros((N, n_c, FIELD_DIM, m_)) if jacobians else None
-        D = np.zeros((N, FIELD_DIM, d)) if jacobians and positions else None
+        h = g.spacing
         for o, off in enumerate(self.corners):
             live = ids[:, o] >= 0
             if not live.any():
