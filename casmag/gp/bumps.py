@@ -27,9 +27,9 @@ with covariances k and k / l^2, so the field in the plane is
 exactly the curl-free field's distribution on the plane at this approximation of k.
 
 Against the tiles of casmag.gp.tiles (one 166-function Hilbert basis per tile of 4 l, a
-sample touching the 2^d tiles around it), a sample touches 12-24 nodes of one or two
-weights in the plane, so the Hessian's border and weight block hold far fewer non-zeros
-and the KKT system's separators are thinner (measured in casmag.model.tiledmap).
+sample touching the 2^d tiles around it), a sample touches the 60 nodes within 3 l (one
+weight each, two in the plane), so the Hessian's border and weight block hold far fewer
+non-zeros and the KKT system's separators are thinner (measured in casmag.model.tiledmap).
 
 :class:`BumpBasis` has the interface of :class:`casmag.gp.tiles.TiledBasis` (a "tile" is a
 lattice node, its ``per_tile`` weights the node's), so the tiled map's cost, Hessian,
@@ -87,12 +87,7 @@ class BumpBasis(TiledBasis):
         self.a2 = 0.5 * self.lengthscale**2  # a^2, a = l / sqrt(2)
         self.R2 = (float(radius) * self.lengthscale) ** 2
         self.t0 = float(t0)
-        idx = np.array(grid.tiles, dtype=np.int64).reshape(-1, grid.dim)
-        self.tile_index = idx
-        self._lo = idx.min(axis=0)
-        shape = idx.max(axis=0) - self._lo + 1
-        self._lookup = np.full(tuple(int(s) for s in shape), -1, dtype=np.int64)
-        self._lookup[tuple((idx - self._lo).T)] = np.arange(idx.shape[0])
+        self._index_tiles()
         self.corners = self._corner_offsets()
 
     def _corner_offsets(self) -> np.ndarray:

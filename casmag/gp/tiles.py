@@ -113,13 +113,18 @@ class TiledBasis:
         self.basis: HilbertBasis = cached_basis(grid.basis)
         if self.basis.input_dim != FIELD_DIM:
             raise ValueError("the tiled map is the curl-free field of a 3-D potential")
-        idx = np.array(grid.tiles, dtype=np.int64).reshape(-1, grid.dim)
+        self._index_tiles()
+        self.corners = np.array(list(product((0, 1), repeat=grid.dim)), dtype=np.int64)
+
+    def _index_tiles(self) -> None:
+        """``tile_index`` (T, d), the grid's tile indices, and the lookup from an index to
+        its tile id (-1: no such tile) that :meth:`tile_ids` reads."""
+        idx = np.array(self.grid.tiles, dtype=np.int64).reshape(-1, self.grid.dim)
         self.tile_index = idx
         self._lo = idx.min(axis=0)
         shape = idx.max(axis=0) - self._lo + 1
         self._lookup = np.full(tuple(int(s) for s in shape), -1, dtype=np.int64)
         self._lookup[tuple((idx - self._lo).T)] = np.arange(idx.shape[0])
-        self.corners = np.array(list(product((0, 1), repeat=grid.dim)), dtype=np.int64)
 
     @property
     def num_tiles(self) -> int:
