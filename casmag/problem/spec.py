@@ -279,7 +279,9 @@ class WarmStartSpec(Strict):
     ``none`` only the model's ``bias_prior_sigma`` on every window.
     ``coarse-to-fine``: ``lengthscale_stages`` batch solves with the lengthscale shrinking
     geometrically from ``lengthscale_start`` times the assumed one to the assumed one, each
-    started from the previous (at most ``stage_max_iter`` iterations before the last).
+    started from the previous (at most ``stage_max_iter`` iterations before the last); a
+    tiled map is laid again for each stage's lengthscale
+    (casmag.solver.staged.map_lengthscale).
     ``auto``: the model's own default: ``none`` for the translational model, the solver
     defaults' ``growing`` for the planar and pose models, and for the IMU model (whose
     default it is) its schedule ladder (casmag.solver.imu: sigma_m annealed, then

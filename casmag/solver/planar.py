@@ -55,6 +55,7 @@ from casmag.solver.staged import (
     WindowPrior,
     anchored_at_truth,
     heading_bias_starts,
+    map_lengthscale,
     solve_rehomed,
     solve_staged,
     truth_check,
@@ -601,9 +602,12 @@ class PlanarStaged(StagedModel):
         params_k["anchor"] = self.anchors[: len(self.sessions(k))]
         tiled = self.options.form == "tiled"
         around = self.P_dr if k == self.n and not tiled else start["P"]
+        # tiles for the stage's lengthscale (coarse-to-fine; map_lengthscale), a box for
+        # the assumed one
         s_k = planar_structure(
-            self.options, k, around, self.lengthscale, solver, self.session_starts
-        )
+            self.options, k, around, map_lengthscale(tiled, self.lengthscale, lengthscale),
+            solver, self.session_starts,
+        )  # fmt: skip
         psi_0 = np.asarray(start["psi"], float).ravel()
         x0 = {"P": start["P"], "psi": psi_0.reshape(-1, 1), "bias": start["bias"]}
         held: tuple[str, ...] = ()

@@ -58,6 +58,7 @@ from casmag.solver.staged import (
     WindowPrior,
     anchored_at_truth,
     heading_bias_starts,
+    map_lengthscale,
     solve_rehomed,
     solve_staged,
     truth_check,
@@ -433,11 +434,11 @@ class PoseStaged(StagedModel):
         P0, Q0, dim, kernel = start["P"], start["Q"], self.dim, self.options.kernel
         # The full problem's box around the dead reckoning; tiles around the start (their
         # Hessian pattern follows it), as casmag.solver.planar.PlanarStaged lays them.
-        around = self.P_dr if k == self.n and self.options.form != "tiled" else P0
+        tiled = self.options.form == "tiled"
+        around = self.P_dr if k == self.n and not tiled else P0
         starts = self.session_starts[: len(self.sessions(k))]
-        s_k = pose_structure(
-            self.options, k, around, self.lengthscale, dim, self.height, solver, starts
-        )
+        ell = map_lengthscale(tiled, self.lengthscale, lengthscale)
+        s_k = pose_structure(self.options, k, around, ell, dim, self.height, solver, starts)
         params_k = {
             **self.params, "U": self.U[: k - 1], "dt": self.dt[: k - 1].reshape(-1, 1),
             "Y": self.Y[:k], "lengthscale": lengthscale, **nominal_parameters(Q0, starts),

@@ -378,6 +378,14 @@ class Stage:
         return LEFT_BOX if self.left_box else self.solved.sol.status
 
 
+def map_lengthscale(tiled: bool, assumed: float, stage: float) -> float:
+    """The lengthscale a stage's map is laid for. Tiles follow the stage's lengthscale
+    (coarse-to-fine): a lattice of bumps is its lengthscale (casmag.gp.bumps), and a coarser
+    lattice smooths the field that stage sees, which widens the basin the dead reckoning
+    starts in. A box keeps the assumed lengthscale's basis, with its prior at the stage's."""
+    return float(stage) if tiled else float(assumed)
+
+
 def solve_strategy(
     model: StagedModel, ws: WarmStartSpec, bias: float = 0.0, n: int | None = None
 ) -> list[Stage]:

@@ -36,6 +36,7 @@ from casmag.solver.staged import (
     StagedModel,
     Window,
     WindowPrior,
+    map_lengthscale,
     solve_rehomed,
     solve_strategy,
 )
@@ -297,7 +298,10 @@ class TranslationalStaged(StagedModel):
     def continue_from(self, previous: Solved, k: int) -> dict[str, np.ndarray]:
         if k == previous.sol.x["P"].shape[0]:  # the same samples again: the whole solution
             own: TranslationalSolve = previous.nominal
-            return {"P": previous.sol.x["P"], "bias": own.debias, "x": previous.sol.x}
+            return {
+                "P": previous.sol.x["P"], "bias": own.debias, "x": previous.sol.x,
+                "lengthscale": previous.lengthscale,
+            }  # fmt: skip
         return super().continue_from(previous, k)
 
     def solve(
@@ -307,6 +311,19 @@ class TranslationalStaged(StagedModel):
         if solver != problem.spec.solver:
             problem = Problem(spec=problem.spec.model_copy(update={"solver": solver}),
                               source=problem.source)  # fmt: skip
+        if problem.spec.model.gp.form == "tiled":
+            # Tiles for the stage's lengthscale (casmag.solver.staged.map_lengthscale).
+            # Another stage's weights do not carry over: they are fitted again from the
+            # start's positions, with the bias that stage estimated removed.
+            ell = map_lengthscale(True, self.lengthscale, lengthscale)
+            if ell != self.lengthscale:
+                problem = problem.with_overrides([f"model.gp.lengthscale={ell}"])
+            if "x" in start and start.get("lengthscale", lengthscale) != lengthscale:
+                x = start["x"]
+                bias = np.reshape(start["bias"], (-1, self.data.dim))
+                if x.get("bias") is not None:
+                    bias = bias + np.reshape(x["bias"], bias.shape)
+                start = {"P": start["P"], "bias": bias}
         debias = self._bias(start.get("bias"), k)
         part = self._part(k, debias)
         P0 = np.asarray(start["P"])

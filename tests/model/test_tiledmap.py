@@ -462,3 +462,83 @@ def test_a_translational_solve_laid_around_the_wrong_tiles_is_laid_again(basis):
     assert np.abs(moved).max() <= slack and nlp.keep[1].dropped[-1] == 0
     np.testing.assert_allclose(P, right.x["P"], atol=1e-4)
     assert sol.objective == pytest.approx(right.objective, rel=1e-6)
+
+
+@pytest.mark.parametrize("basis", ["hilbert", "bumps"])
+def test_coarse_to_fine_lays_the_tiles_for_each_stage(basis):
+    """solver.warm_start.strategy coarse-to-fine with the tiled map (translational): each
+    stage's tiles are laid for its own lengthscale (casmag.solver.staged.map_lengthscale;
+    a lattice of bumps is its lengthscale), each stage after the first starts from the
+    previous one's positions, and the last stage is the problem at the assumed lengthscale,
+    so it ends where a batch from those positions ends."""
+    from casmag.solver.staged import solve_strategy
+    from casmag.solver.translational import TranslationalStaged, solve_translational
+
+    prob = tiny_walk(
+        [
+            "model.gp.kernel=curl_free",
+            "simulation.field.kernel=curl_free",
+            "model.gp.form=tiled",
+            f"model.gp.tile_basis={basis}",
+            "solver.warm_start.strategy=coarse-to-fine",
+            "solver.warm_start.lengthscale_start=2.0",
+            "solver.warm_start.lengthscale_stages=2",
+        ]
+    )
+    data = simulate_problem(prob)
+    ell = prob.assumed_lengthscale
+    stages = solve_strategy(TranslationalStaged(prob, data), prob.spec.solver.warm_start)
+    assert [st.lengthscale for st in stages] == pytest.approx([2 * ell, ell])
+    spacing = [st.solved.structure.grid.spacing for st in stages]
+    assert spacing[0] == pytest.approx(2 * spacing[1])
+    assert all(st.solved.sol.success for st in stages), [st.status for st in stages]
+    # The last stage: the assumed lengthscale's problem from the coarse stage's positions,
+    # with the bias it estimated removed (its tiles' weights fitted again, not carried).
+    last, coarse = stages[-1].solved, stages[0].solved
+    removed = last.nominal.debias
+    assert np.any(removed) and np.allclose(removed, np.reshape(coarse.sol.x["bias"], (1, -1)))
+    again, *_ = solve_translational(
+        prob, data.debiased(removed), initial_positions=coarse.sol.x["P"]
+    )
+    np.testing.assert_allclose(last.sol.x["P"], again.x["P"], atol=1e-6)
+    before = np.sqrt(np.mean(np.sum((data.dead_reckoning() - data.P_true) ** 2, axis=1)))
+    after = np.sqrt(np.mean(np.sum((last.sol.x["P"] - data.P_true) ** 2, axis=1)))
+    assert after < before / 3
+
+
+def test_planar_coarse_to_fine_lays_the_tiles_for_each_stage(monkeypatch):
+    """The planar model's coarse-to-fine stages (casmag.solver.planar.PlanarStaged) lay
+    their tiles for each stage's lengthscale, as the translational ones do, and converge
+    (seed 2, two loops, 2026-12-02: 0.0730 -> 0.0118 m in 9 + 11 iterations; the default
+    strategy's one batch reaches the same 0.0118 m)."""
+    import casmag.solver.planar as planar
+
+    laid: list[float] = []
+    original = planar.planar_structure
+
+    def recording(options, k, around, ell, *args, **kwargs):
+        laid.append(ell)
+        return original(options, k, around, ell, *args, **kwargs)
+
+    monkeypatch.setattr(planar, "planar_structure", recording)
+    d = simulate_planar(
+        2, planar_room_field(), size=(2.0, 1.5), loops=2, heading_bias_deg=0.5,
+        disp_noise=0.002,
+    )  # fmt: skip
+    sets = [
+        "model.sigma_disp=0.002",
+        f"model.sigma_dyaw={np.radians(0.05)}",
+        "model.gp.kernel=curl_free",
+        "model.gp.form=tiled",
+        "solver.warm_start.strategy=coarse-to-fine",
+        "solver.warm_start.lengthscale_start=2.0",
+        "solver.warm_start.lengthscale_stages=2",
+    ]
+    opts = load_planar_options(None, sets)
+    r = solve_planar(*d.U.T, d.Y, opts, truth={"P": d.P, "psi": d.psi}, t=d.t)
+    assert r.status == "Solve_Succeeded"
+    ell = r.hyperparameters["lengthscale"]
+    scales = [st["lengthscale"] for st in r.stages]
+    assert scales[-2:] == pytest.approx([2 * ell, ell])
+    assert set(np.round(laid, 12)) == set(np.round([2 * ell, ell], 12))
+    assert r.rmse_after <= 0.5 * r.rmse_before
