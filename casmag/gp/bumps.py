@@ -109,13 +109,18 @@ class BumpBasis(TiledBasis):
         e = np.exp(-0.5 * t / self.a2)
         e1, e2 = -0.5 / self.a2 * e, 0.25 / self.a2**2 * e
         span = self.R2 * (1.0 - self.t0)
-        v = np.clip((t / self.R2 - self.t0) / (1.0 - self.t0), 0.0, 1.0)
-        s, s1, s2 = smootherstep(v)
-        tau, tau1, tau2 = 1.0 - s, -s1 / span, -s2 / span**2
-        inside = t < self.R2
-        g = np.where(inside, e * tau, 0.0)
-        g1 = np.where(inside, e1 * tau + e * tau1, 0.0)
-        g2 = np.where(inside, e2 * tau + 2.0 * e1 * tau1 + e * tau2, 0.0)
+        g, g1, g2 = e, e1, e2  # flat part: the Gaussian
+        beyond = t >= self.R2
+        g[beyond] = g1[beyond] = g2[beyond] = 0.0
+        ring = (t > self.t0 * self.R2) & ~beyond  # the taper, 1 - s(v)
+        if ring.any():
+            v = (t[ring] / self.R2 - self.t0) / (1.0 - self.t0)
+            s, s1, s2 = smootherstep(v)
+            tau, tau1, tau2 = 1.0 - s, -s1 / span, -s2 / span**2
+            er, e1r, e2r = e[ring], e1[ring], e2[ring]
+            g[ring] = er * tau
+            g1[ring] = e1r * tau + er * tau1
+            g2[ring] = e2r * tau + 2.0 * e1r * tau1 + er * tau2
         return g, g1, g2
 
     def bump(self, u: np.ndarray, second: bool = True) -> tuple[np.ndarray, ...]:
@@ -172,26 +177,29 @@ class BumpBasis(TiledBasis):
         ``cells`` as there."""
         P, cells, ids, field, J, D = self._outputs(P, jacobians, positions, cells)
         d, h = P.shape[1], self.grid.spacing
-        origin = np.array(self.grid.origin)
-        for o, off in enumerate(self.corners):
-            live = ids[:, o] >= 0
-            if not live.any():
-                continue
-            rows = np.flatnonzero(live)
-            u = P[rows] - (origin + h * (cells[rows] + off))
-            psi, grad, hess = self.bump(u, second=D is not None)
-            v = W[ids[rows, o]]  # (n, m)
-            field[rows, :d] += v[:, :1] * grad
-            if d == 2:
-                field[rows, 2] += v[:, 1] * psi
-            if J is None:
-                continue
-            J[rows, o, :d, 0] = grad
-            if d == 2:
-                J[rows, o, 2, 1] = psi
-            if D is None:
-                continue
-            D[rows, :d, :] += v[:, 0, None, None] * hess
-            if d == 2:
-                D[rows, 2, :] += v[:, 1, None] * grad
+        # Every point against every corner node at once, (N, n_c, ...): offsets U from the
+        # nodes, the bump's profile at |U|^2, zero where the lattice lacks the node.
+        live = ids >= 0
+        U = (P - np.array(self.grid.origin))[:, None, :] - h * (
+            cells[:, None, :] + self.corners[None, :, :]
+        )
+        g, g1, g2 = self.profile(np.einsum("nci,nci->nc", U, U))
+        g, g1 = g * live, g1 * live
+        grad = 2.0 * g1[..., None] * U  # (N, n_c, d)
+        V = W[np.where(live, ids, 0)]  # (N, n_c, m); multiplied by zeros where not live
+        field[:, :d] = np.einsum("nc,ncd->nd", V[..., 0], grad)
+        if d == 2:
+            field[:, 2] = np.einsum("nc,nc->n", V[..., 1], g)
+        if J is None:
+            return field, ids, J, D
+        J[:, :, :d, 0] = grad
+        if d == 2:
+            J[:, :, 2, 1] = g
+        if D is None:
+            return field, ids, J, D
+        # the bump's Hessian 4 g'' u u^T + 2 g' I, weighted by the potential's weights
+        D[:, :d, :] = 4.0 * np.einsum("nc,nci,ncj->nij", V[..., 0] * g2 * live, U, U)
+        D[:, :d, :] += 2.0 * np.einsum("nc,nc->n", V[..., 0], g1)[:, None, None] * np.eye(d)
+        if d == 2:
+            D[:, 2, :] = np.einsum("nc,ncd->nd", V[..., 1], grad)
         return field, ids, J, D

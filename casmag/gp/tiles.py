@@ -167,13 +167,13 @@ class TiledBasis:
 
     def tile_ids(self, cells: np.ndarray) -> np.ndarray:
         """(N, 2^d) id of each corner tile of the cells (-1: no such tile in the map)."""
-        out = np.full((cells.shape[0], self.corners.shape[0]), -1, dtype=np.int64)
-        shape = np.array(self._lookup.shape)
-        for o, off in enumerate(self.corners):
-            j = cells + off - self._lo
-            ok = np.all((j >= 0) & (j < shape), axis=1)
-            out[ok, o] = self._lookup[tuple(j[ok].T)]
-        return out
+        lut = self._lookup
+        j = (np.asarray(cells) - self._lo)[:, None, :] + self.corners[None, :, :]
+        ok = np.all((j >= 0) & (j < np.array(lut.shape)), axis=2)  # (N, corners)
+        flat = np.ravel_multi_index(
+            tuple(np.moveaxis(np.where(ok[..., None], j, 0), 2, 0)), lut.shape
+        )
+        return np.where(ok, lut.ravel()[flat], -1).astype(np.int64)
 
     def inside(self, P: np.ndarray) -> np.ndarray:
         """(N,) bool: the position has every corner tile in the map (the blend is whole)."""

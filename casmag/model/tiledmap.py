@@ -85,7 +85,7 @@ TILE_OMEGA = 3.5
 #: lattice of BUMP_SPACING l, radius BUMP_RADIUS l; the default) or ``hilbert`` (one
 #: reduced-rank Hilbert basis per tile of TILE_SPACING l, blended). Measured 2026-12-02,
 #: each run alone: the building-floor walk (``problems/planar/walk.yaml``, 1,500 samples
-#: over 30 x 20 m, curl-free tiles, seed 1) 66-75 s wall, 1.5 GiB, RMSE 7.90 -> 0.165 m with
+#: over 30 x 20 m, curl-free tiles, seed 1) 64-65 s wall, 1.5 GiB, RMSE 7.90 -> 0.165 m with
 #: the bumps against 420 s, 4.6 GiB, 0.313 m with the Hilbert tiles; seed 2 3:22 to a wrong
 #: basin (4.74 m, flagged) where the Hilbert tiles took 1,909 s to 11.36 m (2026-11-29);
 #: the 120-sample walk of the tests, seeds 2 / 3: 0.0106 / 0.0104 m and mean 1-sigma
@@ -121,7 +121,7 @@ TRANSLATIONAL_TILE_BASIS = "hilbert"
 #: 0.236 m with h = 0.75 l, 0.076 m (seed 2) at 0.6 l, 0.045 m at 0.5 l, the Hilbert tiles
 #: 0.024 / 0.051 m (README, Tiled map), so the translational model keeps those tiles
 #: (TRANSLATIONAL_TILE_BASIS); the planar floor walk did not gain from 0.5 l (0.202 against
-#: 0.165 m, 8 min against 66-75 s).
+#: 0.165 m, 8 min against 64-65 s).
 BUMP_SPACING = 0.75
 BUMP_RADIUS = 3.0
 BUMP_TAPER = 0.6
