@@ -297,6 +297,23 @@ def test_tiled_map_read_through_a_rotation(basis):
     assert np.abs(H[:, local] - gn[:, local]).max() > 1e-3 * np.abs(exact).max()
 
 
+def _planar_room_walk(loops: int, *sets: str):
+    """The planar walk of the tests (loops of 2 x 1.5 m, heading-rate bias 0.5 deg/s, seed
+    2) solved with the tiled map and ``sets``."""
+    d = simulate_planar(
+        2, planar_room_field(), size=(2.0, 1.5), loops=loops, heading_bias_deg=0.5,
+        disp_noise=0.002,
+    )  # fmt: skip
+    base = [
+        "model.sigma_disp=0.002",
+        f"model.sigma_dyaw={np.radians(0.05)}",
+        "model.gp.kernel=curl_free",
+        "model.gp.form=tiled",
+    ]
+    opts = load_planar_options(None, [*base, *sets])
+    return solve_planar(*d.U.T, d.Y, opts, truth={"P": d.P, "psi": d.psi}, t=d.t)
+
+
 @pytest.mark.slow
 def test_planar_walk_with_the_tiled_map():
     """The planar walk of the tests (three loops of 2 x 1.5 m, heading-rate bias 0.5
@@ -306,18 +323,7 @@ def test_planar_walk_with_the_tiled_map():
     in 16 / 18 / 17 iterations, mean NEES 2.70 / 1.94 / 1.41; the Hilbert tiles 0.0111 /
     0.0121 / 0.0108 m in 13 / 16 / 15 (Gauss-Newton alone stopped at the iteration
     limit); the box 0.0108 / 0.0115 / 0.0059 m; dead reckoning 0.0966 / 0.0865 / 0.0913 m."""
-    d = simulate_planar(
-        2, planar_room_field(), size=(2.0, 1.5), loops=3, heading_bias_deg=0.5,
-        disp_noise=0.002,
-    )  # fmt: skip
-    sets = [
-        "model.sigma_disp=0.002",
-        f"model.sigma_dyaw={np.radians(0.05)}",
-        "model.gp.kernel=curl_free",
-        "model.gp.form=tiled",
-    ]
-    opts = load_planar_options(None, sets)
-    r = solve_planar(*d.U.T, d.Y, opts, truth={"P": d.P, "psi": d.psi}, t=d.t)
+    r = _planar_room_walk(3)
     assert r.status == "Solve_Succeeded" and r.iterations <= 30
     assert r.rmse_after <= 0.2 * r.rmse_before
     assert r.info["map"]["form"] == "tiled" and r.info["map"]["tiles"] >= 4
@@ -521,21 +527,12 @@ def test_planar_coarse_to_fine_lays_the_tiles_for_each_stage(monkeypatch):
         return original(options, k, around, ell, *args, **kwargs)
 
     monkeypatch.setattr(planar, "planar_structure", recording)
-    d = simulate_planar(
-        2, planar_room_field(), size=(2.0, 1.5), loops=2, heading_bias_deg=0.5,
-        disp_noise=0.002,
-    )  # fmt: skip
-    sets = [
-        "model.sigma_disp=0.002",
-        f"model.sigma_dyaw={np.radians(0.05)}",
-        "model.gp.kernel=curl_free",
-        "model.gp.form=tiled",
+    r = _planar_room_walk(
+        2,
         "solver.warm_start.strategy=coarse-to-fine",
         "solver.warm_start.lengthscale_start=2.0",
         "solver.warm_start.lengthscale_stages=2",
-    ]
-    opts = load_planar_options(None, sets)
-    r = solve_planar(*d.U.T, d.Y, opts, truth={"P": d.P, "psi": d.psi}, t=d.t)
+    )
     assert r.status == "Solve_Succeeded"
     ell = r.hyperparameters["lengthscale"]
     scales = [st["lengthscale"] for st in r.stages]
