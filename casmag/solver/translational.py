@@ -300,7 +300,7 @@ class TranslationalStaged(StagedModel):
             own: TranslationalSolve = previous.nominal
             return {
                 "P": previous.sol.x["P"], "bias": own.debias, "x": previous.sol.x,
-                "lengthscale": previous.lengthscale,
+                "solved": previous,
             }  # fmt: skip
         return super().continue_from(previous, k)
 
@@ -313,17 +313,13 @@ class TranslationalStaged(StagedModel):
                               source=problem.source)  # fmt: skip
         if problem.spec.model.gp.form == "tiled":
             # Tiles for the stage's lengthscale (casmag.solver.staged.map_lengthscale).
-            # Another stage's weights do not carry over: they are fitted again from the
-            # start's positions, with the bias that stage estimated removed.
+            # Another stage's weights do not carry over: they are fitted again from its
+            # positions, with the total bias it estimated removed (its states).
             ell = map_lengthscale(True, self.lengthscale, lengthscale)
             if ell != self.lengthscale:
                 problem = problem.with_overrides([f"model.gp.lengthscale={ell}"])
-            if "x" in start and start.get("lengthscale", lengthscale) != lengthscale:
-                x = start["x"]
-                bias = np.reshape(start["bias"], (-1, self.data.dim))
-                if x.get("bias") is not None:
-                    bias = bias + np.reshape(x["bias"], bias.shape)
-                start = {"P": start["P"], "bias": bias}
+            if "solved" in start and start["solved"].lengthscale != lengthscale:
+                start = self.states(start["solved"])
         debias = self._bias(start.get("bias"), k)
         part = self._part(k, debias)
         P0 = np.asarray(start["P"])
