@@ -36,6 +36,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 import scipy.sparse as sps
+from scipy.optimize import brentq
 
 from casmag.gp.bumps import bump_key
 from casmag.gp.kernels import FIELD_DIM
@@ -121,11 +122,52 @@ TRANSLATIONAL_TILE_BASIS = "hilbert"
 #: 0.236 m with h = 0.75 l, 0.076 m (seed 2) at 0.6 l, 0.045 m at 0.5 l, the Hilbert tiles
 #: 0.024 / 0.051 m (README, Tiled map), so the translational model keeps those tiles
 #: (TRANSLATIONAL_TILE_BASIS); the planar floor walk did not gain from 0.5 l (0.202 against
-#: 0.165 m, 8 min against 64-65 s).
+#: 0.165 m, 8 min against 64-65 s). BUMP_SPACING is now the coarsest lattice:
+#: :func:`bump_spacing` lays a finer one where the field is strong against the noise.
 BUMP_SPACING = 0.75
 BUMP_RADIUS = 3.0
+
+#: The finest lattice :func:`bump_spacing` lays [lengthscales], and the part of the field
+#: the lattice may leave out, as an amplitude over the magnetometer's noise.
+BUMP_SPACING_FINEST = 0.5
+BUMP_UNRESOLVED = 0.02
 BUMP_TAPER = 0.6
 BUMP_SLACK = 2
+
+
+def unresolved_field(spacing: float) -> float:
+    """The part of a curl-free field with the squared-exponential potential that a bump
+    lattice of ``spacing`` lengthscales cannot hold: the RMS amplitude, over the field's
+    own, of the field's spectrum (|w|^2 exp(-|w|^2 l^2 / 2) in the plane) beyond the
+    lattice's Nyquist frequency pi / h, sqrt((1 + u) exp(-u)) with u = (pi l / h)^2 / 2.
+    0.039 at 0.75 l, 0.0041 at 0.6 l, 0.00024 at 0.5 l."""
+    u = 0.5 * (np.pi / float(spacing)) ** 2
+    return float(np.sqrt((1.0 + u) * np.exp(-u)))
+
+
+def bump_spacing(field_to_noise: float | None) -> float:
+    """The bump lattice's spacing in lengthscales for a field ``field_to_noise`` times the
+    magnetometer's noise (sigma_f / (l sigma_m) for the curl-free kernel, whose field
+    components have the standard deviation sigma_f / l): the coarsest spacing, between
+    BUMP_SPACING_FINEST and BUMP_SPACING, whose :func:`unresolved_field` times
+    ``field_to_noise`` is at most BUMP_UNRESOLVED; BUMP_SPACING when it is not known.
+
+    What a lattice leaves out does not average away over the samples: it moves the path.
+    Measured 2026-12-02, each run alone (``casmag solve problems/planar/walk.yaml --set
+    simulation.trajectory.samples=750 --set "simulation.trajectory.area=[15.0, 10.0]"
+    --set model.gp.form=tiled --set model.gp.kernel=curl_free``, the field 17-20 times its
+    noise): seeds 1 / 2 / 3 RMSE 0.080 / 0.425 / 0.114 m at 0.75 l (seed 2 not trusted,
+    mean NEES 196), 0.051-0.056 / 0.066 / 0.053 m at 0.5-0.6 l, one box (seed 1) 0.052 m;
+    with ten times the noise (the field 2.1 times it) 0.175 m at 0.75 l, 0.142 m at
+    0.55 l. This rule takes 0.55 l and 0.65 l there; 0.75 l below about half the noise."""
+    if field_to_noise is None or not np.isfinite(field_to_noise) or field_to_noise <= 0.0:
+        return BUMP_SPACING
+    if unresolved_field(BUMP_SPACING) * field_to_noise <= BUMP_UNRESOLVED:
+        return BUMP_SPACING
+    if unresolved_field(BUMP_SPACING_FINEST) * field_to_noise >= BUMP_UNRESOLVED:
+        return BUMP_SPACING_FINEST
+    excess = lambda h: unresolved_field(h) * field_to_noise - BUMP_UNRESOLVED  # noqa: E731
+    return float(brentq(excess, BUMP_SPACING_FINEST, BUMP_SPACING, xtol=1e-6))
 
 
 def tile_grid(
@@ -134,9 +176,11 @@ def tile_grid(
     spacing: float | None = None,
     reach: float | None = None,
     basis: str | None = None,
+    lattice: float | None = None,
 ) -> TileGrid:
-    """The tiles for positions X (N, d): spacing h (default TILE_SPACING l, or BUMP_SPACING
-    l for bumps), every tile whose support comes within ``reach`` (default 3 l, as the box
+    """The tiles for positions X (N, d): spacing h [m] (default TILE_SPACING l, or for bumps
+    ``lattice`` l, default BUMP_SPACING l: :func:`bump_spacing` gives it from the field's
+    strength), every tile whose support comes within ``reach`` (default 3 l, as the box
     margin of the global map) of a position, and the tile basis (``basis``, default
     TILE_BASIS: curl-free, frequencies up to TILE_OMEGA / l, or bumps of radius BUMP_RADIUS
     l)."""
@@ -147,7 +191,8 @@ def tile_grid(
     if kind not in TILE_BASES:
         raise ValueError(f"tile basis {kind!r} is not one of {', '.join(TILE_BASES)}")
     if kind == "bumps":
-        h = BUMP_SPACING * ell if spacing is None else float(spacing)
+        h = (BUMP_SPACING if lattice is None else float(lattice)) * ell
+        h = h if spacing is None else float(spacing)
         radius = BUMP_RADIUS * ell
         # nodes whose bump reaches a point within `reach` of a position
         return TileGrid.around(

@@ -694,7 +694,9 @@ class RecordingGPSpec(Strict):
     a value or ``estimate`` (the windowed marginal likelihood on the dead-reckoned path);
     ``sigma_lin``: the constant field's prior (None: from the data); ``num_basis``,
     ``margin``: the reduced-rank basis (None: casmag.model.rrmap's); ``tile_basis``: the
-    tiled map's basis, ``bumps`` or ``hilbert`` (None: casmag.model.tiledmap.TILE_BASIS)."""
+    tiled map's basis, ``bumps`` or ``hilbert`` (None: casmag.model.tiledmap.TILE_BASIS);
+    ``bump_spacing``: the bumps' lattice in lengthscales (None: from the field's strength
+    against the noise, casmag.model.tiledmap.bump_spacing)."""
 
     form: Literal["auto", "reduced_rank", "tiled"] = "auto"
     kernel: Literal["se", "curl_free"] = "se"
@@ -704,6 +706,7 @@ class RecordingGPSpec(Strict):
     num_basis: Annotated[int, Field(ge=1, le=5000)] | None = None
     margin: PositiveFloat | None = None
     tile_basis: Literal["bumps", "hilbert"] | None = None
+    bump_spacing: Annotated[float, Field(ge=0.2, le=2.0)] | None = None
 
     _no_truth = field_validator("sigma_f", "lengthscale", mode="before")(no_truth_on_a_recording)
 
@@ -744,6 +747,7 @@ FIELD_SECTIONS = {
             "num_basis",
             "margin",
             "tile_basis",
+            "bump_spacing",
         )
     },
 }
@@ -849,7 +853,9 @@ class PlanarOptions:
     around it; needs kernel ``curl_free``; the Hessian is Gauss-Newton, ``curvature``
     applies to the box only) or ``auto`` (chosen once the lengthscale is known,
     casmag.model.mapchoice; ``casmag slam``'s default) [reduced_rank]; tile_basis: the
-    tiles' basis (None: casmag.model.tiledmap.TILE_BASIS); solver: IPOPT
+    tiles' basis (None: casmag.model.tiledmap.TILE_BASIS); bump_spacing: the bumps' lattice
+    in lengthscales (None: from the field's strength once the hyperparameters are known,
+    casmag.model.tiledmap.bump_spacing); solver: IPOPT
     settings. ``curvature``: the box's magnetometer block with its exact Hessian (true)
     or Gauss-Newton (false) under ``solver.hessian: auto`` (another value there chooses
     instead) [true]."""
@@ -867,6 +873,7 @@ class PlanarOptions:
     num_basis: int | None = None
     margin: float | None = None
     tile_basis: str | None = None
+    bump_spacing: float | None = None
     sigma_anchor: float = 1e-3
     sigma_psi0: float = 1e-3
     curvature: bool = True

@@ -90,7 +90,9 @@ class PoseOptions:
     tiles only where the path goes, each sample touching the 2^map_dim around it; kernel
     ``curl_free``; its Hessian ``hybrid`` whatever ``curvature`` says) or ``auto``
     (chosen once the lengthscale is known, casmag.model.mapchoice; ``casmag slam``'s
-    default) [reduced_rank].
+    default) [reduced_rank]; tile_basis: the tiles' basis (None:
+    casmag.model.tiledmap.TILE_BASIS); bump_spacing: the bumps' lattice in lengthscales
+    (None: from the field's strength, casmag.model.tiledmap.bump_spacing).
 
     map_dim: 3, 2 (the field a function of x and y only: motion near a plane) or ``auto``
     (2 when the dead reckoning's height varies by less than one lengthscale over stretches
@@ -118,6 +120,7 @@ class PoseOptions:
     num_basis: int | None = None
     margin: float | None = None
     tile_basis: str | None = None
+    bump_spacing: float | None = None
     map_dim: int | str = "auto"
     height_sigma: float | None = 0.2
     sigma_anchor: float = 1e-3

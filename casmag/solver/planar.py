@@ -30,7 +30,14 @@ from casmag.model.planar import (
 )
 from casmag.model.rotated import ridge_weights, rotated_design, whiten
 from casmag.model.rrmap import make_basis
-from casmag.model.tiledmap import home_points, left_map_tiles, ridge_tile_weights, tile_grid
+from casmag.model.tiledmap import (
+    TILE_BASIS,
+    bump_spacing,
+    home_points,
+    left_map_tiles,
+    ridge_tile_weights,
+    tile_grid,
+)
 from casmag.nlp import Progress
 from casmag.problem.imu import PlanarOptions
 from casmag.problem.spec import SolverSpec
@@ -364,7 +371,10 @@ def planar_structure(
         "solver": solver.model_dump_json(), "starts": tuple(a for a in starts if a < k),
     }  # fmt: skip
     if options.form == "tiled":
-        grid = tile_grid(around, ell, reach=options.margin, basis=options.tile_basis)
+        grid = tile_grid(
+            around, ell, reach=options.margin, basis=options.tile_basis,
+            lattice=options.bump_spacing,
+        )  # fmt: skip
         return PlanarStructure(**common, basis=None, grid=grid, home=home_points(grid, around))
     hb = make_basis(options.kernel, around, ell, options.num_basis, options.margin)
     return PlanarStructure(
@@ -673,13 +683,20 @@ def hyperparameters_and_map(
     box or tiles for the map laid around ``positions(options, lengthscale)``, default P,
     against ``state_unknowns`` pose unknowns), the choice, and the hyperparameters
     (:func:`hyperparameters_from_data`): estimated again when the tiles changed the
-    kernel to curl-free, whose hyperparameters differ from the SE kernel's."""
+    kernel to curl-free, whose hyperparameters differ from the SE kernel's. Tiles get
+    ``bump_spacing`` from the field's strength against the noise (casmag.model.tiledmap.
+    bump_spacing) unless it was given; the Hilbert tiles do not read it."""
     hyper = hyperparameters_from_data(options, P, Y_map)
     kernel, ell = options.kernel, hyper[1]
     X = P if positions is None else positions(options, ell)
     options, choice = resolve_options(options, X, ell, state_unknowns, box_only)
     if options.kernel != kernel:
         hyper = hyperparameters_from_data(options, P, Y_map)
+    bumps = (options.tile_basis or TILE_BASIS) == "bumps"
+    if options.form == "tiled" and bumps and options.bump_spacing is None:
+        sigma_f, ell, sigma_m = hyper[:3]
+        lattice = bump_spacing(sigma_f / (ell * sigma_m))
+        options = dataclasses.replace(options, bump_spacing=lattice)
     return options, choice, hyper
 
 

@@ -350,7 +350,10 @@ def pose_structure(
         "starts": tuple(a for a in starts if a < k),
     }  # fmt: skip
     if options.form == "tiled":
-        grid = tile_grid(around[:, :dim], ell, reach=options.margin, basis=options.tile_basis)
+        grid = tile_grid(
+            around[:, :dim], ell, reach=options.margin, basis=options.tile_basis,
+            lattice=options.bump_spacing,
+        )  # fmt: skip
         return PoseStructure(
             **common, basis=None, grid=grid, home=home_points(grid, around[:, :dim])
         )

@@ -116,3 +116,57 @@ def test_prior_variances_numeric_and_symbolic():
     S = ca.Function("S", [sf], [tiles.prior_variances(sf, ELL)])
     assert np.allclose(np.asarray(S(2.0)).ravel(), S2)
     assert tiles.grid.spacing == pytest.approx(BUMP_SPACING * ELL)
+
+
+def test_a_coarser_lattice_leaves_out_more_of_the_field():
+    """Least-squares fits of the lattice to draws of the exact curl-free GP in the plane
+    (30 x 30 points over 2.4 x 2.4 m, noise 1e-3 of the field, read in the middle where
+    the lattice covers every side): what is left is below the spectral bound
+    unresolved_field (measured 0.007-0.009 of the field at 0.75 l, 0.0015-0.0024 at
+    0.65 l, the noise at 0.55 l, over seeds 0-2), and falls with the spacing."""
+    from casmag.model.tiledmap import unresolved_field
+
+    g = np.linspace(0.0, 2.4, 30)
+    X = np.array([(a, b) for a in g for b in g])
+    Z = np.column_stack([X, np.zeros(len(X))])
+    K = np.asarray(get_kernel("curl_free").matrix(Z, Z, 0.7, ELL))
+    y = np.linalg.cholesky(K + 1e-8 * K.diagonal().max() * np.eye(len(K))) @ (
+        np.random.default_rng(0).normal(size=len(K))
+    )
+    middle = np.tile(np.all(np.abs(X - 1.2) <= 0.6, axis=1), 3)
+    noise = 1e-3 * 0.7 / ELL
+    left = {}
+    for h in (0.75, 0.65, 0.55):
+        tiles = _lattice(X, lattice=h)
+        A = tiles.design(X)
+        A = A.toarray() if hasattr(A, "toarray") else np.asarray(A)
+        prior = np.tile(np.ravel(tiles.prior_variances(0.7, ELL)), tiles.num_tiles)
+        w = np.linalg.solve(A.T @ A / noise**2 + np.diag(1.0 / prior), A.T @ y / noise**2)
+        left[h] = np.sqrt(np.mean((A @ w - y)[middle] ** 2)) / (0.7 / ELL)
+        assert left[h] < unresolved_field(h)
+    assert left[0.65] < 0.5 * left[0.75] and left[0.55] < left[0.65]
+    assert left[0.75] > 3e-3  # the lattice of 0.75 l does leave part of the field out
+
+
+def test_bump_spacing_follows_the_field_against_the_noise():
+    """The lattice is the coarsest (0.75 l) for a weak or unknown field, finer as the field
+    grows against the noise, never below 0.5 l; each spacing leaves at most
+    BUMP_UNRESOLVED of the noise unresolved."""
+    from casmag.model.tiledmap import (
+        BUMP_SPACING_FINEST,
+        BUMP_UNRESOLVED,
+        bump_spacing,
+        unresolved_field,
+    )
+
+    assert bump_spacing(None) == BUMP_SPACING == bump_spacing(0.3)
+    strengths = [0.6, 1.0, 2.1, 5.0, 14.5, 19.5, 50.0]
+    spacings = [bump_spacing(s) for s in strengths]
+    assert np.all(np.diff(spacings) < 0)
+    assert BUMP_SPACING_FINEST < spacings[-1] < spacings[0] < BUMP_SPACING
+    for s, h in zip(strengths, spacings, strict=True):
+        assert unresolved_field(h) * s == pytest.approx(BUMP_UNRESOLVED, rel=1e-4)
+    assert bump_spacing(1e4) == BUMP_SPACING_FINEST
+    # the spacings the measured walks took (README, Tiled map)
+    assert bump_spacing(19.5) == pytest.approx(0.545, abs=0.005)
+    assert bump_spacing(2.1) == pytest.approx(0.645, abs=0.005)
