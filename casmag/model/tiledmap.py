@@ -145,12 +145,14 @@ def unresolved_field(spacing: float) -> float:
     return float(np.sqrt((1.0 + u) * np.exp(-u)))
 
 
-def bump_spacing(field_to_noise: float | None) -> float:
-    """The bump lattice's spacing in lengthscales for a field ``field_to_noise`` times the
-    magnetometer's noise (sigma_f / (l sigma_m) for the curl-free kernel, whose field
-    components have the standard deviation sigma_f / l): the coarsest spacing, between
-    BUMP_SPACING_FINEST and BUMP_SPACING, whose :func:`unresolved_field` times
-    ``field_to_noise`` is at most BUMP_UNRESOLVED; BUMP_SPACING when it is not known.
+def bump_spacing(sigma_f: float | None, lengthscale: float, sigma_m: float | None) -> float:
+    """The bump lattice's spacing in lengthscales for the curl-free field of ``sigma_f``
+    and ``lengthscale`` read with the noise ``sigma_m`` (its components have the standard
+    deviation sigma_f / l, so the field is sigma_f / (l sigma_m) times the noise): the
+    coarsest spacing, between BUMP_SPACING_FINEST and BUMP_SPACING, whose
+    :func:`unresolved_field` times that ratio is at most BUMP_UNRESOLVED; BUMP_SPACING when
+    sigma_f or sigma_m is not known. A coarse-to-fine stage's longer lengthscale is a
+    smoother field, so its lattice is coarser in its lengthscales.
 
     What a lattice leaves out does not average away over the samples: it moves the path.
     Measured 2026-12-02, each run alone (``casmag solve problems/planar/walk.yaml --set
@@ -160,7 +162,10 @@ def bump_spacing(field_to_noise: float | None) -> float:
     mean NEES 196), 0.051-0.056 / 0.066 / 0.053 m at 0.5-0.6 l, one box (seed 1) 0.052 m;
     with ten times the noise (the field 2.1 times it) 0.175 m at 0.75 l, 0.142 m at
     0.55 l. This rule takes 0.55 l and 0.65 l there; 0.75 l below about half the noise."""
-    if field_to_noise is None or not np.isfinite(field_to_noise) or field_to_noise <= 0.0:
+    if sigma_f is None or sigma_m is None:
+        return BUMP_SPACING
+    field_to_noise = float(sigma_f) / (float(lengthscale) * float(sigma_m))
+    if not np.isfinite(field_to_noise) or field_to_noise <= 0.0:
         return BUMP_SPACING
     if unresolved_field(BUMP_SPACING) * field_to_noise <= BUMP_UNRESOLVED:
         return BUMP_SPACING
@@ -177,13 +182,14 @@ def tile_grid(
     reach: float | None = None,
     basis: str | None = None,
     lattice: float | None = None,
+    field: tuple[float, float] | None = None,
 ) -> TileGrid:
     """The tiles for positions X (N, d): spacing h [m] (default TILE_SPACING l, or for bumps
-    ``lattice`` l, default BUMP_SPACING l: :func:`bump_spacing` gives it from the field's
-    strength), every tile whose support comes within ``reach`` (default 3 l, as the box
-    margin of the global map) of a position, and the tile basis (``basis``, default
-    TILE_BASIS: curl-free, frequencies up to TILE_OMEGA / l, or bumps of radius BUMP_RADIUS
-    l)."""
+    ``lattice`` l, default :func:`bump_spacing` from ``field``, the field's sigma_f and the
+    magnetometer's sigma_m, BUMP_SPACING l without it), every tile whose support comes
+    within ``reach`` (default 3 l, as the box margin of the global map) of a position, and
+    the tile basis (``basis``, default TILE_BASIS: curl-free, frequencies up to TILE_OMEGA
+    / l, or bumps of radius BUMP_RADIUS l)."""
     X = np.asarray(X, dtype=float)
     ell = float(lengthscale)
     reach = 3.0 * ell if reach is None else float(reach)
@@ -191,7 +197,10 @@ def tile_grid(
     if kind not in TILE_BASES:
         raise ValueError(f"tile basis {kind!r} is not one of {', '.join(TILE_BASES)}")
     if kind == "bumps":
-        h = (BUMP_SPACING if lattice is None else float(lattice)) * ell
+        if lattice is None:
+            sigma_f, sigma_m = (None, None) if field is None else field
+            lattice = bump_spacing(sigma_f, ell, sigma_m)
+        h = float(lattice) * ell
         h = h if spacing is None else float(spacing)
         radius = BUMP_RADIUS * ell
         # nodes whose bump reaches a point within `reach` of a position

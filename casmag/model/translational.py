@@ -43,7 +43,6 @@ from casmag.model.knots import Knots
 from casmag.model.rrmap import field_and_jacobians, make_basis
 from casmag.model.tiledmap import (
     TRANSLATIONAL_TILE_BASIS,
-    bump_spacing,
     home_points,
     ridge_tile_weights,
     tile_grid,
@@ -87,15 +86,13 @@ class Structure:
             basis = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
         elif m.gp.form == "tiled":
             ell = problem.assumed_lengthscale
-            sigma_f, sigma_m = problem.assumed_sigma_f, problem.assumed_sigma_m
-            strength = None if sigma_f is None or sigma_m is None else sigma_f / (ell * sigma_m)
             tiles = tile_grid(
                 X0,
                 ell,
                 m.gp.tile_spacing,
                 m.gp.margin,
                 m.gp.tile_basis or TRANSLATIONAL_TILE_BASIS,
-                lattice=bump_spacing(strength),
+                field=(problem.assumed_sigma_f, problem.assumed_sigma_m),
             )
             home = home_points(tiles, X0)
         return cls(

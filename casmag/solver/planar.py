@@ -31,8 +31,6 @@ from casmag.model.planar import (
 from casmag.model.rotated import ridge_weights, rotated_design, whiten
 from casmag.model.rrmap import make_basis
 from casmag.model.tiledmap import (
-    TILE_BASIS,
-    bump_spacing,
     home_points,
     left_map_tiles,
     ridge_tile_weights,
@@ -362,10 +360,13 @@ def planar_structure(
     ell: float,
     solver: Any,
     starts: tuple[int, ...] = (0,),
+    field: tuple[float, float] | None = None,
 ) -> PlanarStructure:
     """The first k samples' problem with the IPOPT settings ``solver``, its map (box or
     tiles, for the lengthscale ``ell``) around the positions ``around``; ``starts``: the
-    first sample of each session."""
+    first sample of each session; ``field``: sigma_f and sigma_m, from which a lattice of
+    bumps takes its spacing unless ``model.gp.bump_spacing`` gives it
+    (casmag.model.tiledmap.bump_spacing)."""
     common = {
         "n": k, "bias": options.bias, "kernel": options.kernel,
         "solver": solver.model_dump_json(), "starts": tuple(a for a in starts if a < k),
@@ -373,7 +374,7 @@ def planar_structure(
     if options.form == "tiled":
         grid = tile_grid(
             around, ell, reach=options.margin, basis=options.tile_basis,
-            lattice=options.bump_spacing,
+            lattice=options.bump_spacing, field=field,
         )  # fmt: skip
         return PlanarStructure(**common, basis=None, grid=grid, home=home_points(grid, around))
     hb = make_basis(options.kernel, around, ell, options.num_basis, options.margin)
@@ -616,7 +617,7 @@ class PlanarStaged(StagedModel):
         # the assumed one
         s_k = planar_structure(
             self.options, k, around, map_lengthscale(tiled, self.lengthscale, lengthscale),
-            solver, self.session_starts,
+            solver, self.session_starts, (self.sigma_f, self.sigma_m),
         )  # fmt: skip
         psi_0 = np.asarray(start["psi"], float).ravel()
         x0 = {"P": start["P"], "psi": psi_0.reshape(-1, 1), "bias": start["bias"]}
@@ -683,20 +684,13 @@ def hyperparameters_and_map(
     box or tiles for the map laid around ``positions(options, lengthscale)``, default P,
     against ``state_unknowns`` pose unknowns), the choice, and the hyperparameters
     (:func:`hyperparameters_from_data`): estimated again when the tiles changed the
-    kernel to curl-free, whose hyperparameters differ from the SE kernel's. Tiles get
-    ``bump_spacing`` from the field's strength against the noise (casmag.model.tiledmap.
-    bump_spacing) unless it was given; the Hilbert tiles do not read it."""
+    kernel to curl-free, whose hyperparameters differ from the SE kernel's."""
     hyper = hyperparameters_from_data(options, P, Y_map)
     kernel, ell = options.kernel, hyper[1]
     X = P if positions is None else positions(options, ell)
     options, choice = resolve_options(options, X, ell, state_unknowns, box_only)
     if options.kernel != kernel:
         hyper = hyperparameters_from_data(options, P, Y_map)
-    bumps = (options.tile_basis or TILE_BASIS) == "bumps"
-    if options.form == "tiled" and bumps and options.bump_spacing is None:
-        sigma_f, ell, sigma_m = hyper[:3]
-        lattice = bump_spacing(sigma_f / (ell * sigma_m))
-        options = dataclasses.replace(options, bump_spacing=lattice)
     return options, choice, hyper
 
 

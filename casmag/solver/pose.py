@@ -339,11 +339,12 @@ def solve_pose(
 
 def pose_structure(
     options: PoseOptions, k: int, around: np.ndarray, ell: float, dim: int, height: bool,
-    solver: Any, starts: tuple[int, ...] = (0,),
+    solver: Any, starts: tuple[int, ...] = (0,), field: tuple[float, float] | None = None,
 ) -> PoseStructure:  # fmt: skip
     """The first k samples' problem with the IPOPT settings ``solver``, its map (box or
     tiles, for the lengthscale ``ell``, in ``dim`` dimensions) around the positions
-    ``around``; ``starts``: the first sample of each session."""
+    ``around``; ``starts``: the first sample of each session; ``field``: sigma_f and
+    sigma_m, for a lattice of bumps (casmag.solver.planar.planar_structure)."""
     common = {
         "n": k, "map_dim": dim, "kernel": options.kernel, "solver": solver.model_dump_json(),
         "curvature": options.curvature, "height": height,
@@ -352,7 +353,7 @@ def pose_structure(
     if options.form == "tiled":
         grid = tile_grid(
             around[:, :dim], ell, reach=options.margin, basis=options.tile_basis,
-            lattice=options.bump_spacing,
+            lattice=options.bump_spacing, field=field,
         )  # fmt: skip
         return PoseStructure(
             **common, basis=None, grid=grid, home=home_points(grid, around[:, :dim])
@@ -441,14 +442,16 @@ class PoseStaged(StagedModel):
         around = self.P_dr if k == self.n and not tiled else P0
         starts = self.session_starts[: len(self.sessions(k))]
         ell = map_lengthscale(tiled, self.lengthscale, lengthscale)
-        s_k = pose_structure(self.options, k, around, ell, dim, self.height, solver, starts)
+        sigma_m, sigma_f = self.params["sigma_m"], self.params["sigma_f"]
+        s_k = pose_structure(
+            self.options, k, around, ell, dim, self.height, solver, starts, (sigma_f, sigma_m)
+        )
         params_k = {
             **self.params, "U": self.U[: k - 1], "dt": self.dt[: k - 1].reshape(-1, 1),
             "Y": self.Y[:k], "lengthscale": lengthscale, **nominal_parameters(Q0, starts),
             "anchor_p": self.params["anchor_p"][: len(starts)],
             "anchor_q": self.params["anchor_q"][: len(starts)],
         }  # fmt: skip
-        sigma_m, sigma_f = self.params["sigma_m"], self.params["sigma_f"]
         x0 = {
             "P": P0, "D": np.zeros((k, 3)),
             "bias_p": np.reshape(start["bias_p"], (-1, 3)),

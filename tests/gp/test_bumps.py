@@ -159,14 +159,19 @@ def test_bump_spacing_follows_the_field_against_the_noise():
         unresolved_field,
     )
 
-    assert bump_spacing(None) == BUMP_SPACING == bump_spacing(0.3)
+    # field over noise sigma_f / (l sigma_m), here at l = 0.5 m, sigma_m = 0.1
+    ratio = lambda s: bump_spacing(s * 0.05, 0.5, 0.1)  # noqa: E731
+    assert bump_spacing(None, 0.5, 0.1) == bump_spacing(1.0, 0.5, None) == BUMP_SPACING
+    assert ratio(0.3) == BUMP_SPACING
     strengths = [0.6, 1.0, 2.1, 5.0, 14.5, 19.5, 50.0]
-    spacings = [bump_spacing(s) for s in strengths]
+    spacings = [ratio(s) for s in strengths]
     assert np.all(np.diff(spacings) < 0)
     assert BUMP_SPACING_FINEST < spacings[-1] < spacings[0] < BUMP_SPACING
     for s, h in zip(strengths, spacings, strict=True):
         assert unresolved_field(h) * s == pytest.approx(BUMP_UNRESOLVED, rel=1e-4)
-    assert bump_spacing(1e4) == BUMP_SPACING_FINEST
+    assert ratio(1e4) == BUMP_SPACING_FINEST
     # the spacings the measured walks took (README, Tiled map)
-    assert bump_spacing(19.5) == pytest.approx(0.545, abs=0.005)
-    assert bump_spacing(2.1) == pytest.approx(0.645, abs=0.005)
+    assert ratio(19.5) == pytest.approx(0.545, abs=0.005)
+    assert ratio(2.1) == pytest.approx(0.645, abs=0.005)
+    # only the ratio counts: a twice longer lengthscale at twice sigma_f, the same lattice
+    assert bump_spacing(2.0, 1.0, 0.1) == bump_spacing(1.0, 0.5, 0.1)

@@ -503,8 +503,9 @@ def test_coarse_to_fine_lays_the_tiles_for_each_stage(basis):
     if basis == "hilbert":
         assert spacing[0] == pytest.approx(2 * spacing[1])
     else:  # a lattice of bump_spacing(the stage's field over the noise) lengthscales
-        strength = prob.assumed_sigma_f / prob.assumed_sigma_m
-        assert spacing == pytest.approx([bump_spacing(strength / l) * l for l in (2 * ell, ell)])
+        sigma_f, sigma_m = prob.assumed_sigma_f, prob.assumed_sigma_m
+        lattice = [bump_spacing(sigma_f, l, sigma_m) * l for l in (2 * ell, ell)]
+        assert spacing == pytest.approx(lattice)
         assert spacing[0] > 2 * spacing[1]  # the coarse stage's field is weaker per l
     assert all(st.solved.sol.success for st in stages), [st.status for st in stages]
     # The last stage: the assumed lengthscale's problem from the coarse stage's positions,
@@ -525,15 +526,18 @@ def test_planar_coarse_to_fine_lays_the_tiles_for_each_stage(monkeypatch):
     """The planar model's coarse-to-fine stages (casmag.solver.planar.PlanarStaged) lay
     their tiles for each stage's lengthscale, as the translational ones do, and converge
     (seed 2, two loops, 2026-12-02: 0.0730 -> 0.0118 m in 9 + 11 iterations; the default
-    strategy's one batch reaches the same 0.0118 m)."""
+    strategy's one batch reaches the same 0.0118 m), each stage's lattice from its own
+    field against the noise (casmag.model.tiledmap.bump_spacing), as the translational
+    stages lay theirs."""
     import casmag.solver.planar as planar
 
-    laid: list[float] = []
+    laid: dict[float, float] = {}
     original = planar.planar_structure
 
     def recording(options, k, around, ell, *args, **kwargs):
-        laid.append(ell)
-        return original(options, k, around, ell, *args, **kwargs)
+        s = original(options, k, around, ell, *args, **kwargs)
+        laid[round(ell, 12)] = s.grid.spacing
+        return s
 
     monkeypatch.setattr(planar, "planar_structure", recording)
     r = _planar_room_walk(
@@ -546,5 +550,9 @@ def test_planar_coarse_to_fine_lays_the_tiles_for_each_stage(monkeypatch):
     ell = r.hyperparameters["lengthscale"]
     scales = [st["lengthscale"] for st in r.stages]
     assert scales[-2:] == pytest.approx([2 * ell, ell])
-    assert set(np.round(laid, 12)) == set(np.round([2 * ell, ell], 12))
+    assert set(laid) == set(np.round([2 * ell, ell], 12))
+    sigma_f, sigma_m = r.hyperparameters["sigma_f"], r.hyperparameters["sigma_m"]
+    for l in (2 * ell, ell):
+        assert laid[round(l, 12)] == pytest.approx(bump_spacing(sigma_f, l, sigma_m) * l)
+    assert laid[round(2 * ell, 12)] > 2 * laid[round(ell, 12)]
     assert r.rmse_after <= 0.5 * r.rmse_before
