@@ -73,9 +73,11 @@ def test_a_recording_is_solved_as_its_problem_file(recording):
     assert r2.info["keyframe_rate_hz"] == pytest.approx(5.0)
     assert r2.info["defaults"]["from_rest"] == []
     a1, a2 = r1.arrays, r2.arrays
-    np.testing.assert_allclose(a2["P_estimate"], a1["P_estimate"], rtol=0, atol=1e-9)
+    # Round-off of the two paths' sums: up to 4.1e-9 m on an AMD EPYC with one BLAS
+    # thread (2026-12-02), below 1e-9 m on the machine the test was written on.
+    np.testing.assert_allclose(a2["P_estimate"], a1["P_estimate"], rtol=0, atol=1e-8)
     np.testing.assert_allclose(a2["P_true"], a1["P_true"], rtol=0, atol=0)
-    assert r2.rmse_after == pytest.approx(r1.rmse_after, abs=1e-9)
+    assert r2.rmse_after == pytest.approx(r1.rmse_after, abs=1e-8)
     assert r2.details["errors"]["gp_slam"]["orientation_rms_deg"] is not None
 
 
