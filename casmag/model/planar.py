@@ -142,6 +142,42 @@ class PlanarMotion(MotionModel):
         return Pose(P, n, 2, "P", None, knots, rotation)
 
 
+def displacement_bias_coupling(
+    P: np.ndarray,
+    psi: np.ndarray,
+    U: np.ndarray,
+    sigma_disp: float,
+    starts: tuple[int, ...] = (0,),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The odometry block's cross Hessian between the states (P, psi) and a body-frame
+    displacement bias b (forward, left) per step, the step read as u - b, at b = 0 (the
+    model has no such unknown): (n, 2, 2) against the positions (rows: the position's
+    axis, columns: b's component), (n, 2) against the headings, and the steps (k to k + 1
+    within a session) it sums. A step's residual r_k = (p_k+1 - p_k - Rz(psi_k)(u_k - b)) /
+    sigma_disp gives Rz(psi_k) / sigma_disp^2 on p_k+1, its negative on p_k, and on psi_k
+    (u_k,y, -u_k,x) / sigma_disp^2 plus the residual's own term r_k^T Rz'(psi_k) /
+    sigma_disp."""
+    P = np.asarray(P, dtype=float)
+    psi = np.asarray(psi, dtype=float).ravel()
+    n = psi.size
+    k = np.array(
+        [i for a, e in Knots(n, 1, starts).bounds for i in range(a, e - 1)], dtype=np.int64
+    )
+    w = 1.0 / float(sigma_disp) ** 2
+    c, s = np.cos(psi[k]), np.sin(psi[k])
+    R = np.stack([np.stack([c, -s], axis=1), np.stack([s, c], axis=1)], axis=1)  # (m, 2, 2)
+    H_P = np.zeros((n, 2, 2))
+    np.add.at(H_P, k + 1, w * R)
+    np.add.at(H_P, k, -w * R)
+    u = np.asarray(U, dtype=float)[k, :2]
+    step = np.einsum("kab,kb->ka", R, u)
+    r = P[k + 1] - P[k] - step  # times sigma_disp
+    dR = np.stack([np.stack([-s, -c], axis=1), np.stack([c, -s], axis=1)], axis=1)
+    H_psi = np.zeros((n, 2))
+    H_psi[k] = w * (np.column_stack([u[:, 1], -u[:, 0]]) + np.einsum("ka,kab->kb", r, dR))
+    return H_P, H_psi, k
+
+
 def cached_planar_nlp(s: PlanarStructure, cache: bool = True) -> NLP:
     """The planar model with the structure's map, built once per process (``cache``
     False: built anew and not kept, e.g. a tiled map's pattern moved for one solve)."""

@@ -801,6 +801,7 @@ class PlanarModelSpec(StartsSpec):
     sigma_anchor: PositiveFloat = 1.0e-3
     sigma_psi0: PositiveFloat = 1.0e-3
     curvature: bool = True
+    displacement_bias: Annotated[float, Field(ge=0.0, le=0.5)] = 0.01
 
     _nest = model_validator(mode="before")(nest_field_keys)
 
@@ -858,7 +859,11 @@ class PlanarOptions:
     casmag.model.tiledmap.bump_spacing); solver: IPOPT
     settings. ``curvature``: the box's magnetometer block with its exact Hessian (true)
     or Gauss-Newton (false) under ``solver.hessian: auto`` (another value there chooses
-    instead) [true]."""
+    instead) [true]. ``displacement_bias``: the body-frame displacement bias per step
+    (forward and left) the position covariance allows for, a fraction of the median step
+    [0.01]: not estimated (a constant forward bias is a scale of the whole path, which the
+    map cannot see), taken in as a consider parameter (casmag.solver.planar.
+    displacement_bias_consider); 0: none."""
 
     sigma_disp: float = 0.01
     sigma_dyaw: float = 0.002
@@ -877,6 +882,7 @@ class PlanarOptions:
     sigma_anchor: float = 1e-3
     sigma_psi0: float = 1e-3
     curvature: bool = True
+    displacement_bias: float = 0.01
     starts: int = 1
     start_heading_deg: float = 10.0
     form: str = "reduced_rank"

@@ -8,9 +8,9 @@ import dataclasses
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import model_validator
+from pydantic import Field, model_validator
 
 from casmag.problem.imu import (
     PLANAR_SOLVER_DEFAULTS,
@@ -53,6 +53,7 @@ class PoseModelSpec(StartsSpec):
     sigma_anchor: PositiveFloat = 1.0e-3
     sigma_att0: PositiveFloat = 1.0e-3
     curvature: Literal["hybrid", "exact", "gauss-newton"] = "hybrid"
+    displacement_bias: Annotated[float, Field(ge=0.0, le=0.5)] = 0.01
 
     _nest = model_validator(mode="before")(nest_field_keys)
 
@@ -78,7 +79,10 @@ class PoseOptions:
     samples), and the GP prior of a stretched map is lower: on the bench's walk (seed 1)
     the estimate stretched the path by 16 % (RMSE 3.59 m from 0.41 m), the same from the
     truth; estimate_bias_w: estimate a constant rotation-rate bias [rad/s] [true];
-    bias_p_prior [0.01], bias_w_prior [0.05, the planar model's]: their zero-mean priors.
+    bias_p_prior [0.01], bias_w_prior [0.05, the planar model's]: their zero-mean priors;
+    displacement_bias: when the displacement bias is not estimated, the standard deviation
+    per body axis the position covariance allows for it, a fraction of the median step
+    (taken in as a consider parameter, as the planar model's; 0: none) [0.01].
 
     sigma_m, sigma_f, lengthscale: values or ``estimate`` (windowed marginal likelihood on
     the dead-reckoned path, the magnetometer turned into the map frame by the dead-reckoned
@@ -126,6 +130,7 @@ class PoseOptions:
     sigma_anchor: float = 1e-3
     sigma_att0: float = 1e-3
     curvature: str = "hybrid"
+    displacement_bias: float = 0.01
     starts: int = 1
     start_heading_deg: float = 10.0
     form: str = "reduced_rank"

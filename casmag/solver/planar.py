@@ -27,6 +27,7 @@ from casmag.model.planar import (
     cached_planar_nlp,
     dead_reckon_planar,
     dead_reckon_sessions,
+    displacement_bias_coupling,
 )
 from casmag.model.rotated import ridge_weights, rotated_design, whiten
 from casmag.model.rrmap import make_basis
@@ -225,7 +226,10 @@ def solve_planar(
         if box is not None:
             flags.append(box)
     P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
-    u_summary, P_cov, P_cov_plain = uncertainty(final, P_true, sigma_m, options.solver)
+    u_summary, P_cov, P_cov_plain = uncertainty(
+        final, P_true, sigma_m, options.solver,
+        lambda f: displacement_bias_consider(f, U, options, starts),
+    )  # fmt: skip
     before = after = (None, None)
     hb_deg = ha_deg = None
     if truth is not None:
@@ -637,6 +641,34 @@ class PlanarStaged(StagedModel):
             s_k, cached_planar_nlp, params_k, x0, 2, progress=self.progress, fixed=held
         )
         return Solved(sol, nlp_k, s_k, lengthscale)
+
+
+def displacement_bias_consider(
+    final: Solved, U: np.ndarray, options: Any, starts: tuple[int, ...] = (0,)
+) -> np.ndarray | None:
+    """The consider parameters of a planar solve (casmag.solver.uncertainty.
+    position_uncertainty's ``consider``): a body-frame displacement bias per step, forward
+    and left, each with the standard deviation ``options.displacement_bias`` times the
+    median step, through the odometry's cross Hessian at the solution
+    (casmag.model.planar.displacement_bias_coupling); None when it is 0. Odometry scale
+    errors of 0.5-1 % are the error that stays on the simulated walks (README, Tiled map):
+    the map cannot see a scale, so the MAP keeps the odometry's and a covariance without
+    it is too confident wherever the path is far from its anchor."""
+    fraction = float(getattr(options, "displacement_bias", 0.0))
+    if fraction <= 0.0:
+        return None
+    x, layout = final.sol.x, final.nlp.x_layout
+    H_P, H_psi, steps = displacement_bias_coupling(x["P"], x["psi"], U, options.sigma_disp, starts)
+    if steps.size == 0:
+        return None
+    sigma_b = fraction * float(np.median(np.linalg.norm(np.asarray(U)[steps, :2], axis=1)))
+    n = H_psi.shape[0]
+    C = np.zeros((layout.size, 2))
+    off_P, off_psi = layout.entries["P"].offset, layout.entries["psi"].offset
+    for a in range(2):  # P packed by column (NLP layouts: order F)
+        C[off_P + a * n + np.arange(n)] = H_P[:, a, :]
+    C[off_psi + np.arange(n)] = H_psi
+    return sigma_b * C
 
 
 def heading_rotations(psi: np.ndarray) -> np.ndarray:

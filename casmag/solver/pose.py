@@ -16,6 +16,7 @@ from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
 from casmag.gp.savedmap import SavedMap
 from casmag.model.field import left_map_box
+from casmag.model.knots import Knots
 from casmag.model.mapchoice import box_needed
 from casmag.model.pose import (
     PoseStructure,
@@ -256,7 +257,10 @@ def solve_pose(
         if box is not None:
             flags.append(box)
     P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
-    u_summary, P_cov, P_cov_plain = uncertainty(final, P_true, sigma_m, options.solver)
+    u_summary, P_cov, P_cov_plain = uncertainty(
+        final, P_true, sigma_m, options.solver,
+        consider_fixed=displacement_bias_consider(U, options, starts),
+    )  # fmt: skip
     before = after = (None, None)
     att_before = att_after = None
     if truth is not None:
@@ -335,6 +339,24 @@ def solve_pose(
     if prior_map is not None:
         located(result, prior_map, map_source, sol.x["P"] if sol.success else None)
     return result
+
+
+def displacement_bias_consider(
+    U: np.ndarray, options: PoseOptions, starts: tuple[int, ...] = (0,)
+) -> dict[str, float] | None:
+    """The held displacement bias as a consider parameter of the position covariance
+    (casmag.solver.uncertainty.position_uncertainty's ``consider_fixed``): its standard
+    deviation per body axis ``options.displacement_bias`` times the median step within
+    the sessions; None when it is estimated or the fraction is 0 (the planar model's
+    casmag.solver.planar.displacement_bias_consider)."""
+    if options.estimate_bias_p or options.displacement_bias <= 0.0:
+        return None
+    n = np.asarray(U).shape[0] + 1
+    steps = [i for a, e in Knots(n, 1, starts).bounds for i in range(a, e - 1)]
+    if not steps:
+        return None
+    step = float(np.median(np.linalg.norm(np.asarray(U)[steps, :3], axis=1)))
+    return {"bias_p": options.displacement_bias * step}
 
 
 def pose_structure(

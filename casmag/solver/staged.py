@@ -812,17 +812,26 @@ def truth_check(
 
 
 def uncertainty(
-    final: Solved, P_true: np.ndarray | None, sigma_m: float, solver: SolverSpec
+    final: Solved,
+    P_true: np.ndarray | None,
+    sigma_m: float,
+    solver: SolverSpec,
+    consider: Callable[[Solved], np.ndarray | None] | None = None,
+    consider_fixed: dict[str, float] | None = None,
 ) -> tuple[dict[str, Any] | None, np.ndarray | None, np.ndarray | None]:
     """The Laplace position covariance of a staged model's final solve
     (casmag.solver.uncertainty.sample_state_uncertainty, with ``solver.uncertainty_inflation``):
     (summary, covariance, plain covariance); None for each when ``solver.uncertainty`` is off
-    or the solve failed."""
+    or the solve failed. ``consider(final)``: the consider parameters' C, or None;
+    ``consider_fixed``: held variables taken in as consider parameters, with their prior
+    standard deviations (casmag.solver.uncertainty.position_uncertainty)."""
     if not (final.sol.success and solver.uncertainty):
         return None, None, None
+    C = None if consider is None else consider(final)
     return sample_state_uncertainty(
-        final.nlp, final.sol, final.sol.x["P"], P_true, sigma_m, solver.uncertainty_inflation
-    )
+        final.nlp, final.sol, final.sol.x["P"], P_true, sigma_m, solver.uncertainty_inflation,
+        consider=C, consider_fixed=consider_fixed,
+    )  # fmt: skip
 
 
 #: ``info["map"]`` of a result until :meth:`casmag.result.Result.saved_map` computes it.

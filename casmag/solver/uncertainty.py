@@ -144,6 +144,8 @@ def position_uncertainty(
     fixed: tuple[str, ...] = (),
     dense_max: int | None = None,
     reuse: dict[str, Any] | None = None,
+    consider: np.ndarray | None = None,
+    consider_fixed: dict[str, float] | None = None,
 ) -> PositionUncertainty:
     """Laplace covariances of the positions at the solution ``sol`` of ``nlp``: the
     unknowns ``var`` (K, dim) at the knots (``C``: the translational model's knot
@@ -169,6 +171,12 @@ def position_uncertainty(
     reuse: a dict kept between calls for the same solution (the plain covariance, then the
     sandwich): the dense path keeps its solve H^-1 E there, so the second call neither
     evaluates nor factors the Hessian again.
+    consider: (n_x, q) C = H_xb S_b for q parameters b the solve held at zero (not
+    unknowns: the data cannot tell them apart from the path) with prior covariance S_b
+    S_b^T and cross Hessian H_xb: their uncertainty is taken in as consider parameters,
+    H^-1 C C^T H^-1 added to the covariance (the MAP moves by -H^-1 H_xb db for a db).
+    consider_fixed: variables among ``fixed`` taken in the same way, each with a prior
+    standard deviation: C from their columns of the Hessian.
     """
     dense_max = DENSE_MAX_UNKNOWNS if dense_max is None else dense_max
     x = {k: v for k, v in sol.x.items() if k in nlp.x_layout.entries}
@@ -179,18 +187,31 @@ def position_uncertainty(
     keep = np.flatnonzero(free)
     if meat is not None:
         meat = meat[keep][:, keep] if hasattr(meat, "tocsr") else meat[np.ix_(free, free)]
+    if consider is not None:
+        consider = np.asarray(consider, dtype=float)[keep]
+    H_full = None
+    if consider_fixed:
+        H_full = nlp.hessian(x, params).tocsc()
+        columns = []
+        for name, sigma in consider_fixed.items():
+            if name not in fixed:
+                raise ValueError(f"consider_fixed: {name} is not held fixed")
+            cols = entries[name].offset + np.arange(entries[name].size)
+            columns.append(float(sigma) * H_full[keep][:, cols].toarray())
+        extra = np.hstack(columns)
+        consider = extra if consider is None else np.hstack([consider, extra])
     position = keep.searchsorted(entries[var].offset)
     if keep.size > dense_max:
-        H = nlp.hessian(x, params)[keep][:, keep]
-        cov = _knot_covariance_sparse(H.tocsc(), meat, knots, dim, position)
+        H = (nlp.hessian(x, params) if H_full is None else H_full)[keep][:, keep]
+        cov = _knot_covariance_sparse(H.tocsc(), meat, knots, dim, position, consider)
     else:
         Z = None if reuse is None else reuse.get("Z")
         if Z is None:
-            H = nlp.hessian(x, params)[keep][:, keep]
+            H = (nlp.hessian(x, params) if H_full is None else H_full)[keep][:, keep]
             Z = _knot_solve_dense(H.toarray(), knots, dim, position)
             if reuse is not None:
                 reuse["Z"] = Z
-        cov = _knot_covariance_dense(Z, meat, knots, dim, position)
+        cov = _knot_covariance_dense(Z, meat, knots, dim, position, consider)
     N = knots.n
     s_in = np.arange(N) - knots.samples[knots.left]
     k_in = knots.samples[knots.left + 1] - knots.samples[knots.left]
@@ -217,15 +238,20 @@ def _knot_solve_dense(H: np.ndarray, knots: Knots, dim: int, position: int) -> n
 
 
 def _knot_covariance_dense(
-    Z: np.ndarray, meat: Any, knots: Knots, dim: int, position: int
-) -> np.ndarray:
+    Z: np.ndarray, meat: Any, knots: Knots, dim: int, position: int,
+    consider: np.ndarray | None = None,
+) -> np.ndarray:  # fmt: skip
     """(N, d, d) covariances of the samples from Z = H^-1 E (:func:`_knot_solve_dense`):
-    the knot block of H^-1, plus Z^T meat Z for the sandwich."""
+    the knot block of H^-1, plus Z^T meat Z for the sandwich and (Z^T C)(Z^T C)^T for
+    the consider parameters (:func:`position_uncertainty`)."""
     K = knots.count
     cols = position + np.arange(K * dim)
     cov_c = Z[cols, :]  # (K d, K d)
     if meat is not None:
         cov_c = cov_c + Z.T @ _dense_product(meat, Z)
+    if consider is not None:
+        G = Z.T @ consider
+        cov_c = cov_c + G @ G.T
     A = knots.matrix  # sparse (N, K)
     cov = np.empty((knots.n, dim, dim))
     for a in range(dim):
@@ -265,7 +291,10 @@ def _dense_product(S: Any, Z: np.ndarray) -> np.ndarray:
 SPARSE_CHUNK_BYTES = 256 * 2**20
 
 
-def _knot_covariance_sparse(H: Any, meat: Any, knots: Knots, dim: int, position: int) -> np.ndarray:
+def _knot_covariance_sparse(
+    H: Any, meat: Any, knots: Knots, dim: int, position: int,
+    consider: np.ndarray | None = None,
+) -> np.ndarray:  # fmt: skip
     """(N, d, d) covariances of the samples from a sparse LU factor of H (diagonal
     pivoting, so its pivots are positive exactly when H is positive definite): a sample
     reads at most its two neighbouring knots (casmag.model.knots), so only the covariance
@@ -301,6 +330,9 @@ def _knot_covariance_sparse(H: Any, meat: Any, knots: Knots, dim: int, position:
         G = Z[cols, :]
         if meat is not None:
             G = G + Z.T @ _dense_product(meat, Z)
+        if consider is not None:
+            Gc = Z.T @ consider
+            G = G + Gc @ Gc.T
         rows = np.flatnonzero((left >= j0) & (left < j1))
         Ar = A[rows][:, lo:hi]
         m = span.size
@@ -425,6 +457,8 @@ def sample_state_uncertainty(
     P_true: np.ndarray | None,
     sigma_m: float,
     method: str,
+    consider: np.ndarray | None = None,
+    consider_fixed: dict[str, float] | None = None,
 ) -> tuple[dict[str, Any], np.ndarray | None, np.ndarray | None]:
     """:func:`laplace_positions` for a model whose positions ``P`` are unknowns at every
     sample and whose magnetometer block is read through a rotation (the planar and pose
@@ -433,7 +467,8 @@ def sample_state_uncertainty(
     conditioned on the variables it held fixed (``sol.params``, ``sol.fixed``). Returns
     (summary, covariance, plain covariance); the summary is ``{"error": reason}`` (and the
     covariances None) when the Hessian is too large to factor densely or not positive
-    definite."""
+    definite. ``consider``, ``consider_fixed``: parameters held at zero whose uncertainty
+    both covariances take in (:func:`position_uncertainty`)."""
     params, fixed = sol.params, sol.fixed
     if params is None:
         return {"error": "not computed: the solution records no parameters"}, None, None
@@ -457,7 +492,16 @@ def sample_state_uncertainty(
     try:
         return laplace_positions(
             lambda meat: position_uncertainty(
-                nlp, sol, dict(params), knots, d, meat=meat, var="P", fixed=fixed
+                nlp,
+                sol,
+                dict(params),
+                knots,
+                d,
+                meat=meat,
+                var="P",
+                fixed=fixed,
+                consider=consider,
+                consider_fixed=consider_fixed,
             ),
             residuals,
             lambda factors: whitened_correction(state["J"], factors),
