@@ -60,12 +60,15 @@ from casmag.solver.staged import (
     Window,
     WindowPrior,
     anchored_at_truth,
+    consider_record,
+    displacement_bias_sigma,
     heading_bias_starts,
     map_lengthscale,
     solve_rehomed,
     solve_staged,
     truth_check,
     uncertainty,
+    with_consider,
 )
 from casmag.versions import versions
 
@@ -230,6 +233,8 @@ def solve_planar(
         final, P_true, sigma_m, options.solver,
         lambda f: displacement_bias_consider(f, U, options, starts),
     )  # fmt: skip
+    sigma_b = displacement_bias_sigma(U[:, :2], options.displacement_bias, starts)
+    with_consider(u_summary, consider_record(sigma_b, options.displacement_bias))
     before = after = (None, None)
     hb_deg = ha_deg = None
     if truth is not None:
@@ -651,17 +656,15 @@ def displacement_bias_consider(
     and left, each with the standard deviation ``options.displacement_bias`` times the
     median step, through the odometry's cross Hessian at the solution
     (casmag.model.planar.displacement_bias_coupling); None when it is 0. Odometry scale
-    errors of 0.5-1 % are the error that stays on the simulated walks (README, Tiled map):
+    errors of 0.5-1 % are the error that stays on the simulated walks (README, Planar and
+    pose uncertainty):
     the map cannot see a scale, so the MAP keeps the odometry's and a covariance without
     it is too confident wherever the path is far from its anchor."""
-    fraction = float(getattr(options, "displacement_bias", 0.0))
-    if fraction <= 0.0:
+    sigma_b = displacement_bias_sigma(np.asarray(U)[:, :2], options.displacement_bias, starts)
+    if sigma_b is None:
         return None
     x, layout = final.sol.x, final.nlp.x_layout
-    H_P, H_psi, steps = displacement_bias_coupling(x["P"], x["psi"], U, options.sigma_disp, starts)
-    if steps.size == 0:
-        return None
-    sigma_b = fraction * float(np.median(np.linalg.norm(np.asarray(U)[steps, :2], axis=1)))
+    H_P, H_psi, _ = displacement_bias_coupling(x["P"], x["psi"], U, options.sigma_disp, starts)
     n = H_psi.shape[0]
     C = np.zeros((layout.size, 2))
     off_P, off_psi = layout.entries["P"].offset, layout.entries["psi"].offset

@@ -16,7 +16,6 @@ from casmag.data.recording import Recording, read_recording
 from casmag.errors import DataError
 from casmag.gp.savedmap import SavedMap
 from casmag.model.field import left_map_box
-from casmag.model.knots import Knots
 from casmag.model.mapchoice import box_needed
 from casmag.model.pose import (
     PoseStructure,
@@ -58,12 +57,15 @@ from casmag.solver.staged import (
     Window,
     WindowPrior,
     anchored_at_truth,
+    consider_record,
+    displacement_bias_sigma,
     heading_bias_starts,
     map_lengthscale,
     solve_rehomed,
     solve_staged,
     truth_check,
     uncertainty,
+    with_consider,
 )
 
 #: Fixed biases are held at zero with IPOPT's fixed variables.
@@ -259,8 +261,10 @@ def solve_pose(
     P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
     u_summary, P_cov, P_cov_plain = uncertainty(
         final, P_true, sigma_m, options.solver,
-        consider_fixed=displacement_bias_consider(U, options, starts),
+        consider_fixed=(held := displacement_bias_consider(U, options, starts)),
     )  # fmt: skip
+    record = None if held is None else consider_record(held["bias_p"], options.displacement_bias)
+    with_consider(u_summary, record)
     before = after = (None, None)
     att_before = att_after = None
     if truth is not None:
@@ -349,14 +353,10 @@ def displacement_bias_consider(
     deviation per body axis ``options.displacement_bias`` times the median step within
     the sessions; None when it is estimated or the fraction is 0 (the planar model's
     casmag.solver.planar.displacement_bias_consider)."""
-    if options.estimate_bias_p or options.displacement_bias <= 0.0:
+    if options.estimate_bias_p:
         return None
-    n = np.asarray(U).shape[0] + 1
-    steps = [i for a, e in Knots(n, 1, starts).bounds for i in range(a, e - 1)]
-    if not steps:
-        return None
-    step = float(np.median(np.linalg.norm(np.asarray(U)[steps, :3], axis=1)))
-    return {"bias_p": options.displacement_bias * step}
+    sigma = displacement_bias_sigma(np.asarray(U)[:, :3], options.displacement_bias, starts)
+    return None if sigma is None else {"bias_p": sigma}
 
 
 def pose_structure(

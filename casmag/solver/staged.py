@@ -811,6 +811,34 @@ def truth_check(
     return wrong_basin_flag(sol.objective, true_start, P_true, ratio)
 
 
+def displacement_bias_sigma(
+    displacements: np.ndarray, fraction: float, starts: tuple[int, ...] = (0,)
+) -> float | None:
+    """The standard deviation [m per step] a consider parameter gives a body-frame
+    displacement bias: ``fraction`` of the median step length of the increments
+    ``displacements`` (n - 1, axes) within the sessions; None for a fraction of 0 or no
+    step."""
+    if fraction <= 0.0:
+        return None
+    D = np.asarray(displacements, dtype=float)
+    n = D.shape[0] + 1
+    ends = [*starts[1:], n]
+    steps = [i for a, e in zip(starts, ends, strict=True) for i in range(a, e - 1)]
+    if not steps:
+        return None
+    return float(fraction) * float(np.median(np.linalg.norm(D[steps], axis=1)))
+
+
+def consider_record(sigma: float | None, fraction: float) -> dict[str, Any] | None:
+    """``uncertainty.consider`` of a result: what the covariance took in."""
+    if sigma is None:
+        return None
+    return {
+        "displacement_bias": {"sigma_per_step_m": sigma, "fraction_of_step": fraction},
+        "method": "consider parameter: H^-1 H_xb S_b H_bx H^-1 added, not estimated",
+    }
+
+
 def uncertainty(
     final: Solved,
     P_true: np.ndarray | None,
@@ -832,6 +860,13 @@ def uncertainty(
         final.nlp, final.sol, final.sol.x["P"], P_true, sigma_m, solver.uncertainty_inflation,
         consider=C, consider_fixed=consider_fixed,
     )  # fmt: skip
+
+
+def with_consider(summary: dict[str, Any] | None, record: dict[str, Any] | None) -> None:
+    """Record ``record`` (:func:`consider_record`) in an uncertainty summary that holds a
+    covariance."""
+    if summary is not None and record is not None and "error" not in summary:
+        summary["consider"] = record
 
 
 #: ``info["map"]`` of a result until :meth:`casmag.result.Result.saved_map` computes it.

@@ -102,6 +102,9 @@ def test_the_consider_variance_is_the_maps_response_to_a_bias():
     assert np.corrcoef(added, shift2)[0, 1] > 0.9  # measured 0.96
     assert np.all(added > -1e-12)
     assert wide.uncertainty["sigma_mean"] > plain.uncertainty["sigma_mean"]
+    taken = wide.uncertainty["consider"]["displacement_bias"]
+    assert taken == {"sigma_per_step_m": pytest.approx(sigma_b), "fraction_of_step": fraction}
+    assert "consider" not in plain.uncertainty
 
 
 @pytest.mark.slow
@@ -123,3 +126,4 @@ def test_the_pose_models_held_displacement_bias_is_taken_in():
     grows = np.trace(added, axis1=1, axis2=2)
     assert grows[-1] > 10 * grows[1] > 0.0  # the anchor holds the start, not the far end
     assert wide.uncertainty["nees_mean"] < plain.uncertainty["nees_mean"]
+    assert wide.uncertainty["consider"]["displacement_bias"]["fraction_of_step"] == 0.01
