@@ -197,11 +197,13 @@ def tile_grid(
     if kind not in TILE_BASES:
         raise ValueError(f"tile basis {kind!r} is not one of {', '.join(TILE_BASES)}")
     if kind == "bumps":
-        if lattice is None:
+        if spacing is not None:
+            h = float(spacing)
+        elif lattice is not None:
+            h = float(lattice) * ell
+        else:
             sigma_f, sigma_m = (None, None) if field is None else field
-            lattice = bump_spacing(sigma_f, ell, sigma_m)
-        h = float(lattice) * ell
-        h = h if spacing is None else float(spacing)
+            h = bump_spacing(sigma_f, ell, sigma_m) * ell
         radius = BUMP_RADIUS * ell
         # nodes whose bump reaches a point within `reach` of a position
         return TileGrid.around(

@@ -85,10 +85,9 @@ class Structure:
             )
             basis = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
         elif m.gp.form == "tiled":
-            ell = problem.assumed_lengthscale
             tiles = tile_grid(
                 X0,
-                ell,
+                problem.assumed_lengthscale,
                 m.gp.tile_spacing,
                 m.gp.margin,
                 m.gp.tile_basis or TRANSLATIONAL_TILE_BASIS,

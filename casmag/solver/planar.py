@@ -31,12 +31,7 @@ from casmag.model.planar import (
 )
 from casmag.model.rotated import ridge_weights, rotated_design, whiten
 from casmag.model.rrmap import make_basis
-from casmag.model.tiledmap import (
-    home_points,
-    left_map_tiles,
-    ridge_tile_weights,
-    tile_grid,
-)
+from casmag.model.tiledmap import home_points, left_map_tiles, ridge_tile_weights, tile_grid
 from casmag.nlp import Progress
 from casmag.problem.imu import PlanarOptions
 from casmag.problem.spec import SolverSpec
@@ -60,15 +55,14 @@ from casmag.solver.staged import (
     Window,
     WindowPrior,
     anchored_at_truth,
-    consider_record,
     displacement_bias_sigma,
     heading_bias_starts,
     map_lengthscale,
+    record_consider,
     solve_rehomed,
     solve_staged,
     truth_check,
     uncertainty,
-    with_consider,
 )
 from casmag.versions import versions
 
@@ -229,12 +223,13 @@ def solve_planar(
         if box is not None:
             flags.append(box)
     P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
+    sigma_b = displacement_bias_sigma(U[:, :2], options.displacement_bias, starts)
     u_summary, P_cov, P_cov_plain = uncertainty(
         final, P_true, sigma_m, options.solver,
-        lambda f: displacement_bias_consider(f, U, options, starts),
+        None if sigma_b is None
+        else lambda f: displacement_bias_consider(f, U, options.sigma_disp, sigma_b, starts),
     )  # fmt: skip
-    sigma_b = displacement_bias_sigma(U[:, :2], options.displacement_bias, starts)
-    with_consider(u_summary, consider_record(sigma_b, options.displacement_bias))
+    record_consider(u_summary, sigma_b, options.displacement_bias)
     before = after = (None, None)
     hb_deg = ha_deg = None
     if truth is not None:
@@ -649,22 +644,19 @@ class PlanarStaged(StagedModel):
 
 
 def displacement_bias_consider(
-    final: Solved, U: np.ndarray, options: Any, starts: tuple[int, ...] = (0,)
-) -> np.ndarray | None:
+    final: Solved, U: np.ndarray, sigma_disp: float, sigma_b: float,
+    starts: tuple[int, ...] = (0,),
+) -> np.ndarray:  # fmt: skip
     """The consider parameters of a planar solve (casmag.solver.uncertainty.
     position_uncertainty's ``consider``): a body-frame displacement bias per step, forward
-    and left, each with the standard deviation ``options.displacement_bias`` times the
-    median step, through the odometry's cross Hessian at the solution
-    (casmag.model.planar.displacement_bias_coupling); None when it is 0. Odometry scale
-    errors of 0.5-1 % are the error that stays on the simulated walks (README, Planar and
-    pose uncertainty):
-    the map cannot see a scale, so the MAP keeps the odometry's and a covariance without
-    it is too confident wherever the path is far from its anchor."""
-    sigma_b = displacement_bias_sigma(np.asarray(U)[:, :2], options.displacement_bias, starts)
-    if sigma_b is None:
-        return None
+    and left, each of standard deviation ``sigma_b`` (casmag.solver.staged.
+    displacement_bias_sigma), through the odometry's cross Hessian at the solution
+    (casmag.model.planar.displacement_bias_coupling). Odometry scale errors of 0.5-1 % are
+    the error that stays on the simulated walks (README, Planar and pose uncertainty): the
+    map cannot see a scale, so the MAP keeps the odometry's and a covariance without it is
+    too confident wherever the path is far from its anchor."""
     x, layout = final.sol.x, final.nlp.x_layout
-    H_P, H_psi, _ = displacement_bias_coupling(x["P"], x["psi"], U, options.sigma_disp, starts)
+    H_P, H_psi, _ = displacement_bias_coupling(x["P"], x["psi"], U, sigma_disp, starts)
     n = H_psi.shape[0]
     C = np.zeros((layout.size, 2))
     off_P, off_psi = layout.entries["P"].offset, layout.entries["psi"].offset

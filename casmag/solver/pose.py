@@ -57,15 +57,14 @@ from casmag.solver.staged import (
     Window,
     WindowPrior,
     anchored_at_truth,
-    consider_record,
     displacement_bias_sigma,
     heading_bias_starts,
     map_lengthscale,
+    record_consider,
     solve_rehomed,
     solve_staged,
     truth_check,
     uncertainty,
-    with_consider,
 )
 
 #: Fixed biases are held at zero with IPOPT's fixed variables.
@@ -263,8 +262,7 @@ def solve_pose(
         final, P_true, sigma_m, options.solver,
         consider_fixed=(held := displacement_bias_consider(U, options, starts)),
     )  # fmt: skip
-    record = None if held is None else consider_record(held["bias_p"], options.displacement_bias)
-    with_consider(u_summary, record)
+    record_consider(u_summary, held and held["bias_p"], options.displacement_bias)
     before = after = (None, None)
     att_before = att_after = None
     if truth is not None:

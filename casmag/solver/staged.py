@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from casmag.model.knots import Knots
 from casmag.model.rotated import rotated_design, window_unknowns
 from casmag.model.tiledmap import home_points
 from casmag.nlp import NLP, STALLED, Solution, lowest_cost, merge_rounds
@@ -821,22 +822,10 @@ def displacement_bias_sigma(
     if fraction <= 0.0:
         return None
     D = np.asarray(displacements, dtype=float)
-    n = D.shape[0] + 1
-    ends = [*starts[1:], n]
-    steps = [i for a, e in zip(starts, ends, strict=True) for i in range(a, e - 1)]
+    steps = [i for a, e in Knots(D.shape[0] + 1, 1, starts).bounds for i in range(a, e - 1)]
     if not steps:
         return None
     return float(fraction) * float(np.median(np.linalg.norm(D[steps], axis=1)))
-
-
-def consider_record(sigma: float | None, fraction: float) -> dict[str, Any] | None:
-    """``uncertainty.consider`` of a result: what the covariance took in."""
-    if sigma is None:
-        return None
-    return {
-        "displacement_bias": {"sigma_per_step_m": sigma, "fraction_of_step": fraction},
-        "method": "consider parameter: H^-1 H_xb S_b H_bx H^-1 added, not estimated",
-    }
 
 
 def uncertainty(
@@ -862,11 +851,15 @@ def uncertainty(
     )  # fmt: skip
 
 
-def with_consider(summary: dict[str, Any] | None, record: dict[str, Any] | None) -> None:
-    """Record ``record`` (:func:`consider_record`) in an uncertainty summary that holds a
-    covariance."""
-    if summary is not None and record is not None and "error" not in summary:
-        summary["consider"] = record
+def record_consider(summary: dict[str, Any] | None, sigma: float | None, fraction: float) -> None:
+    """``uncertainty.consider`` of a result whose covariance took in a displacement bias of
+    standard deviation ``sigma`` [m per step] (:func:`displacement_bias_sigma`); nothing
+    when there is none or no covariance."""
+    if summary is not None and sigma is not None and "error" not in summary:
+        summary["consider"] = {
+            "displacement_bias": {"sigma_per_step_m": sigma, "fraction_of_step": fraction},
+            "method": "consider parameter: H^-1 H_xb S_b H_bx H^-1 added, not estimated",
+        }
 
 
 #: ``info["map"]`` of a result until :meth:`casmag.result.Result.saved_map` computes it.
