@@ -57,6 +57,7 @@ from casmag.solver.staged import (
     anchored_at_truth,
     displacement_bias_sigma,
     heading_bias_starts,
+    lattice_field,
     map_lengthscale,
     record_consider,
     solve_rehomed,
@@ -617,11 +618,11 @@ class PlanarStaged(StagedModel):
         params_k["anchor"] = self.anchors[: len(self.sessions(k))]
         tiled = self.options.form == "tiled"
         around = self.P_dr if k == self.n and not tiled else start["P"]
-        # tiles for the stage's lengthscale (coarse-to-fine; map_lengthscale), a box for
-        # the assumed one
+        # tiles for the stage's lengthscale (coarse-to-fine; map_lengthscale) and a prefix's
+        # coarsest lattice (lattice_field), a box for the assumed one
         s_k = planar_structure(
             self.options, k, around, map_lengthscale(tiled, self.lengthscale, lengthscale),
-            solver, self.session_starts, (self.sigma_f, self.sigma_m),
+            solver, self.session_starts, lattice_field(k, self.n, (self.sigma_f, self.sigma_m)),
         )  # fmt: skip
         psi_0 = np.asarray(start["psi"], float).ravel()
         x0 = {"P": start["P"], "psi": psi_0.reshape(-1, 1), "bias": start["bias"]}

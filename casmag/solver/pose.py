@@ -59,6 +59,7 @@ from casmag.solver.staged import (
     anchored_at_truth,
     displacement_bias_sigma,
     heading_bias_starts,
+    lattice_field,
     map_lengthscale,
     record_consider,
     solve_rehomed,
@@ -464,8 +465,9 @@ class PoseStaged(StagedModel):
         ell = map_lengthscale(tiled, self.lengthscale, lengthscale)
         sigma_m, sigma_f = self.params["sigma_m"], self.params["sigma_f"]
         s_k = pose_structure(
-            self.options, k, around, ell, dim, self.height, solver, starts, (sigma_f, sigma_m)
-        )
+            self.options, k, around, ell, dim, self.height, solver, starts,
+            lattice_field(k, self.n, (sigma_f, sigma_m)),
+        )  # fmt: skip
         params_k = {
             **self.params, "U": self.U[: k - 1], "dt": self.dt[: k - 1].reshape(-1, 1),
             "Y": self.Y[:k], "lengthscale": lengthscale, **nominal_parameters(Q0, starts),

@@ -1,5 +1,7 @@
 """The tiled map in the NLP (casmag.model.tiledmap, casmag.model.field.TiledField)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from small_problems import planar_room_field, tiny_walk
@@ -12,6 +14,7 @@ from casmag.model.field import TiledField
 from casmag.model.planar import PlanarMotion
 from casmag.model.rrmap import HessianCallback
 from casmag.model.tiledmap import (
+    BUMP_SPACING,
     TiledGaussNewton,
     bump_spacing,
     home_points,
@@ -22,6 +25,7 @@ from casmag.model.tiledmap import (
 )
 from casmag.model.translational import TranslationalMotion
 from casmag.problem.imu import load_planar_options
+from casmag.problem.oriented import load_oriented_problem
 from casmag.problem.spec import SolverSpec
 from casmag.solver.api import solve
 from casmag.solver.planar import solve_planar
@@ -556,3 +560,47 @@ def test_planar_coarse_to_fine_lays_the_tiles_for_each_stage(monkeypatch):
         assert laid[round(l, 12)] == pytest.approx(bump_spacing(sigma_f, l, sigma_m) * l)
     assert laid[round(2 * ell, 12)] > 2 * laid[round(ell, 12)]
     assert r.rmse_after <= 0.5 * r.rmse_before
+
+
+@pytest.mark.parametrize("motion", ["planar", "pose"])
+def test_growing_prefixes_lay_the_coarsest_lattice(monkeypatch, motion):
+    """A growing prefix lays its bumps at BUMP_SPACING (casmag.solver.staged.lattice_field)
+    and the full problem the lattice its field asks for (bump_spacing), for the planar and
+    the pose model alike; the solve still reaches its optimum (problems/<motion>/walk.yaml,
+    120 samples in 10 x 3 m, a dipole field about 20 times the noise)."""
+    import casmag.solver.planar as planar
+    import casmag.solver.pose as pose
+
+    module, name = (planar, "planar_structure") if motion == "planar" else (pose, "pose_structure")
+    laid: list[tuple[int, float, float]] = []
+    original = getattr(module, name)
+
+    def recording(options, k, around, ell, *args, **kwargs):
+        s = original(options, k, around, ell, *args, **kwargs)
+        if s.grid is not None:
+            laid.append((k, ell, s.grid.spacing))
+        return s
+
+    monkeypatch.setattr(module, name, recording)
+    root = Path(__file__).resolve().parents[2]
+    problem = load_oriented_problem(
+        root / f"problems/{motion}/walk.yaml",
+        [
+            "seed=2", "simulation.trajectory.samples=120", "model.gp.form=tiled",
+            "model.gp.kernel=curl_free",
+            "solver.warm_start.strategy=growing", "solver.warm_start.first_samples=40",
+            "solver.warm_start.growth=3.0",
+        ],
+    )  # fmt: skip
+    r = casmag.solve(problem)
+    assert r.status == "Solve_Succeeded"
+    assert [st["samples"] for st in r.stages] == [40, 120]
+    ks = sorted({k for k, _, _ in laid})
+    assert ks == [40, 120]
+    h = r.hyperparameters
+    rule = bump_spacing(h["sigma_f"], h["lengthscale"], h["sigma_m"])
+    assert rule < 0.9 * BUMP_SPACING  # the field asks for a finer lattice than a prefix's
+    for k, ell, spacing in laid:
+        expected = BUMP_SPACING if k < 120 else rule
+        assert spacing == pytest.approx(expected * ell), (k, ell, spacing)
+    assert r.rmse_after < 0.5 * r.rmse_before
