@@ -277,6 +277,9 @@ class WarmStartSpec(Strict):
     ``window_bias_prior``: ``laplace`` gives each window the previous window's bias
     estimate as a Gaussian prior (its Laplace marginal covariance at the previous solve),
     ``none`` only the model's ``bias_prior_sigma`` on every window.
+    ``turn`` (planar and pose models, one session): each prefix after the first starts
+    turned about the vertical by the heading-rate correction of lowest MAP cost
+    (casmag.solver.staged.best_turn).
     ``coarse-to-fine``: ``lengthscale_stages`` batch solves with the lengthscale shrinking
     geometrically from ``lengthscale_start`` times the assumed one to the assumed one, each
     started from the previous (at most ``stage_max_iter`` iterations before the last); a
@@ -290,15 +293,16 @@ class WarmStartSpec(Strict):
     ``coarse-to-fine`` and ``sliding`` besides (its windows hold the biases at the IMU-only
     adjustment's; ``window_bias_prior`` does not apply to it).
 
-    Defaults: first_samples 4000, growth 4.0, stage_max_iter 25, window auto, overlap auto,
-    window_lengthscales 1.375, window_bias_prior laplace, unit samples, sample_period null,
-    window_max_iter 50, lengthscale_start 3.0, lengthscale_stages 3.
+    Defaults: first_samples 4000, growth 4.0, stage_max_iter 25, turn true, window auto,
+    overlap auto, window_lengthscales 1.375, window_bias_prior laplace, unit samples,
+    sample_period null, window_max_iter 50, lengthscale_start 3.0, lengthscale_stages 3.
     """
 
     strategy: Literal["none", "growing", "sliding", "coarse-to-fine", "auto"] = "none"
     first_samples: Annotated[int, Field(ge=10)] = 4000
     growth: Annotated[float, Field(gt=1)] = 4.0
     stage_max_iter: Annotated[int, Field(ge=1)] = 25
+    turn: bool = True
     window: PositiveFloat | Literal["auto"] = "auto"
     overlap: NonNegativeFloat | Literal["auto"] = "auto"
     window_lengthscales: PositiveFloat = 1.375

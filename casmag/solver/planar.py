@@ -52,6 +52,7 @@ from casmag.solver.staged import (
     Solved,
     StagedMap,
     StagedModel,
+    StageProblem,
     Window,
     WindowPrior,
     anchored_at_truth,
@@ -60,7 +61,6 @@ from casmag.solver.staged import (
     lattice_field,
     map_lengthscale,
     record_consider,
-    solve_rehomed,
     solve_staged,
     truth_check,
     uncertainty,
@@ -605,9 +605,34 @@ class PlanarStaged(StagedModel):
         w = ridge_weights(basis_k, kernel, P0, Y0, self.c0, sigma_m, sigma_f, ell)
         return whiten(basis_k, kernel, sigma_f, ell, w)
 
+    turns = True
+
+    def turned(self, states: dict[str, np.ndarray], k: int, turn: float) -> dict[str, np.ndarray]:
+        """(StagedModel.turned) The headings turned, each step by the turn at its start,
+        and the bias by the rate removed, so that the odometry's residuals stay as they
+        were."""
+        t = np.concatenate([[0.0], np.cumsum(self.dt[: k - 1])])
+        theta = turn * t / t[-1]
+        P = np.asarray(states["P"], float)
+        c, s = np.cos(theta[:-1]), np.sin(theta[:-1])
+        d = np.diff(P, axis=0)
+        steps = np.column_stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1]])
+        return {
+            "P": np.vstack([P[:1], P[:1] + np.cumsum(steps, axis=0)]),
+            "psi": np.ravel(states["psi"]) + theta,
+            "bias": np.asarray(states["bias"], float) - turn / t[-1],
+        }
+
     def solve(
         self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float
     ) -> Solved:
+        sol, nlp_k, s_k = self.stage_problem(k, start, solver, lengthscale).solve(self.progress)
+        return Solved(sol, nlp_k, s_k, lengthscale)
+
+    def stage_problem(
+        self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float,
+        structure: PlanarStructure | None = None, coarse: bool = False,
+    ) -> StageProblem:  # fmt: skip
         params_k = {
             **self.params,
             "U": self.U[: k - 1],
@@ -620,9 +645,10 @@ class PlanarStaged(StagedModel):
         around = self.P_dr if k == self.n and not tiled else start["P"]
         # tiles for the stage's lengthscale (coarse-to-fine; map_lengthscale) and a prefix's
         # coarsest lattice (lattice_field), a box for the assumed one
-        s_k = planar_structure(
+        s_k = structure or planar_structure(
             self.options, k, around, map_lengthscale(tiled, self.lengthscale, lengthscale),
-            solver, self.session_starts, lattice_field(k, self.n, (self.sigma_f, self.sigma_m)),
+            solver, self.session_starts,
+            None if coarse else lattice_field(k, self.n, (self.sigma_f, self.sigma_m)),
         )  # fmt: skip
         psi_0 = np.asarray(start["psi"], float).ravel()
         x0 = {"P": start["P"], "psi": psi_0.reshape(-1, 1), "bias": start["bias"]}
@@ -638,10 +664,7 @@ class PlanarStaged(StagedModel):
             )  # fmt: skip
             params_k.update(prior_params)
             x0.update(map0)
-        sol, nlp_k, s_k = solve_rehomed(
-            s_k, cached_planar_nlp, params_k, x0, 2, progress=self.progress, fixed=held
-        )
-        return Solved(sol, nlp_k, s_k, lengthscale)
+        return StageProblem(s_k, cached_planar_nlp, params_k, x0, 2, tuple(held))
 
 
 def displacement_bias_consider(

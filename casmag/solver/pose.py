@@ -54,6 +54,7 @@ from casmag.solver.staged import (
     Solved,
     StagedMap,
     StagedModel,
+    StageProblem,
     Window,
     WindowPrior,
     anchored_at_truth,
@@ -62,7 +63,6 @@ from casmag.solver.staged import (
     lattice_field,
     map_lengthscale,
     record_consider,
-    solve_rehomed,
     solve_staged,
     truth_check,
     uncertainty,
@@ -453,9 +453,26 @@ class PoseStaged(StagedModel):
         return {"P": np.vstack(Ps), "Q": np.vstack(Qs), "bias_p": np.vstack(bps),
                 "bias_w": np.vstack(bws)}  # fmt: skip
 
+    turns = True
+
+    def turned(self, states: dict[str, np.ndarray], k: int, turn: float) -> dict[str, np.ndarray]:
+        """(StagedModel.turned) casmag.strapdown.turn_heading of the positions and
+        orientations, the biases as they are (as :meth:`start` turns the dead reckoning)."""
+        t = np.concatenate([[0.0], np.cumsum(self.dt[: k - 1])])
+        P, Q, _ = sd.turn_heading(states["P"], states["Q"], t, -turn / t[-1])
+        return {**states, "P": P, "Q": Q}
+
     def solve(
         self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float
     ) -> Solved:
+        problem = self.stage_problem(k, start, solver, lengthscale)
+        sol, nlp_k, s_k = problem.solve(self.progress)
+        return Solved(sol, nlp_k, s_k, lengthscale, nominal=start["Q"])
+
+    def stage_problem(
+        self, k: int, start: dict[str, np.ndarray], solver: SolverSpec, lengthscale: float,
+        structure: PoseStructure | None = None, coarse: bool = False,
+    ) -> StageProblem:  # fmt: skip
         P0, Q0, dim, kernel = start["P"], start["Q"], self.dim, self.options.kernel
         # The full problem's box around the dead reckoning; tiles around the start (their
         # Hessian pattern follows it), as casmag.solver.planar.PlanarStaged lays them.
@@ -464,9 +481,9 @@ class PoseStaged(StagedModel):
         starts = self.session_starts[: len(self.sessions(k))]
         ell = map_lengthscale(tiled, self.lengthscale, lengthscale)
         sigma_m, sigma_f = self.params["sigma_m"], self.params["sigma_f"]
-        s_k = pose_structure(
+        s_k = structure or pose_structure(
             self.options, k, around, ell, dim, self.height, solver, starts,
-            lattice_field(k, self.n, (sigma_f, sigma_m)),
+            None if coarse else lattice_field(k, self.n, (sigma_f, sigma_m)),
         )  # fmt: skip
         params_k = {
             **self.params, "U": self.U[: k - 1], "dt": self.dt[: k - 1].reshape(-1, 1),
@@ -502,11 +519,7 @@ class PoseStaged(StagedModel):
             )  # fmt: skip
             params_k.update(prior_params)
             x0.update(map0)
-        sol, nlp_k, s_k = solve_rehomed(
-            s_k, cached_pose_nlp, params_k, x0, dim,
-            progress=self.progress, fixed=[*self.fixed, *held],
-        )  # fmt: skip
-        return Solved(sol, nlp_k, s_k, lengthscale, nominal=Q0)
+        return StageProblem(s_k, cached_pose_nlp, params_k, x0, dim, (*self.fixed, *held))
 
     # ------------------------------------------------------------ sliding windows
     sample_states = ("P", "Q")

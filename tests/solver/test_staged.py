@@ -423,3 +423,113 @@ def test_a_tiled_stage_is_solved_on_around_where_its_samples_went():
     built.append("first done")  # nlp_of's next NLP does not move
     sol, _, s = solve_rehomed(s0, nlp_of, {}, {"P": P0}, 2)
     assert built[1:] == [(s0.home, True)] and sol.rounds == 1 and s is s0
+
+
+class Turning(StandIn):
+    """A stand-in whose states carry the turn applied to them and whose stage problem's
+    MAP cost is ``cost_of(turn)``."""
+
+    turns = True
+
+    def __init__(self, cost_of: Any) -> None:
+        super().__init__(300, lambda k, b, ell: 1.0)
+        self.cost_of, self.evaluated = cost_of, []
+
+    def turned(self, states: dict, k: int, turn: float) -> dict:
+        return {**states, "turn": np.array(float(states.get("turn", 0.0)) + turn)}
+
+    def stage_problem(self, k, start, solver, lengthscale, structure=None, coarse=False):
+        turn = float(start.get("turn", 0.0))
+        self.evaluated.append(turn)
+        return SimpleNamespace(
+            structure=structure, nlp_of=lambda s, cache=True: None,
+            cost=lambda nlp: self.cost_of(turn),
+        )  # fmt: skip
+
+
+@pytest.mark.parametrize("best_deg", [-5.3, 0.0, 2.6, 40.0])
+def test_the_turn_search_brackets_and_narrows_the_lowest_cost(best_deg: float) -> None:
+    """casmag.solver.staged.best_turn on a cost with its minimum at ``best_deg``: trials of
+    +-1 deg, doubled downhill until the cost rises, then golden-section steps; the start
+    kept when neither first trial lowers the cost, and no turn beyond TURN_MAX_DEG."""
+    from casmag.solver.staged import TURN_MAX_DEG, best_turn
+
+    model = Turning(lambda turn: (np.degrees(turn) - best_deg) ** 2)
+    start = {"k": np.array(300), "bias": np.array(0.0), "from": np.array(40)}
+    out, rec = best_turn(model, 300, start, model.solver, 0.5)
+    assert rec is not None and rec["evaluations"] == len(set(model.evaluated))
+    assert rec["cost_after"] <= rec["cost_before"]
+    if best_deg == 0.0:
+        assert rec["turn_deg"] == 0.0 and rec["evaluations"] == 3 and "turn" not in out
+        return
+    found = float(np.degrees(out["turn"]))
+    assert found == pytest.approx(rec["turn_deg"])
+    if abs(best_deg) > TURN_MAX_DEG:
+        assert found == pytest.approx(TURN_MAX_DEG)
+    else:
+        assert abs(found - best_deg) < 0.6, (found, best_deg)
+
+
+def test_a_model_without_a_heading_or_with_sessions_is_not_turned() -> None:
+    """No search on the translational stand-in (``turns`` False) or across sessions."""
+    from casmag.solver.staged import best_turn
+
+    start = {"k": np.array(300), "bias": np.array(0.0), "from": np.array(40)}
+    assert best_turn(StandIn(300, lambda k, b, ell: 1.0), 300, start, SolverSpec(), 0.5) == (
+        start, None,
+    )  # fmt: skip
+    two = Turning(lambda turn: turn**2)
+    two.session_starts = (0, 100)
+    assert best_turn(two, 300, start, two.solver, 0.5) == (start, None)
+
+
+@pytest.mark.parametrize("motion", ["planar", "pose"])
+def test_a_continued_start_is_turned_to_its_lowest_cost(monkeypatch, motion: str) -> None:
+    """Growing prefixes on the planar and pose models: every prefix after the first starts
+    from the previous estimate turned about the vertical by the search's angle
+    (casmag.solver.staged.best_turn, recorded as the stage's ``turn``), which never raises
+    the start's MAP cost. The turns compose (a turn by a then b is one by a + b, the first
+    pose kept, the last heading turned by the angle; planar: the odometry's cost as it
+    was), and the search finds a turn put on the chosen start again."""
+    import casmag.solver.staged as staged
+
+    calls: list[tuple] = []
+    original = staged.best_turn
+
+    def recording(model, k, start, solver, ell):
+        out = original(model, k, start, solver, ell)
+        calls.append((model, k, solver, ell, out[0]))
+        return out
+
+    monkeypatch.setattr(staged, "best_turn", recording)
+    r, n = _planar("growing") if motion == "planar" else _pose("growing")
+    assert r.success, r.status
+    prefixes = r.stages_named("prefix")
+    assert len(prefixes) >= 2 and "turn" not in prefixes[0]
+    for st in prefixes[1:]:
+        assert st["turn"]["cost_after"] <= st["turn"]["cost_before"]
+        assert st["turn"]["evaluations"] >= 3
+    assert r.rmse_after < 0.5 * r.rmse_before
+
+    model, k, solver, ell, chosen = calls[-1]
+    assert k == n
+    a, b = np.radians(3.0), np.radians(-1.0)
+    twice, once = model.turned(model.turned(chosen, k, a), k, b), model.turned(chosen, k, a + b)
+    for name in once:
+        np.testing.assert_allclose(twice[name], once[name], atol=1e-9)
+    np.testing.assert_allclose(once["P"][0], chosen["P"][0], atol=1e-12)
+    if motion == "planar":
+        assert once["psi"][-1] - chosen["psi"][-1] == pytest.approx(a + b)
+        problem = model.stage_problem(k, chosen, solver, ell)
+        nlp = problem.nlp_of(problem.structure, cache=False)
+        p = nlp.p_layout.pack(problem.params)
+
+        def odometry(start: dict) -> float:
+            x0 = model.stage_problem(k, start, solver, ell, problem.structure).x0
+            return nlp.evaluate_blocks(nlp.x_layout.pack(x0), p)["odometry"]
+
+        assert odometry(once) == pytest.approx(odometry(chosen), rel=1e-9)
+    off = model.turned(chosen, k, np.radians(-6.0))
+    _, rec = original(model, k, off, solver, ell)
+    assert rec["cost_after"] < rec["cost_before"]
+    assert abs(rec["turn_deg"] - 6.0) < 1.0, rec
