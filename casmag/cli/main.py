@@ -695,7 +695,8 @@ def map_command(map_file: Path, out_dir: Path, points: int, z: float | None) -> 
     Writes OUT/map.png (field magnitude, blank where the posterior standard deviation is
     above half the prior's, and the posterior standard deviation) and OUT/map_grid.csv (x, y
     [, z] [m], the field mx, my, mz, its posterior and prior standard deviations per
-    component, in the map's field units) on a POINTS x POINTS grid over the map's box.
+    component, in the map's field units) on a POINTS x POINTS grid over the map's box (a
+    tiled map's: over its tile centres, NaN where a point lacks one of its tiles).
     """
     from types import SimpleNamespace
 

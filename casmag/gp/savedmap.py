@@ -5,7 +5,12 @@ models, one recording or several sessions) writes ``map.npz`` beside ``result.js
 Hilbert basis (kernel, box centre and half width [m], number of functions), the dimension
 of the positions it is read at, the hyperparameters it was solved with, and the posterior
 of the map's unknowns z = [vec(W); c] (the weights W, column-major, then the constant field
-c when the model has one) as a mean and a precision matrix. The map is the field in the map
+c when the model has one) as a mean and a precision matrix. A run with the tiled map
+(casmag.gp.tiles: the translational, planar and pose models) writes the same posterior of
+its tiles' weights (each tile's functions, tile after tile) and constant field, with the
+tile grid in place of the box (spacing, origin, tile indices, the tiles' basis; format
+:data:`TILED_FORMAT`); it is drawn as a box map is, but no recording is located against
+it yet (:meth:`SavedMap.require_box`). The map is the field in the map
 frame, m(p) + c, whatever the motion model: the planar, pose and IMU models read it through
 the body's rotation and solve for whitened weights, which are turned into W before it is
 saved. The precision is the Laplace approximation at the MAP, marginal over the path: the
@@ -23,6 +28,7 @@ the mean and the standard deviation of the field on a grid and writes the grid a
 
 from __future__ import annotations
 
+import json
 import os
 import zipfile
 from dataclasses import dataclass
@@ -32,17 +38,26 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sps
 
 from casmag.errors import DataError
 from casmag.gp.fieldmap import GRID_POINTS, chunks, weight_rows
 from casmag.gp.kernels import FIELD_DIM
+from casmag.gp.localmaps import cached_tiles
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.gp.tiles import TiledBasis, TileGrid
 
 #: The file name every run writes its map to.
 MAP_FILE = "map.npz"
 
-#: Format version written into the file (bumped when a field changes meaning).
+#: Format version written into the file of a box map (bumped when a field changes meaning).
 FORMAT = 1
+
+#: The format of a tiled map's file: a box map's fields (``center`` and ``half_width`` the
+#: tile centres' bounding box, ``num_basis`` the functions per tile) and the tile grid's.
+TILED_FORMAT = 2
+
+_TILE_FIELDS = ("tiles_spacing", "tiles_origin", "tiles_index", "tiles_basis")
 
 KERNELS = ("se", "curl_free")
 
@@ -71,7 +86,10 @@ class SavedMap:
     positions, whose potential lives on a 3-D box and is read at z = 0);
     num_basis: M; sigma_f, lengthscale [m], sigma_m: the hyperparameters it was solved
     with (field units but the lengthscale); constant_field: z ends with c (3,); mean (n_z,),
-    precision (n_z, n_z): the posterior of z; frame: what its origin is."""
+    precision (n_z, n_z): the posterior of z; frame: what its origin is. ``tiles``: a tiled
+    map's grid (casmag.gp.tiles, curl-free; :func:`tiled_map`), whose weights are each
+    tile's functions tile after tile; center and half_width are then the box of its tile
+    centres, num_basis the functions per tile."""
 
     kernel: str
     center: tuple[float, ...]
@@ -85,6 +103,7 @@ class SavedMap:
     precision: np.ndarray
     frame: str = ""
     position_dim: int | None = None
+    tiles: TileGrid | None = None
 
     def __post_init__(self) -> None:
         if self.position_dim is None:
@@ -95,6 +114,18 @@ class SavedMap:
             )
         if self.kernel not in KERNELS:
             raise ValueError(f"kernel {self.kernel!r} is not one of {', '.join(KERNELS)}")
+        if self.tiles is not None:
+            if self.kernel != "curl_free":
+                raise ValueError(f"a tiled map is curl-free, not {self.kernel!r}")
+            if self.tiles.dim != self.position_dim:
+                raise ValueError(
+                    f"tiles over {self.tiles.dim} axes read at {self.position_dim}-D positions"
+                )
+            if self.tiled_basis().per_tile != self.num_basis:
+                raise ValueError(
+                    f"num_basis {self.num_basis}: the tiles have "
+                    f"{self.tiled_basis().per_tile} functions each"
+                )
         n_z = self.size
         if self.mean.shape != (n_z,) or self.precision.shape != (n_z, n_z):
             raise ValueError(
@@ -108,12 +139,28 @@ class SavedMap:
         return int(self.position_dim)
 
     @property
+    def form(self) -> str:
+        """``tiled`` or ``reduced_rank`` (one box)."""
+        return "reduced_rank" if self.tiles is None else "tiled"
+
+    def require_box(self, where: str, what: str = "locate a recording") -> None:
+        """Raise DataError naming ``where`` (the map's file) when the map is tiled: only a
+        box map can ``what`` yet."""
+        if self.tiles is not None:
+            raise DataError(
+                f"{where or 'map'}: a tiled map ({self.tiled_basis().num_tiles} tiles); only "
+                f"a map of one box can {what} (casmag map draws this one)"
+            )
+
+    @property
     def basis_key(self) -> tuple:
         """(center, half_width, num_basis): the key of casmag.gp.reduced_rank.cached_basis."""
         return (tuple(self.center), tuple(self.half_width), int(self.num_basis))
 
     @property
     def num_weights(self) -> int:
+        if self.tiles is not None:
+            return self.tiled_basis().num_weights
         return self.num_basis * (FIELD_DIM if self.kernel == "se" else 1)
 
     @property
@@ -122,26 +169,48 @@ class SavedMap:
         return self.num_weights + (FIELD_DIM if self.constant_field else 0)
 
     def basis(self) -> HilbertBasis:
+        self.require_box("map", "give one basis")
         return cached_basis(self.basis_key)
+
+    def tiled_basis(self) -> TiledBasis:
+        assert self.tiles is not None, "a box map has no tiles"
+        return cached_tiles(self.tiles)
 
     def hyperparameters(self) -> dict[str, float]:
         return {"sigma_f": self.sigma_f, "lengthscale": self.lengthscale, "sigma_m": self.sigma_m}
 
     def unknowns(self, z: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """``W`` (M, 3) (SE) or (M, 1) (curl-free) and, with a constant field, ``c`` (3, 1),
-        from z (default: the mean)."""
+        """``W`` (M, 3) (SE), (M, 1) (curl-free) or, tiled, (m, T) (each tile's m functions
+        a column) and, with a constant field, ``c`` (3, 1), from z (default: the mean)."""
         z = self.mean if z is None else np.ravel(z)
-        cols = FIELD_DIM if self.kernel == "se" else 1
-        out = {"W": z[: self.num_weights].reshape((self.num_basis, cols), order="F")}
+        if self.tiles is not None:
+            shape = (self.num_basis, self.tiled_basis().num_tiles)
+        else:
+            shape = (self.num_basis, FIELD_DIM if self.kernel == "se" else 1)
+        out = {"W": z[: self.num_weights].reshape(shape, order="F")}
         if self.constant_field:
             out["c"] = z[self.num_weights :].reshape(FIELD_DIM, 1)
         return out
 
-    def design(self, X: np.ndarray) -> list[np.ndarray]:
-        """Per field component q, the (n, n_z) rows d m_q(X) / d z at points X (n, d)."""
+    def design(self, X: np.ndarray) -> list[Any]:
+        """Per field component q, the (n, n_z) rows d m_q(X) / d z at points X (n, d):
+        dense for a box, scipy CSR for tiles."""
         X = self._points(X)
+        n_w = self.num_weights
+        if self.tiles is not None:
+            A = self.tiled_basis().design(X)  # (3 n, n_w), component-major
+            n = X.shape[0]
+            out = []
+            for q in range(FIELD_DIM):
+                blocks = [A[q * n : (q + 1) * n]]
+                if self.constant_field:
+                    e = np.zeros((1, FIELD_DIM))
+                    e[0, q] = 1.0
+                    blocks.append(sps.csr_matrix(np.ones((n, 1)) @ e))
+                out.append(sps.hstack(blocks, format="csr"))
+            return out
         blocks = weight_rows(self.basis(), self.kernel, X)
-        M, n_w = self.num_basis, self.num_weights
+        M = self.num_basis
         rows = []
         for q in range(FIELD_DIM):
             A = np.zeros((X.shape[0], self.size))
@@ -165,10 +234,18 @@ class SavedMap:
 
     def std(self, X: np.ndarray) -> np.ndarray:
         """(n, 3) the posterior standard deviation of the field at points X (n, d), from
-        the precision's Cholesky factor."""
+        the precision's Cholesky factor (a box) or the covariance it gives (tiles: a
+        point's rows are sparse, so a^T Sigma a reads a few of its entries)."""
         X = self._points(X)
-        L = self.cholesky()
         out = np.empty((X.shape[0], FIELD_DIM))
+        if self.tiles is not None:
+            Sigma = self._covariance
+            for r in chunks(X.shape[0]):
+                for q, A in enumerate(self.design(X[r])):
+                    var = np.asarray(A.multiply(A @ Sigma).sum(axis=1)).ravel()
+                    out[r, q] = np.sqrt(np.maximum(var, 0.0))
+            return out
+        L = self.cholesky()
         for r in chunks(X.shape[0]):
             for q, A in enumerate(self.design(X[r])):
                 V = sla.solve_triangular(L, A.T, lower=True)
@@ -179,9 +256,17 @@ class SavedMap:
         """(n, 3) the GP prior's standard deviation of the field at points X (n, d) in the
         map's basis, the constant field left out: what the map would know without data."""
         X = self._points(X)
+        out = np.empty((X.shape[0], FIELD_DIM))
+        if self.tiles is not None:
+            tiles = self.tiled_basis()
+            S = np.tile(tiles.prior_variances(self.sigma_f, self.lengthscale), tiles.num_tiles)
+            for r in chunks(X.shape[0]):
+                A, n = tiles.design(X[r]), X[r].shape[0]
+                var = A.multiply(A) @ S
+                out[r] = np.sqrt(var.reshape(FIELD_DIM, n).T)
+            return out
         basis = self.basis()
         S = np.ravel(basis.prior_variances(self.kernel, self.sigma_f, self.lengthscale))
-        out = np.empty((X.shape[0], FIELD_DIM))
         for r in chunks(X.shape[0]):
             blocks = weight_rows(basis, self.kernel, X[r])
             for q in range(FIELD_DIM):
@@ -192,7 +277,8 @@ class SavedMap:
     def grid(self, points: int = GRID_POINTS, z: float | None = None) -> dict[str, np.ndarray]:
         """The map on a points x points horizontal grid over its box (3-D maps at height z,
         default the box's centre): ``map_x``, ``map_y`` (G, G) [m], ``map_z`` (3-D),
-        ``map_field``, ``map_std``, ``map_prior_std`` (G, G, 3) (field units)."""
+        ``map_field``, ``map_std``, ``map_prior_std`` (G, G, 3) (field units); a tiled
+        map's is NaN where the point lacks one of its tiles."""
         c, h = np.asarray(self.center), np.asarray(self.half_width)
         gx, gy = np.meshgrid(
             np.linspace(c[0] - h[0], c[0] + h[0], points),
@@ -205,9 +291,12 @@ class SavedMap:
             pts = np.column_stack([pts, np.full(pts.shape[0], height)])
             out["map_z"] = np.array(height)
         shape = (*gx.shape, FIELD_DIM)
-        out["map_field"] = self.field(pts).reshape(shape)
-        out["map_std"] = self.std(pts).reshape(shape)
-        out["map_prior_std"] = self.prior_std(pts).reshape(shape)
+        inside = self.inside(pts) if self.tiles is not None else np.ones(pts.shape[0], bool)
+        for key, of in (("map_field", self.field), ("map_std", self.std),
+                        ("map_prior_std", self.prior_std)):  # fmt: skip
+            values = np.full((pts.shape[0], FIELD_DIM), np.nan)
+            values[inside] = of(pts[inside])
+            out[key] = values.reshape(shape)
         return out
 
     def cholesky(self) -> np.ndarray:
@@ -222,10 +311,21 @@ class SavedMap:
         except np.linalg.LinAlgError:
             raise DataError("map: its precision matrix is not positive definite") from None
 
+    @cached_property
+    def _covariance(self) -> np.ndarray:
+        """The inverse of the precision, from its Cholesky factor."""
+        inv, info = sla.lapack.dpotri(self.cholesky(), lower=1)
+        if info != 0:
+            raise DataError(f"map: its precision matrix could not be inverted (LAPACK {info})")
+        return np.tril(inv) + np.tril(inv, -1).T
+
     def inside(self, X: np.ndarray) -> np.ndarray:
         """(n,) whether each point lies in the basis box (outside it the map is only its
-        constant: the basis functions vanish on the box's boundary)."""
+        constant: the basis functions vanish on the box's boundary), or for tiles has
+        every tile around it."""
         X = self._points(X)
+        if self.tiles is not None:
+            return self.tiled_basis().inside(X)
         c, h = np.asarray(self.center)[: self.dim], np.asarray(self.half_width)[: self.dim]
         return np.all(np.abs(X - c) <= h, axis=1)
 
@@ -240,10 +340,19 @@ class SavedMap:
         reader never sees half a file."""
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp")
+        grid: dict[str, np.ndarray] = {}
+        if self.tiles is not None:
+            g = self.tiles
+            grid = {
+                "tiles_spacing": np.array(float(g.spacing)),
+                "tiles_origin": np.asarray(g.origin, dtype=float),
+                "tiles_index": np.array(g.tiles, dtype=np.int64).reshape(-1, g.dim),
+                "tiles_basis": np.array(json.dumps(g.basis)),
+            }
         with open(tmp, "wb") as f:
             np.savez(
                 f,
-                format=np.array(FORMAT),
+                format=np.array(FORMAT if self.tiles is None else TILED_FORMAT),
                 kernel=np.array(self.kernel),
                 center=np.asarray(self.center, dtype=float),
                 half_width=np.asarray(self.half_width, dtype=float),
@@ -256,9 +365,45 @@ class SavedMap:
                 precision=self.precision,
                 frame=np.array(self.frame),
                 position_dim=np.array(self.dim),
+                **grid,
             )
         os.replace(tmp, path)
         return path
+
+
+def tiled_map(
+    grid: TileGrid,
+    hyper: dict[str, float],
+    mean: np.ndarray,
+    precision: np.ndarray,
+    constant_field: bool,
+    frame: str = "",
+) -> SavedMap:
+    """The saved map of tiles on ``grid`` (mean and precision of z = [vec(W); c], W (m, T)):
+    its box the tile centres' bounding box."""
+    idx = np.array(grid.tiles, dtype=float).reshape(-1, grid.dim)
+    centres = np.asarray(grid.origin) + grid.spacing * idx
+    lo, hi = centres.min(axis=0), centres.max(axis=0)
+    return SavedMap(
+        kernel="curl_free",
+        center=tuple(float(v) for v in 0.5 * (lo + hi)),
+        half_width=tuple(float(v) for v in 0.5 * (hi - lo)),
+        num_basis=cached_tiles(grid).per_tile,
+        sigma_f=float(hyper["sigma_f"]),
+        lengthscale=float(hyper["lengthscale"]),
+        sigma_m=float(hyper["sigma_m"]),
+        constant_field=constant_field,
+        mean=mean,
+        precision=precision,
+        frame=frame,
+        position_dim=grid.dim,
+        tiles=grid,
+    )
+
+
+def _tuples(value: Any) -> Any:
+    """JSON's lists back to the tuples of a grid's basis key."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
 
 def write_grid_csv(grid: dict[str, np.ndarray], path: Path) -> None:
@@ -293,8 +438,35 @@ def load_map(path: str | Path) -> SavedMap:
     absent = [k for k in _FIELDS if k not in data]
     if absent:
         raise DataError(f"{path}: not a casmag map (no {', '.join(absent)})")
-    if int(data["format"]) != FORMAT:
-        raise DataError(f"{path}: format {int(data['format'])}, this casmag reads {FORMAT}")
+    version = int(data["format"])
+    if version not in (FORMAT, TILED_FORMAT):
+        raise DataError(f"{path}: format {version}, this casmag reads {FORMAT} and {TILED_FORMAT}")
+    tiles = None
+    if version == TILED_FORMAT:
+        absent = [k for k in _TILE_FIELDS if k not in data]
+        if absent:
+            raise DataError(f"{path}: a tiled map without {', '.join(absent)}")
+        try:
+            index = np.asarray(data["tiles_index"], dtype=np.int64)
+            tiles = TileGrid(
+                float(data["tiles_spacing"]),
+                tuple(float(v) for v in data["tiles_origin"]),
+                tuple(tuple(int(v) for v in row) for row in index),
+                _tuples(json.loads(str(data["tiles_basis"]))),
+            )
+            tiles_ok = (
+                index.ndim == 2
+                and index.shape[1] == len(tiles.origin)
+                and len(set(tiles.tiles)) == len(tiles.tiles) > 0
+                and tiles.spacing > 0
+            )
+        except (TypeError, ValueError) as exc:
+            raise DataError(f"{path}: tiles_*: not a tile grid ({exc})") from None
+        if not tiles_ok:
+            raise DataError(
+                f"{path}: tiles_index must be distinct (tiles, {len(tiles.origin)}) integers "
+                "and tiles_spacing positive"
+            )
 
     def number(key: str) -> float:
         v = float(data[key])
@@ -317,8 +489,9 @@ def load_map(path: str | Path) -> SavedMap:
             frame=str(data["frame"]),
             # absent from the maps of casmag before it: their positions were the box's
             position_dim=int(data["position_dim"]) if "position_dim" in data else None,
+            tiles=tiles,
         )
-    except ValueError as exc:
+    except (ValueError, TypeError, IndexError) as exc:  # a tiled map's grid is read here
         raise DataError(f"{path}: {exc}") from None
 
 
@@ -327,7 +500,7 @@ def map_from_solution(
     x: dict[str, np.ndarray],
     params: dict[str, Any],
     kernel: str,
-    basis: tuple,
+    basis: tuple | TileGrid,
     hyper: dict[str, float],
     frame: str,
     fixed: tuple[str, ...] = (),
@@ -335,7 +508,8 @@ def map_from_solution(
     position_dim: int | None = None,
 ) -> SavedMap:
     """The saved map of a solved NLP with a map-frame reduced-rank map (variables ``W`` and
-    optionally ``c``): mean the solution, precision the Schur complement of the rest of the
+    optionally ``c``; ``basis`` the box's key, or a TileGrid for tiles, whose ``W`` is (m,
+    T)): mean the solution, precision the Schur complement of the rest of the
     Hessian, H_zz - H_za H_aa^-1 H_az (the inverse of the z block of H^-1: the marginal over
     the path, the bias and every other unknown; module docstring). H_aa (knots and bias) is
     sparse and banded, so this costs one sparse factorisation and a product, not n_z
@@ -364,13 +538,21 @@ def map_from_solution(
     X = spla.splu(H[a][:, a].tocsc()).solve(H_az)
     precision = H_zz - H_az.T @ X
     mean = np.concatenate([np.ravel(x[n], order="F") for n in names])
-    center, half, M = basis
     if whitened:
-        S = cached_basis(basis).prior_variances(kernel, hyper["sigma_f"], hyper["lengthscale"])
-        cols = np.asarray(x["W"]).shape[1]
-        scale = np.concatenate([np.tile(np.sqrt(np.ravel(S)), cols), np.ones(mean.size - M * cols)])
+        S = (
+            cached_tiles(basis).prior_variances(hyper["sigma_f"], hyper["lengthscale"])
+            if isinstance(basis, TileGrid)
+            else cached_basis(basis).prior_variances(kernel, hyper["sigma_f"], hyper["lengthscale"])
+        )
+        rows, cols = np.asarray(x["W"]).shape  # (M, k) or tiles' (m, T): a column at a time
+        scale = np.ones(mean.size)
+        scale[: rows * cols] = np.tile(np.sqrt(np.ravel(S)), cols)
         mean = scale * mean
         precision = precision / np.outer(scale, scale)
+    precision = 0.5 * (precision + precision.T)
+    if isinstance(basis, TileGrid):
+        return tiled_map(basis, hyper, mean, precision, "c" in x, frame)
+    center, half, M = basis
     return SavedMap(
         kernel=kernel,
         center=tuple(float(v) for v in center),
@@ -381,7 +563,7 @@ def map_from_solution(
         sigma_m=float(hyper["sigma_m"]),
         constant_field="c" in x,
         mean=mean,
-        precision=0.5 * (precision + precision.T),
+        precision=precision,
         frame=frame,
         position_dim=position_dim,
     )

@@ -15,7 +15,7 @@ from casmag.data.simulate import Dataset, simulate_problem
 from casmag.errors import ProblemError
 from casmag.gp.fieldmap import grid_over
 from casmag.gp.localmaps import cached_tiles
-from casmag.gp.savedmap import SavedMap
+from casmag.gp.savedmap import KERNELS, SavedMap
 from casmag.model.field import HYPERPARAMETERS, left_map_box
 from casmag.model.tiledmap import left_map_tiles
 from casmag.model.translational import (
@@ -253,14 +253,15 @@ def _field_map(
     or why not (a failed solve, a map form that has none to save, too many unknowns)."""
     if not sol.success:
         return None, {"saved": False, "reason": "the solve failed"}
-    if structure.form != "reduced_rank" or structure.kernel not in ("se", "curl_free"):
+    tiled = structure.form == "tiled"
+    if not (tiled or structure.form == "reduced_rank") or structure.kernel not in KERNELS:
         form = f"{structure.form} ({structure.kernel})"
         return None, {"saved": False, "reason": f"no reduced-rank map to save: {form}"}
     params = parameters(problem, solved, structure)
     frame = f"anchored at the {anchor['kind']}: {anchor['position']} (sigma {anchor['sigma']} m)"
     return saved_field_map(
-        nlp, sol, params, structure.kernel, structure.basis, hyper, frame,
-        position_dim=solved.dim,
+        nlp, sol, params, structure.kernel, structure.grid if tiled else structure.basis,
+        hyper, frame, position_dim=solved.dim,
     )  # fmt: skip
 
 

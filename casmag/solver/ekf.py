@@ -691,6 +691,7 @@ def localise_filter(
     from casmag.solver.localize import covered, off_map_flag
 
     where = map_source or "map"
+    saved.require_box(where)
     if saved.dim != data.dim:
         raise DataError(f"{where}: a {saved.dim}-D map cannot locate a {data.dim}-D recording")
     if data.n_sessions > 1:

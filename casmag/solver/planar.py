@@ -322,11 +322,12 @@ def localisation_options(options: Any, saved: SavedMap, source: str, motion: str
     the warm start stays the model's (growing prefixes by default: each prefix is located
     against the saved map, not against what the recording alone would map)."""
     where = source or "map"
+    saved.require_box(where)
     if motion == "planar" and saved.dim != 2:
         raise DataError(f"{where}: a {saved.dim}-D map cannot locate a planar recording")
     form = getattr(options, "form", "reduced_rank")
     if form not in ("reduced_rank", AUTO):
-        raise DataError(f"{where}: model.gp.form {form}: a saved map is one box")
+        raise DataError(f"{where}: model.gp.form {form}: a recording is located on the saved box")
     changes: dict[str, Any] = {
         "form": "reduced_rank",
         "kernel": saved.kernel, "sigma_f": saved.sigma_f, "lengthscale": saved.lengthscale,

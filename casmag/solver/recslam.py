@@ -489,6 +489,8 @@ def slam(
     auto = mag_lag == "auto"
     rec = with_lag_removed(raw, None if auto else mag_lag)
     saved = None if map_file is None else load_map(map_file)
+    if saved is not None:
+        saved.require_box(str(map_file))
     given = None if saved is None else {"model": _map_model(saved)}
     if rec.motion == "imu":
         if saved is not None or method != "map":

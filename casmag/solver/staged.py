@@ -1025,11 +1025,11 @@ MAP_NOT_YET = {"saved": False, "reason": "not computed yet (Result.saved_map())"
 @dataclass(frozen=True)
 class StagedMap:
     """The ``map_maker`` of a staged model's result (casmag.result.Result.saved_map): the
-    final solve's box map (whitened weights: casmag.model.rotated) with its posterior,
+    final solve's map (whitened weights: casmag.model.rotated) with its posterior,
     marginal over the path and conditioned on what the solve held
     (casmag.solver.uncertainty.saved_field_map), in the frame described by ``frame``, read
     at positions of ``position_dim``. The record it gives ``info["map"]`` keeps ``form``
-    (the map's description). A tiled map has none to save (the saved format is one box)."""
+    (the map's description); a tiled map is saved with its tile grid."""
 
     final: Solved
     kernel: str
@@ -1040,9 +1040,8 @@ class StagedMap:
 
     def __call__(self) -> tuple[Any, dict[str, Any]]:
         form, sol = self.form, self.final.sol
-        basis = getattr(self.final.structure, "basis", None)
-        if basis is None:
-            return None, {**form, "saved": False, "reason": "no reduced-rank map to save: tiled"}
+        structure = self.final.structure
+        basis = structure.grid if getattr(structure, "grid", None) is not None else structure.basis
         if sol.params is None:
             return None, {**form, "saved": False, "reason": "the solution records no parameters"}
         saved, record = saved_field_map(

@@ -103,19 +103,6 @@ def test_a_pose_run_with_a_planar_curl_free_map_is_read_at_planar_positions():
     assert saved.inside(P).all()
 
 
-def test_a_tiled_map_says_why_it_is_not_saved():
-    from types import SimpleNamespace
-
-    from casmag.solver.staged import Solved, StagedMap
-
-    final = Solved(sol=SimpleNamespace(params={}), nlp=None, structure=SimpleNamespace(basis=None),
-                   lengthscale=1.0)  # fmt: skip
-    saved, record = StagedMap(final, "curl_free", {}, "", {"form": "tiled"}, 2)()
-    assert saved is None
-    assert record["form"] == "tiled" and record["saved"] is False
-    assert "tiled" in record["reason"]
-
-
 # --------------------------------------------------------------------------- localisation
 @pytest.fixture(scope="module")
 def walks(tmp_path_factory):

@@ -236,6 +236,10 @@ def test_a_pose_walk_with_the_tiled_map() -> None:
     assert r.flags == []
     assert r.arrays["map_field"].shape[-1] == 3
     assert 0.3 < r.uncertainty["nees_mean"] < 5.0
+    saved = r.saved_map()  # the tiles saved with their grid, read at planar positions
+    assert r.info["map"]["saved"] and saved.form == "tiled" and saved.dim == 2
+    P = r.arrays["P_estimate"][:, :2]
+    assert np.all(saved.std(P) < 0.5 * saved.prior_std(P))
 
 
 @pytest.mark.parametrize(
