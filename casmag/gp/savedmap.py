@@ -9,7 +9,8 @@ c when the model has one) as a mean and a precision matrix. A run with the tiled
 (casmag.gp.tiles: the translational, planar and pose models) writes the same posterior of
 its tiles' weights (each tile's functions, tile after tile) and constant field, with the
 tile grid in place of the box (spacing, origin, tile indices, the tiles' basis; format
-:data:`TILED_FORMAT`); it is drawn as a box map is, but no recording is located against
+:data:`TILED_FORMAT`; the precision stored as its upper triangle, ``precision_upper``,
+half the size of a dense one); it is drawn as a box map is, but no recording is located against
 it yet (:meth:`SavedMap.require_box`). The map is the field in the map
 frame, m(p) + c, whatever the motion model: the planar, pose and IMU models read it through
 the body's rotation and solve for whitened weights, which are turned into W before it is
@@ -29,6 +30,7 @@ the mean and the standard deviation of the field on a grid and writes the grid a
 from __future__ import annotations
 
 import json
+import math
 import os
 import zipfile
 from dataclasses import dataclass
@@ -340,7 +342,7 @@ class SavedMap:
         reader never sees half a file."""
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp")
-        grid: dict[str, np.ndarray] = {}
+        grid: dict[str, np.ndarray] = {"precision": self.precision}
         if self.tiles is not None:
             g = self.tiles
             grid = {
@@ -348,6 +350,8 @@ class SavedMap:
                 "tiles_origin": np.asarray(g.origin, dtype=float),
                 "tiles_index": np.array(g.tiles, dtype=np.int64).reshape(-1, g.dim),
                 "tiles_basis": np.array(json.dumps(g.basis)),
+                # symmetric: its upper triangle, row by row, half the file of a dense one
+                "precision_upper": _upper(self.precision),
             }
         with open(tmp, "wb") as f:
             np.savez(
@@ -362,7 +366,6 @@ class SavedMap:
                 sigma_m=np.array(self.sigma_m),
                 constant_field=np.array(self.constant_field),
                 mean=self.mean,
-                precision=self.precision,
                 frame=np.array(self.frame),
                 position_dim=np.array(self.dim),
                 **grid,
@@ -401,6 +404,25 @@ def tiled_map(
     )
 
 
+def _upper(A: np.ndarray) -> np.ndarray:
+    """The upper triangle of a square matrix, row by row (n (n + 1) / 2 values)."""
+    return np.concatenate([A[i, i:] for i in range(A.shape[0])]) if A.size else np.zeros(0)
+
+
+def _from_upper(path: Path, u: np.ndarray) -> np.ndarray:
+    """The symmetric matrix whose upper triangle, row by row, is ``u``."""
+    n = (math.isqrt(8 * u.size + 1) - 1) // 2
+    if u.ndim != 1 or n * (n + 1) // 2 != u.size:
+        raise DataError(f"{path}: precision_upper: {u.size} values are no square's upper triangle")
+    A = np.empty((n, n))
+    start = 0
+    for i in range(n):
+        A[i, i:] = u[start : start + n - i]
+        A[i:, i] = A[i, i:]
+        start += n - i
+    return A
+
+
 def _tuples(value: Any) -> Any:
     """JSON's lists back to the tuples of a grid's basis key."""
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
@@ -435,6 +457,8 @@ def load_map(path: str | Path) -> SavedMap:
             data = {k: npz[k] for k in npz.files}
     except (OSError, ValueError, zipfile.BadZipFile) as exc:
         raise DataError(f"{path}: not a casmag map ({exc})") from None
+    if "precision_upper" in data and "precision" not in data:
+        data["precision"] = _from_upper(path, np.asarray(data["precision_upper"], dtype=float))
     absent = [k for k in _FIELDS if k not in data]
     if absent:
         raise DataError(f"{path}: not a casmag map (no {', '.join(absent)})")

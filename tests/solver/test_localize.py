@@ -326,6 +326,15 @@ def test_a_tiled_run_saves_its_map_with_the_marginal_posterior(tiled_run, tmp_pa
     back = load_map(tmp_path / "run")
     assert back.tiles == saved.tiles and back.frame == saved.frame
     np.testing.assert_array_equal(back.precision, saved.precision)
+    # the file holds the precision's upper triangle only; a dense one (casmag's first
+    # format-2 files) reads the same
+    with np.load(tmp_path / "run" / "map.npz") as npz:
+        fields = dict(npz)
+    n = saved.size
+    assert "precision" not in fields and fields["precision_upper"].shape == (n * (n + 1) // 2,)
+    del fields["precision_upper"]
+    np.savez(tmp_path / "dense.npz", **fields, precision=saved.precision)
+    np.testing.assert_array_equal(load_map(tmp_path / "dense.npz").precision, saved.precision)
     np.testing.assert_array_equal(back.field(P), saved.field(P))
     grid = back.grid(40)
     outside = ~back.inside(np.column_stack([grid["map_x"].ravel(), grid["map_y"].ravel()]))
@@ -370,6 +379,7 @@ def test_a_tiled_map_file_with_a_broken_grid_is_one_line_naming_it(tiled_run, tm
         ({"tiles_spacing": np.array(-1.0)}, "tiles_spacing positive"),
         ({"tiles_basis": np.array("not json")}, "tiles_"),
         ({"format": np.array(7)}, "format 7"),
+        ({"precision_upper": np.ones(7)}, "precision_upper: 7 values are no square's"),
     ):
         np.savez(tmp_path / "bad.npz", **{**fields, **change})
         with pytest.raises(DataError, match=message) as err:
