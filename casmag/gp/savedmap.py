@@ -342,10 +342,10 @@ class SavedMap:
         reader never sees half a file."""
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp")
-        grid: dict[str, np.ndarray] = {"precision": self.precision}
+        layout: dict[str, np.ndarray] = {"precision": self.precision}
         if self.tiles is not None:
             g = self.tiles
-            grid = {
+            layout = {
                 "tiles_spacing": np.array(float(g.spacing)),
                 "tiles_origin": np.asarray(g.origin, dtype=float),
                 "tiles_index": np.array(g.tiles, dtype=np.int64).reshape(-1, g.dim),
@@ -368,7 +368,7 @@ class SavedMap:
                 mean=self.mean,
                 frame=np.array(self.frame),
                 position_dim=np.array(self.dim),
-                **grid,
+                **layout,
             )
         os.replace(tmp, path)
         return path
@@ -406,7 +406,7 @@ def tiled_map(
 
 def _upper(A: np.ndarray) -> np.ndarray:
     """The upper triangle of a square matrix, row by row (n (n + 1) / 2 values)."""
-    return np.concatenate([A[i, i:] for i in range(A.shape[0])]) if A.size else np.zeros(0)
+    return np.concatenate([A[i, i:] for i in range(A.shape[0])])
 
 
 def _from_upper(path: Path, u: np.ndarray) -> np.ndarray:
