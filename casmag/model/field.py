@@ -319,12 +319,18 @@ class TiledField(FieldModel):
     sparse in the tiles (``home``: each sample's nearest grid point when the NLP was built,
     which fixes the pose-weight pattern), Gauss-Newton and then exact in each sample's pose
     (``hybrid``, casmag.model.tiledmap; ``solver.hessian`` ``gauss-newton`` or ``exact``
-    keeps one of them throughout). Hyperparameters are parameters."""
+    keeps one of them throughout). Hyperparameters are parameters.
+
+    ``saved_prior``: the map of a saved map's update (casmag.solver.localize), read in the
+    map frame: block ``map_prior``, 0.5 (z - mu)^T Lambda (z - mu) on z = [vec(W); c] with
+    the saved posterior's mean ``map_mean`` (n_z, 1) and precision ``map_precision``
+    (n_z, n_z), in place of the GP prior on the weights and the constant field's."""
 
     grid: TileGrid
     home: tuple[int, ...]
     constant_field: bool = False
     metis: bool = True
+    saved_prior: bool = False
     name = "tiled"
 
     def tiles(self) -> TiledBasis:
@@ -342,6 +348,12 @@ class TiledField(FieldModel):
         c = b.variable("c", (FIELD_DIM, 1)) if self.constant_field else None
         sigma_lin = b.parameter("sigma_lin", (1, 1)) if c is not None else None
         S = tiles.prior_variances(sigma_f, ell)  # (m, 1)
+        if self.saved_prior:  # declared before the blocks' callbacks fix the sizes of p
+            if pose.rotation is not None:
+                raise ValueError("a saved tiled map's prior is read in the map frame")
+            z = ca.vertcat(ca.vec(W), *([c] if c is not None else []))
+            mu = b.parameter("map_mean", (z.numel(), 1))
+            Lam = b.parameter("map_precision", (z.numel(), z.numel()))
         if pose.rotation is None:
             model: Any = map_frame_block(
                 b, pose, self.constant_field, "magnetometer",
@@ -362,11 +374,13 @@ class TiledField(FieldModel):
             hessian = lambda: RotatedTiledGaussNewton(  # noqa: E731
                 "rotated_tiled_hessian", model, self.home, mode=mode
             )
-        if pose.rotation is None:
+        if self.saved_prior:
+            b.quadratic("map_prior", "W", z, mu, Lam)
+        elif pose.rotation is None:
             b.cost("gp_prior", 0.5 * ca.sum1(ca.sum2(W**2) / S))
         else:  # whitened weights (RotatedTiledModel)
             b.cost("gp_prior", 0.5 * ca.sumsqr(W))
-        if c is not None:
+        if c is not None and not self.saved_prior:
             b.cost("constant_field_prior", 0.5 * ca.sumsqr(c / sigma_lin))
         if solver.hessian == "limited-memory":
             return None

@@ -22,7 +22,7 @@ together by the one builder (casmag.model.builder).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import casadi as ca
@@ -210,18 +210,46 @@ class WindowStructure:
     (casmag.solver.localize): everything that changes its NLP (and so needs a new build).
 
     ``basis``: (center, half_width, num_basis) of the map's reduced-rank box;
-    ``share_columns`` False: one precision over every weight (a saved map's)."""
+    ``share_columns`` False: one precision over every weight (a saved map's). A saved
+    tiled map (localisation only): ``basis`` None, ``grid`` its tiles (curl-free) and
+    ``home`` each sample's nearest grid point where the NLP is laid (TiledField, built
+    for each placement and not cached)."""
 
     n: int
     dim: int
     kernel: str
-    basis: tuple
+    basis: tuple | None
     knot_every: int
     constant_field: bool
     estimate_bias: bool
     solver: str  # SolverSpec as JSON
     share_columns: bool = True
-    form = "reduced_rank"  # the window's map (casmag.solver.uncertainty reads it)
+    grid: TileGrid | None = None
+    home: tuple[int, ...] = ()
+
+    @property
+    def form(self) -> str:
+        """The window's map, ``reduced_rank`` or ``tiled`` (casmag.solver.uncertainty reads
+        it)."""
+        return "reduced_rank" if self.grid is None else "tiled"
+
+    def placed(self, P: np.ndarray) -> WindowStructure:
+        """A tiled map's structure laid around positions P (n, d) (its ``home``); a box
+        map's as it is."""
+        if self.grid is None:
+            return self
+        return replace(self, home=home_points(self.grid, P))
+
+    def covers(self, P: np.ndarray) -> bool:
+        """Every position P (n, d) is finite and on the map: inside its box, or with every
+        tile of its cell present."""
+        P = np.asarray(P, dtype=float)
+        if not np.all(np.isfinite(P)):
+            return False
+        if self.grid is not None:
+            return bool(np.all(cached_tiles(self.grid).inside(P)))
+        center, half = (np.asarray(v)[: self.dim] for v in self.basis[:2])
+        return bool(np.all(P >= center - half) and np.all(P <= center + half))
 
     @property
     def shared_prior(self) -> bool:
@@ -244,12 +272,16 @@ class WindowStructure:
             self.n, self.dim, self.knot_every, (0,), self.estimate_bias, bias_prior
         )
 
-    def fixed_field(self) -> ReducedRankField:
-        """The map of a window located against a known map: the plain reduced-rank map
-        (no ``map_prior`` block), whose weights the solve holds fixed."""
+    def fixed_field(self) -> FieldModel:
+        """The map of a window located against a known map: the plain reduced-rank or
+        tiled map (no ``map_prior`` block), whose weights the solve holds fixed."""
+        if self.grid is not None:
+            return TiledField(self.grid, self.home, self.constant_field)
         return ReducedRankField(self.kernel, self.basis, constant_field=self.constant_field)
 
-    def field(self) -> WindowField:
+    def field(self) -> FieldModel:
+        if self.grid is not None:
+            return TiledField(self.grid, self.home, self.constant_field, saved_prior=True)
         return WindowField(
             self.kernel,
             self.basis,
@@ -262,6 +294,9 @@ class WindowStructure:
     def prior_shape(self) -> tuple[int, int]:
         """Shape of the prior's unknowns Z: W (M, 3) when shared, else the stacked
         [vec(W); c] (n_z, 1)."""
+        if self.grid is not None:
+            n_w = cached_tiles(self.grid).num_weights
+            return (n_w + (FIELD_DIM if self.constant_field else 0), 1)
         M = self.basis[2]
         if self.shared_prior:
             return (M, FIELD_DIM)
@@ -269,10 +304,11 @@ class WindowStructure:
         return (n_w + (FIELD_DIM if self.constant_field else 0), 1)
 
     def nlp(self, fixed_map: bool = False) -> NLP:
-        """The window NLP, built once per process; ``fixed_map``: the one of
-        :meth:`fixed_field`."""
-        return cached_slam(self.motion(), self.fixed_field() if fixed_map else self.field(),
-                           self.solver)  # fmt: skip
+        """The window NLP, built once per process (a tiled map's for each placement, not
+        kept); ``fixed_map``: the one of :meth:`fixed_field`."""
+        build = cached_slam if self.grid is None else uncached_slam
+        return build(self.motion(), self.fixed_field() if fixed_map else self.field(),
+                     self.solver)  # fmt: skip
 
     def design(self, P: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The map as a linear model of the prior's unknowns Z at positions P (n, d):
@@ -317,6 +353,12 @@ class WindowStructure:
         :attr:`prior_shape`."""
         if self.shared_prior:
             return {"W": Z}
+        if self.grid is not None:
+            tiles, z = cached_tiles(self.grid), np.ravel(Z)
+            out = {"W": z[: tiles.num_weights].reshape(tiles.per_tile, -1, order="F")}
+            if self.constant_field:
+                out["c"] = z[tiles.num_weights :].reshape(-1, 1)
+            return out
         M = self.basis[2]
         n_w = M * FIELD_DIM if self.kernel == "se" else M
         z = Z.ravel()

@@ -41,7 +41,6 @@ from casmag.solver.uncertainty import (
     magnetometer_correction,
     position_uncertainty,
     saved_field_map,
-    whitened_correction,
     without_hessian,
 )
 from casmag.solver.windowing import continued
@@ -295,12 +294,7 @@ def _uncertainty(
     knots, dim = structure.knots, structure.dim
 
     def correction(factors: np.ndarray) -> np.ndarray:
-        if structure.form != "tiled":
-            return magnetometer_correction(nlp, sol, structure, factors, sigma_m)
-        # the tiled block gives its residuals' Jacobian (casmag.model.tiledmap)
-        x = nlp.x_layout.pack({k: v for k, v in sol.x.items() if k in nlp.x_layout.entries})
-        _, J = nlp.keep[1].residual_jacobian(x, nlp.p_layout.pack(params))
-        return whitened_correction(J, factors)
+        return magnetometer_correction(nlp, sol, structure, factors, sigma_m, params)
 
     reuse: dict[str, Any] = {}  # the plain covariance's solve, read again by the sandwich
     try:

@@ -2,7 +2,9 @@
 
 ``casmag slam REC --map MAP`` (:func:`localise`) solves the MAP of a recording's path
 against a saved map (casmag.gp.savedmap): the kernel, the basis and the hyperparameters are
-the map's. Three steps on the reduced-rank NLP of one window structure:
+the map's. Three steps on the NLP of one window structure, the map's box or its tiles
+(a tiled map's NLP laid around where each solve's path starts: the tiles' Hessian pattern,
+casmag.model.tiledmap):
 
 1. windows over the recording (:func:`locate_windows`), each located against the map held
    at its posterior mean, from where the previous one ended (IPOPT factorises a window's
@@ -27,10 +29,10 @@ update's dense prior makes each of its iterations cost about 6 s there; it took 
 
 The recording's anchor must be in the map's frame (``SavedMap.frame``; ``casmag slam``'s
 default anchors both at the first true pose of recordings with truth). Positions the
-estimate puts outside the map's box, or where the map's posterior standard deviation is
-above half its prior's (ground the map never saw), carry no map information: their share
-is ``info.localisation.covered`` and below :data:`MIN_COVERED` the result is flagged
-``off_map``.
+estimate puts outside the map's box (or off its tiles), or where the map's posterior
+standard deviation is above half its prior's (ground the map never saw), carry no map
+information: their share is ``info.localisation.covered`` and below :data:`MIN_COVERED`
+the result is flagged ``off_map``.
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ from casmag.solver.windowing import ACCEPTED, continued, window_size, window_sta
 from casmag.versions import __version__, versions
 
 OFF_MAP = "Off_Map_Dead_Reckoning"
-"""Status of a window that left the map's box: kept as its start (the dead reckoning
+"""Status of a window that left the map (its box or tiles): kept as its start (the dead reckoning
 continued from the previous window), and the next window tries the map again."""
 
 #: Below this share of the estimated path on mapped ground the result is flagged ``off_map``.
@@ -92,12 +94,13 @@ def _structure(problem: Problem, data: Dataset, saved: SavedMap, n: int) -> Wind
         n=n,
         dim=data.dim,
         kernel=saved.kernel,
-        basis=saved.basis_key,
+        basis=saved.basis_key if saved.tiles is None else None,
         knot_every=min(m.trajectory.knot_every, n - 1),
         constant_field=saved.constant_field,
         estimate_bias=m.odometry.estimate_bias,
         solver=solver.model_dump_json(),
         share_columns=False,
+        grid=saved.tiles,
     )
 
 
@@ -106,7 +109,7 @@ class Located:
     """The windows located against the map: positions (N, d) [m], each sample from the
     last window that committed it (the dead reckoning when ``completed`` is False);
     ``stages`` one record each (as a result's ``stages``); ``completed``: every window
-    reached an accepted IPOPT outcome (a window off the map's box counts, keeping its dead
+    reached an accepted IPOPT outcome (a window off the map counts, keeping its dead
     reckoning with status :data:`OFF_MAP`). Otherwise the failing window is the last
     record."""
 
@@ -123,20 +126,19 @@ def locate_windows(
     problem: Problem, data: Dataset, s: WindowStructure, overlap: int, mean: np.ndarray
 ) -> Located:
     """Windows of ``s.n`` samples overlapping by ``overlap``, located in time order against the
-    map held at its mean ``mean`` (the plain reduced-rank NLP with the map's unknowns fixed:
-    IPOPT factorises a window's path alone; no bias is estimated in a window). Each window
-    starts at the previous one's estimate of its first sample, from the previous one's path
-    on the overlap continued by the odometry. A window whose path leaves the map's box keeps
-    that start (no map information there) and the next one tries the map again; any other
-    failure ends the windows."""
+    map held at its mean ``mean`` (the plain reduced-rank or tiled NLP with the map's
+    unknowns fixed: IPOPT factorises a window's path alone; no bias is estimated in a
+    window). Each window starts at the previous one's estimate of its first sample, from the
+    previous one's path on the overlap continued by the odometry. A window whose path leaves
+    the map (box or tiles) keeps that start (no map information there) and the next one
+    tries the map again; any other failure ends the windows."""
     N, n = data.n_samples, s.n
     starts = window_starts(N, n, overlap)
-    nlp = s.nlp(fixed_map=True)
     knots = s.knots
     m = problem.spec.model
     held = ("W", "c") if s.constant_field else ("W",)
-    center, half = (np.asarray(v)[: data.dim] for v in s.basis[:2])
     unknowns = s.unknowns(mean)
+    last_nlp = None  # the previous window's NLP (a box map's is the same one throughout)
     params = {
         "sigma_o": problem.assumed_sigma_odometry,
         "sigma_anchor": m.anchor.sigma,
@@ -157,10 +159,10 @@ def locate_windows(
         C0 = knots.fit(Q, P0)
         P0 = knots.positions(Q, C0)
         window = {**params, "Q": Q, "Y": data.Y[start:end], "anchor": anchor.reshape(1, -1)}
+        nlp = s.placed(P0).nlp(fixed_map=True)  # a tiled map's laid around the start
         sol = nlp.solve(window, {"C": C0, **unknowns}, fixed=held)
         P, status = knots.positions(Q, sol.x["C"]), sol.status
-        if status in ACCEPTED and not (np.all(np.isfinite(P)) and np.all(P >= center - half)
-                                       and np.all(P <= center + half)):  # fmt: skip
+        if status in ACCEPTED and not s.covers(P):
             P, status = P0, OFF_MAP  # off the map: its start, and the next window tries again
         stages.append(
             {
@@ -171,11 +173,12 @@ def locate_windows(
                 "success": sol.success,
                 "iterations": sol.iterations,
                 "solve_seconds": sol.solve_seconds,
-                "build_seconds": nlp.build_seconds if k == 0 else 0.0,
+                "build_seconds": 0.0 if nlp is last_nlp else nlp.build_seconds,
                 "lengthscale": problem.assumed_lengthscale,
                 "bias": None,
             }
         )
+        last_nlp = nlp
         if status not in (*ACCEPTED, OFF_MAP):
             return Located(data.dead_reckoning(), stages, False)
         P_est[start:nxt] = P[: nxt - start]
@@ -215,7 +218,6 @@ def localise(
     kernel and hyperparameters. ``update`` False: the map held (steps 1 and 2 only). A
     failed solve is returned with ``success`` False and IPOPT's status; a failed update
     keeps step 2's result, with a warning."""
-    saved.require_box(map_source)
     if saved.dim != data.dim:
         raise DataError(
             f"{map_source or 'map'}: a {saved.dim}-D map cannot locate a {data.dim}-D recording"
@@ -238,6 +240,7 @@ def localise(
     # 2. One solve over the whole recording, the map held at its mean, the magnetometer's
     #    noise widened by the map's own uncertainty along the smoother's path.
     s = replace(_structure(problem, data, saved, N), solver=problem.spec.solver.model_dump_json())
+    s = s.placed(sm.positions)
     nlp = s.nlp(fixed_map=True)
     knots = s.knots
     U = data.U
@@ -270,6 +273,7 @@ def localise(
     #    the map free under the saved posterior as its prior, sigma_m the map's own.
     updated = None
     if update and sol.success:
+        s = s.placed(knots.positions(Q, sol.x["C"]))  # a tiled map's laid where step 2 ended
         nlp_u = s.nlp()
         params_u = {
             **params,
@@ -347,7 +351,7 @@ def localise(
                 {
                     "check": "off_map_windows",
                     "column": "",
-                    "reason": f"{len(off)} of {len(sm.stages)} windows left the map's box "
+                    "reason": f"{len(off)} of {len(sm.stages)} windows left the map "
                     f"(first at sample {off[0]['start']}) and kept their dead reckoning",
                 }
             )
@@ -371,7 +375,9 @@ def localise(
                         reuse=reuse,
                     ),
                     lambda: data.Y - mean_map.field(P_est),
-                    lambda factors: magnetometer_correction(nlp, sol, s, factors, saved.sigma_m),
+                    lambda factors: magnetometer_correction(
+                        nlp, sol, s, factors, saved.sigma_m, params
+                    ),
                     knots.bounds,
                     saved.sigma_m,
                     problem.spec.solver.uncertainty_inflation,
@@ -399,7 +405,7 @@ def localise(
         "source": problem.source,
         "n_samples": N,
         "kernel": saved.kernel,
-        "gp_form": "reduced_rank",
+        "gp_form": saved.form,
         "num_basis": saved.num_basis,
         "estimated": [],
         "estimate_bias": s.estimate_bias,
@@ -470,8 +476,9 @@ def _updated_map(
         saved, mean=np.concatenate([np.ravel(x[n], order="F") for n in ("W", "c") if n in x])
     )
     try:
+        basis = saved.basis_key if saved.tiles is None else saved.tiles
         new = map_from_solution(
-            nlp, x, params, saved.kernel, saved.basis_key, saved.hyperparameters(), saved.frame,
+            nlp, x, params, saved.kernel, basis, saved.hyperparameters(), saved.frame,
             position_dim=saved.dim,
         )  # fmt: skip
         new.cholesky()

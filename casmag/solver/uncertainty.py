@@ -615,11 +615,19 @@ def residual_inflation(
 
 
 def magnetometer_correction(
-    nlp: NLP, sol: Solution, structure, weights: np.ndarray, sigma_m: float
+    nlp: NLP,
+    sol: Solution,
+    structure,
+    weights: np.ndarray,
+    sigma_m: float,
+    params: dict | None = None,
 ) -> np.ndarray:
     """Sparse (n_x, n_x) change of the Hessian when the Gauss-Newton information of each
     magnetometer residual (sample k, component c) is scaled by weights[k, c]:
     sum_kc (weights_kc - 1) J_kc^T J_kc / sigma_m^2, with J_kc the residual's gradient.
+
+    Tiled map: the block's own Jacobian of its whitened residuals at the solution
+    (casmag.model.tiledmap; ``params`` the solve's parameters, whose sigma_m it reads).
 
     Reduced-rank map (casmag.model.rrmap): J_kc reaches the knots through dm_c/dp_k and the
     interpolation matrix A, the weights through the basis row (SE: component c's column of
@@ -629,6 +637,12 @@ def magnetometer_correction(
 
     n_x = nlp.x_layout.size
     E = nlp.x_layout.entries
+    if structure.form == "tiled":
+        if params is None:
+            raise ValueError("a tiled map's correction needs the solve's parameters")
+        x = nlp.x_layout.pack({k: v for k, v in sol.x.items() if k in E})
+        _, J = nlp.keep[1].residual_jacobian(x, nlp.p_layout.pack(params))
+        return whitened_correction(J, weights)
     V = (np.asarray(weights, dtype=float) - 1.0) / sigma_m**2  # (N, 3)
     if structure.form != "reduced_rank":
         e = E["M"]
