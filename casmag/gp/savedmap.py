@@ -418,6 +418,38 @@ def tiled_map(
     )
 
 
+#: Most weights for which :func:`tiled_std_given_path` computes a tiled map's standard
+#: deviation (a dense covariance: 288 MB at 6,000, the most a run saves,
+#: casmag.solver.uncertainty.MAP_MAX_UNKNOWNS).
+TILED_STD_MAX_WEIGHTS = 6_000
+
+
+def tiled_std_given_path(
+    grid: TileGrid, hyper: dict[str, float], P: np.ndarray, X: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(posterior std, prior std), each (G, 3) per field component at points X (G, d), of
+    the tiled map on ``grid`` given the magnetometer (noise ``hyper["sigma_m"]``) at the
+    positions P (N, d) taken as known: precision A^T A / sigma_m^2 + diag(1 / S), the
+    constant field left out (every sample informs it), as the box map's
+    (casmag.gp.fieldmap.reduced_rank_std). NaN where a point lacks one of its tiles; None
+    above TILED_STD_MAX_WEIGHTS weights."""
+    tiles = cached_tiles(grid)
+    n_w = tiles.num_weights
+    if n_w > TILED_STD_MAX_WEIGHTS:
+        return None
+    S = np.tile(np.ravel(tiles.prior_variances(hyper["sigma_f"], hyper["lengthscale"])),
+                tiles.num_tiles)  # fmt: skip
+    A = tiles.design(np.asarray(P, dtype=float))
+    precision = (A.T @ A).toarray() / hyper["sigma_m"] ** 2
+    precision[np.diag_indices(n_w)] += 1.0 / S
+    given = tiled_map(grid, hyper, np.zeros(n_w), precision, False)
+    X = given._points(X)
+    inside = given.inside(X)
+    post, prior = (np.full((X.shape[0], FIELD_DIM), np.nan) for _ in range(2))
+    post[inside], prior[inside] = given.std(X[inside]), given.prior_std(X[inside])
+    return post, prior
+
+
 def _upper(A: np.ndarray) -> np.ndarray:
     """The upper triangle of a square matrix, row by row (n (n + 1) / 2 values)."""
     return np.concatenate([A[i, i:] for i in range(A.shape[0])])

@@ -36,6 +36,7 @@ from casmag.gp.fieldmap import field_at, reduced_rank_std
 from casmag.gp.kernels import FIELD_DIM, get_kernel
 from casmag.gp.localmaps import cached_tiles
 from casmag.gp.reduced_rank import HilbertBasis, cached_basis
+from casmag.gp.savedmap import tiled_std_given_path
 from casmag.gp.tiles import TileGrid
 from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam, uncached_slam
 from casmag.model.field import ExactField, ReducedRankField, TiledField, WindowField
@@ -467,9 +468,12 @@ def field_std_on_grid(
     informs the map. Reduced rank: from the weights' posterior precision
     A^T A / sigma_m^2 + diag(1 / S) (the constant field left out: every sample informs it);
     exact GP: k(x, x) - k(x, P) (K + sigma_m^2 I)^-1 k(P, x). None for an exact GP above
-    EXACT_STD_MAX_SAMPLES samples or a tiled map (not yet computed there)."""
+    EXACT_STD_MAX_SAMPLES samples. Tiled map: the same posterior given P on its tiles
+    (casmag.gp.savedmap.tiled_std_given_path; NaN off the tiles, None above
+    TILED_STD_MAX_WEIGHTS weights)."""
     if s.form == "tiled":
-        return None
+        assert s.grid is not None
+        return tiled_std_given_path(s.grid, hyper, P, grid)
     if s.form == "reduced_rank":
         return reduced_rank_std(s.hilbert_basis(), s.kernel, hyper, P, grid)
     sf, ell, sm = hyper["sigma_f"], hyper["lengthscale"], hyper["sigma_m"]

@@ -439,3 +439,28 @@ def test_a_tiled_map_file_with_a_broken_grid_is_one_line_naming_it(tiled_run, tm
     np.savez(tmp_path / "cut.npz", **fields)
     with pytest.raises(DataError, match="a tiled map without tiles_origin"):
         load_map(tmp_path / "cut.npz")
+
+
+def test_a_tiled_run_draws_its_map_std_given_the_path(tiled_run):
+    """The result's map std of a tiled run (map.png): the tiles' posterior given the
+    estimated path, as the dense formula gives it, small on the path, the prior far off."""
+    from casmag.gp.localmaps import cached_tiles
+    from casmag.gp.savedmap import tiled_std_given_path
+
+    result = tiled_run[2]
+    std, prior = result.arrays["map_std"], result.arrays["map_prior_std"]
+    assert std is not None and std.shape == result.arrays["map_field"].shape
+    assert np.all(std[np.isfinite(std)] <= prior[np.isfinite(std)] + 1e-12)
+    grid = result.saved_map().tiles
+    hyper, P = result.hyperparameters, result.arrays["P_estimate"]
+    X = np.vstack([P[::20], P[0] + 100.0])  # on the path, and far off the tiles
+    post, pri = tiled_std_given_path(grid, hyper, P, X)
+    tiles = cached_tiles(grid)
+    S = np.tile(np.ravel(tiles.prior_variances(hyper["sigma_f"], hyper["lengthscale"])),
+                tiles.num_tiles)  # fmt: skip
+    A = tiles.design(P).toarray()
+    Sigma = np.linalg.inv(A.T @ A / hyper["sigma_m"] ** 2 + np.diag(1.0 / S))
+    B = tiles.design(X[:-1]).toarray()
+    dense = np.sqrt(np.einsum("ij,jk,ik->i", B, Sigma, B)).reshape(3, -1).T
+    np.testing.assert_allclose(post[:-1], dense, rtol=1e-6)
+    assert np.all(post[:-1] < 0.5 * pri[:-1]) and np.isnan(post[-1]).all()
