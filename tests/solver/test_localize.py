@@ -441,6 +441,7 @@ def test_a_tiled_map_file_with_a_broken_grid_is_one_line_naming_it(tiled_run, tm
         load_map(tmp_path / "cut.npz")
 
 
+@pytest.mark.slow
 def test_a_tiled_run_draws_its_map_std_given_the_path(tiled_run):
     """The result's map std of a tiled run (map.png): the tiles' posterior given the
     estimated path, as the dense formula gives it, small on the path, the prior far off."""
