@@ -258,8 +258,8 @@ class SavedMap:
         Sigma = self._covariance
         tiles = self.tiled_basis()
         out = np.empty((X.shape[0], FIELD_DIM))
-        _, cell_of = np.unique(tiles.cells(X), axis=0, return_inverse=True)
-        for cell in range(int(cell_of.max()) + 1 if X.shape[0] else 0):
+        cells, cell_of = np.unique(tiles.cells(X), axis=0, return_inverse=True)
+        for cell in range(cells.shape[0]):
             r = np.flatnonzero(cell_of.ravel() == cell)
             for q, A in enumerate(self.design(X[r])):
                 cols = np.unique(A.indices)

@@ -297,11 +297,10 @@ class WindowStructure:
         [vec(W); c] (n_z, 1)."""
         if self.grid is not None:
             n_w = cached_tiles(self.grid).num_weights
-            return (n_w + (FIELD_DIM if self.constant_field else 0), 1)
-        M = self.basis[2]
-        if self.shared_prior:
-            return (M, FIELD_DIM)
-        n_w = M * FIELD_DIM if self.kernel == "se" else M
+        elif self.shared_prior:
+            return (self.basis[2], FIELD_DIM)
+        else:
+            n_w = self.basis[2] * (FIELD_DIM if self.kernel == "se" else 1)
         return (n_w + (FIELD_DIM if self.constant_field else 0), 1)
 
     def nlp(self, fixed_map: bool = False) -> NLP:
