@@ -161,11 +161,14 @@ bench-drift: $(STAMP) ## Planar and pose walks drifting beyond one batch's basin
 bench-localise: $(STAMP) ## Map once, locate later: planar and pose walks located against their saved map, beside scratch and joint solves, 5 seeds -> results/bench/localise/localise.md
 	$(PY) -m casmag.experiments.locbench --seeds 5 --out results/bench/localise
 
-bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, exact vs reduced rank; results/bench/scale.json
-	$(PY) -m casmag.experiments.bench scale --out results/bench
+# make bench-scale / bench-area: seconds one run may take before it is stopped (its row then
+# says so, with the iterations, seconds per iteration and memory it had reached).
+BENCH_TIMEOUT ?= 3600
+bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, one box in 6x6 m and tiles in 50x70 m, exact vs reduced rank; results/bench/scale.json, .png (hours)
+	$(PY) -m casmag.experiments.bench scale --timeout $(BENCH_TIMEOUT) --out results/bench
 
 bench-area: $(STAMP) ## Same walk (10k samples) over 6x6, 20x20, 50x70 m, dipole field: one box vs tiles; results/bench/area.json, .png (hours)
-	$(PY) -m casmag.experiments.bench area --out results/bench
+	$(PY) -m casmag.experiments.bench area --timeout $(BENCH_TIMEOUT) --out results/bench
 
 bench-exact: $(STAMP) ## Exact GP against reduced rank, N = 100..500; replaces those rows of results/bench/scale.json
 	$(PY) -m casmag.experiments.bench exact --out results/bench

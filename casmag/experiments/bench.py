@@ -57,6 +57,20 @@ over each area, in a field of dipoles under the floor (physics, not a GP draw;
 casmag.data.simulate.dipole_floor_field), solved with the curl-free map as one box and as
 tiles."""
 
+SCALE_SETS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "room": ("reduced_rank", ()),
+    "building": ("tiled", ("simulation.trajectory.area=[50.0, 70.0]", *AREA_FIELD)),
+}
+"""``make bench-scale``'s settings, each run at every N: ``room``, the walk's own 6 m x 6 m
+with its Fourier-feature field and one box (:data:`KNOT_EVERY`); ``building``, the same walk
+over 50 m x 70 m in the area benchmark's dipole field with the tiled map (the box there would
+need tens of thousands of functions for the same lengthscale), the file's knots."""
+
+
+RUN_TIMEOUT = 3600.0
+"""Seconds one run of ``make bench-area`` or ``make bench-scale`` may take before it is
+stopped (its row says so, with what its progress lines said)."""
+
 
 def run_one(
     samples: int,
@@ -82,7 +96,23 @@ def run_one(
     data = simulate_problem(problem)
     t_sim = time.perf_counter() - t0
     t0 = time.perf_counter()
-    result = casmag.solve(problem, data)
+    done = 0
+
+    def progress(iteration: int, cost: float, step: float, seconds: float) -> None:
+        # one line per IPOPT iteration on stderr: what a run stopped by --timeout leaves
+        nonlocal done
+        done += iteration > 0  # IPOPT's iteration 0 is the start of each stage
+        line = {
+            "iterations": done,
+            "stage_iteration": iteration,
+            "stage_seconds": seconds,
+            "wall_seconds": time.perf_counter() - t0,
+            "cost": cost,
+            "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        }
+        print(PROGRESS + json.dumps(line), file=sys.stderr, flush=True)
+
+    result = casmag.solve(problem, data, progress)
     wall = time.perf_counter() - t0
     stages = result.stages  # the growing warm start's prefixes, the last the final solve
     iters = sum(s["iterations"] for s in stages[:-1]) + result.iterations
@@ -120,50 +150,118 @@ def run_one(
     }
 
 
-def _spawn(args: list[str]) -> dict[str, Any]:
+def _spawn(args: list[str], timeout: float | None = None) -> dict[str, Any]:
+    """One configuration in its own process (``bench one ARGS``), its figures; a run that
+    crashes, or that is still running after ``timeout`` seconds (then stopped), is a failed
+    row that says so."""
     cmd = [sys.executable, "-m", "casmag.experiments.bench", "one", *args]
-    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, check=False, timeout=timeout)
+    except subprocess.TimeoutExpired as stopped:
+        return {
+            "args": args,
+            "status": f"stopped: still running after {timeout:g} s (--timeout)",
+            "success": False,
+            "wall_seconds": timeout,
+            **progress_so_far(stopped.stderr),
+        }
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
     if out.returncode != 0 or not lines:
-        tail = (out.stderr.strip().splitlines() or ["no output"])[-1]
-        return {"args": args, "status": f"crashed: {tail}", "success": False}
+        said = [ln for ln in out.stderr.strip().splitlines() if not ln.startswith(PROGRESS)]
+        tail = (said or [f"no output, exit code {out.returncode}"])[-1]
+        return {
+            "args": args,
+            "status": f"crashed: {tail}",
+            "success": False,
+            **progress_so_far(out.stderr),
+        }
     return json.loads(lines[-1])
+
+
+#: The start of a progress line on a run's stderr (:func:`run_one`).
+PROGRESS = "progress "
+
+
+def progress_so_far(stderr: bytes | str | None) -> dict[str, Any]:
+    """What the progress lines of a run stopped part-way say: IPOPT iterations done, the
+    solve's seconds to the last one, and the seconds per iteration of the stage it was in
+    (``seconds_per_iteration_last_stage``, as a finished run's: its last stage so far),
+    the peak resident memory to then. Empty without progress lines (stopped before the
+    first iteration ended)."""
+    text = stderr.decode(errors="replace") if isinstance(stderr, bytes) else stderr or ""
+    lines = []
+    for ln in text.splitlines():
+        if ln.startswith(PROGRESS):
+            try:
+                lines.append(json.loads(ln[len(PROGRESS) :]))
+            except json.JSONDecodeError:  # cut off by the stop
+                pass
+    if not lines:
+        return {}
+    last = lines[-1]
+    return {
+        "iterations_done": last["iterations"],
+        "solve_seconds_done": last["wall_seconds"],
+        "stage_iterations_done": last["stage_iteration"],
+        "seconds_per_iteration_last_stage": last["stage_seconds"] / max(1, last["stage_iteration"]),
+        "cost_last": last["cost"],
+        "peak_rss_gib": max(ln.get("peak_rss_gib", 0.0) for ln in lines),
+    }
 
 
 def _write_json(path: Path, data: Any) -> None:
     write_text_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
+SET_LABELS = {"room": "6 x 6 m, one box", "building": "50 x 70 m, tiles"}
+
+
 def _figure(runs: list[dict[str, Any]], path: Path) -> None:
+    """Seconds per iteration, wall time and RMSE against N, one line per setting."""
     import matplotlib
 
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    rr = [r for r in runs if r.get("form") == "reduced_rank" and r.get("success")]
     fig = Figure(figsize=(10, 4))
     ax1, ax2 = fig.subplots(1, 2)
-    n = [r["samples"] for r in rr]
-    ax1.loglog(n, [r["seconds_per_iteration_last_stage"] for r in rr], "o-", label="s / iteration")
-    ax1.loglog(n, [r["wall_seconds"] for r in rr], "s-", label="wall s (all stages)")
-    if rr:
-        ref = rr[0]["seconds_per_iteration_last_stage"] / n[0]
-        ax1.loglog(n, [ref * k for k in n], "k:", label="linear in N")
-    ax1.set_xlabel("samples N")
+    for name in SCALE_SETS:
+        ok = [r for r in runs if r.get("set", "room") == name and r.get("success")]
+        if not ok:
+            continue
+        label = SET_LABELS.get(name, name)
+        n = [r["samples"] for r in ok]
+        per_it = [r["seconds_per_iteration_last_stage"] for r in ok]
+        line = ax1.loglog(n, per_it, "o-", label=f"{label}: s / iteration")[0]
+        ax1.loglog(n, [r["wall_seconds"] for r in ok], "s--", color=line.get_color(),
+                   label=f"{label}: wall s (all stages)")  # fmt: skip
+        ax1.loglog(n, [per_it[0] / n[0] * k for k in n], ":", color=line.get_color(), lw=0.8)
+        ax2.loglog(n, [r["rmse_before"] for r in ok], "x:", color=line.get_color(),
+                   label=f"{label}: odometry only")  # fmt: skip
+        ax2.loglog(n, [r["rmse_after"] for r in ok], "o-", color=line.get_color(),
+                   label=f"{label}: GP-SLAM")  # fmt: skip
+    ax1.set_xlabel("samples N (dotted: linear in N)")
     ax1.set_ylabel("seconds")
-    ax1.legend()
-    ax1.grid(True, which="both", alpha=0.3)
-    ax2.loglog(n, [r["rmse_before"] for r in rr], "o--", label="odometry only")
-    ax2.loglog(n, [r["rmse_after"] for r in rr], "o-", label="GP-SLAM")
     ax2.set_xlabel("samples N")
     ax2.set_ylabel("position RMSE [m]")
-    ax2.legend()
-    ax2.grid(True, which="both", alpha=0.3)
-    fig.suptitle("Reduced-rank GP-SLAM on a looping 6 m x 6 m walk (10 Hz)")
+    for ax in (ax1, ax2):
+        ax.grid(True, which="both", alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize=7)
+    fig.suptitle("GP-SLAM on a looping walk (10 Hz): a room with one box, a building with tiles")
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.png")
     fig.savefig(tmp, dpi=110)
     os.replace(tmp, path)
+
+
+TIMEOUT_OPTION = click.option(
+    "--timeout",
+    default=RUN_TIMEOUT,
+    type=float,
+    show_default=True,
+    help="Seconds one run may take; a run still going then is stopped and its row says so.",
+)
 
 
 @click.group()
@@ -190,26 +288,58 @@ def one(
 @click.option("--out", "out_dir", default=str(ROOT / "results" / "bench"), type=click.Path())
 @click.option("--samples", default=AREA_SAMPLES, type=int)
 @click.option("--forms", default="reduced_rank,tiled", help="Comma-separated map forms.")
-def area(out_dir: str, samples: int, forms: str) -> None:
+@TIMEOUT_OPTION
+@click.option(
+    "--areas",
+    default=",".join(f"{w:g}x{h:g}" for w, h in AREAS),
+    show_default=True,
+    help="Comma-separated areas WxH [m] to run; rows of other areas in OUT/area.json are kept.",
+)
+def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str) -> None:
     """The same walk length over each area of :data:`AREAS` (:data:`AREA_FIELD`), each map
     form in its own process: wall time, time per iteration, peak memory, RMSE before and
-    after. Writes OUT/area.json and OUT/area.png."""
-    runs = []
-    for w, h in AREAS:
-        for form in forms.split(","):
+    after. Writes OUT/area.json (again after every run, so a stopped benchmark keeps the
+    rows it finished; rows of areas and forms not run this time are kept) and
+    OUT/area.png."""
+    chosen = [_area(a, areas) for a in areas.split(",") if a]
+    form_list = [f for f in forms.split(",") if f]
+    out = Path(out_dir)
+    old = json.loads((out / "area.json").read_text()) if (out / "area.json").exists() else {}
+    kept = [
+        r
+        for r in old.get("runs", [])
+        if not (tuple(r.get("area", ())) in chosen and r.get("form") in form_list)
+    ]
+    runs: list[dict[str, Any]] = []
+    for w, h in chosen:
+        for form in form_list:
             click.echo(f"{w:g} x {h:g} m, {form} ...", err=True)
             sets = [f"simulation.trajectory.area=[{w}, {h}]", *AREA_FIELD]
             args = [str(samples), "--form", form] + [a for s in sets for a in ("--set", s)]
-            runs.append({"area": [w, h], **_spawn(args)})
+            runs.append({"area": [w, h], "form": form, **_spawn(args, timeout)})
             runs[-1].pop("P_estimate", None)
             click.echo(f"  {_summary(runs[-1])}", err=True)
-    out = Path(out_dir)
-    _write_json(out / "area.json", {"meta": _meta(), "runs": runs})
-    _area_figure(runs, out / "area.png")
+            both = sorted(kept + runs, key=lambda r: (r["area"][0] * r["area"][1], r["form"]))
+            _write_json(out / "area.json", {"meta": _meta(), "runs": both})
+    _area_figure(sorted(kept + runs, key=lambda r: r["area"][0] * r["area"][1]), out / "area.png")
     click.echo(f"wrote {out / 'area.json'} and {out / 'area.png'}", err=True)
 
 
+def _area(text: str, option: str) -> tuple[float, float]:
+    """One WxH of ``--areas`` as (W, H) metres; BadParameter naming the option's value."""
+    try:
+        w, h = (float(v) for v in text.split("x"))
+    except ValueError:
+        raise click.BadParameter(
+            f"{option!r}: expected WxH[,WxH...] in metres", param_hint="--areas"
+        ) from None
+    return w, h
+
+
 def _area_figure(runs: list[dict[str, Any]], path: Path) -> None:
+    """Seconds per iteration, peak memory and RMSE against the area, a line per map form;
+    a run stopped or crashed part-way is an open marker at what it had reached (seconds per
+    iteration of its stage then, memory to then: lower bounds of the finished run's)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -220,17 +350,29 @@ def _area_figure(runs: list[dict[str, Any]], path: Path) -> None:
     for form in sorted({r.get("form") for r in runs if r.get("form")}):
         ok = [r for r in runs if r.get("form") == form and r.get("success")]
         a = [r["area"][0] * r["area"][1] for r in ok]
-        axes[0].loglog(a, [r["seconds_per_iteration_last_stage"] for r in ok], "o-", label=form)
-        axes[1].loglog(a, [r["peak_rss_gib"] for r in ok], "o-", label=form)
-        axes[2].loglog(a, [r["rmse_after"] for r in ok], "o-", label=f"{form} after")
-        axes[2].loglog(a, [r["rmse_before"] for r in ok], "x:", label=f"{form} before")
+        line = axes[0].loglog(
+            a, [r["seconds_per_iteration_last_stage"] for r in ok], "o-", label=form
+        )[0]
+        color = line.get_color()
+        axes[1].loglog(a, [r["peak_rss_gib"] for r in ok], "o-", color=color, label=form)
+        axes[2].loglog(a, [r["rmse_after"] for r in ok], "o-", color=color, label=f"{form} after")
+        axes[2].loglog(a, [r["rmse_before"] for r in ok], "x:", color=color,
+                       label=f"{form} before")  # fmt: skip
+        part = [r for r in runs if r.get("form") == form and not r.get("success")]
+        for ax, key in ((axes[0], "seconds_per_iteration_last_stage"), (axes[1], "peak_rss_gib")):
+            shown = [r for r in part if r.get(key)]
+            if shown:
+                a_s = [r["area"][0] * r["area"][1] for r in shown]
+                ax.loglog(a_s, [r[key] for r in shown], "o", mfc="none", color=color,
+                          label=f"{form}, stopped: so far")  # fmt: skip
     for ax, ylabel in zip(
         axes, ("s / iteration (last stage)", "peak RSS [GiB]", "position RMSE [m]"), strict=True
     ):
         ax.set_xlabel("area [m^2]")
         ax.set_ylabel(ylabel)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend()
+        if ax.lines:
+            ax.legend(fontsize=7)
     fig.suptitle("10,000-sample walk over growing areas, dipole field: one box against tiles")
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.png")
@@ -242,18 +384,50 @@ def _area_figure(runs: list[dict[str, Any]], path: Path) -> None:
 @click.option("--out", "out_dir", default=str(ROOT / "results" / "bench"), type=click.Path())
 @click.option("--sizes", default=",".join(map(str, SCALE_SIZES)), help="Comma-separated N.")
 @click.option("--exact-sizes", default=",".join(map(str, EXACT_SIZES)), help="N for exact GP.")
-def scale(out_dir: str, sizes: str, exact_sizes: str) -> None:
-    """Reduced-rank GP-SLAM on the walk at each N, and exact against reduced rank at small N
-    (one knot per sample for both, :data:`COMPARISON`). Writes OUT/scale.json and
+@click.option(
+    "--sets",
+    "names",
+    default=",".join(SCALE_SETS),
+    show_default=True,
+    help="Comma-separated settings of SCALE_SETS to run at each N.",
+)
+@TIMEOUT_OPTION
+def scale(out_dir: str, sizes: str, exact_sizes: str, names: str, timeout: float) -> None:
+    """GP-SLAM on the walk at each N in each setting of :data:`SCALE_SETS` (the 6 m x 6 m
+    room with one box, the 50 m x 70 m building with tiles), and exact against reduced rank
+    at small N (one knot per sample for both, :data:`COMPARISON`). Writes OUT/scale.json
+    (again after every run; rows of settings not run this time are kept) and
     OUT/scale.png."""
-    runs = _comparisons([int(v) for v in exact_sizes.split(",") if v])
-    for n in [int(v) for v in sizes.split(",") if v]:
-        click.echo(f"N = {n} reduced_rank ...", err=True)
-        knots = ["--knot-every", str(KNOT_EVERY[n])] if n in KNOT_EVERY else []
-        runs.append({"comparison": "scale", **_spawn([str(n), *knots])})
-        runs[-1].pop("P_estimate", None)
-        click.echo(f"  {_summary(runs[-1])}", err=True)
-    _save(Path(out_dir), runs)
+    chosen = [v for v in names.split(",") if v]
+    unknown = sorted(set(chosen) - set(SCALE_SETS))
+    if unknown:
+        raise click.BadParameter(
+            f"{', '.join(unknown)} (known: {', '.join(SCALE_SETS)})", param_hint="--sets"
+        )
+    out = Path(out_dir)
+    exact_n = [int(v) for v in exact_sizes.split(",") if v]
+    old = json.loads((out / "scale.json").read_text()) if (out / "scale.json").exists() else {}
+    kept = [
+        r
+        for r in old.get("runs", [])
+        if not (r.get("comparison") == "exact_vs_reduced_rank" and exact_n)
+        and not (r.get("comparison") == "scale" and r.get("set", "room") in chosen)
+    ]
+    runs = _comparisons(exact_n)
+    for name in chosen:
+        form, extra = SCALE_SETS[name]
+        for n in [int(v) for v in sizes.split(",") if v]:
+            click.echo(f"{name}: N = {n} {form} ...", err=True)
+            knots = (
+                ["--knot-every", str(KNOT_EVERY[n])] if name == "room" and n in KNOT_EVERY else []
+            )
+            sets = [a for v in extra for a in ("--set", v)]
+            row = _spawn([str(n), "--form", form, *knots, *sets], timeout)
+            runs.append({"comparison": "scale", "set": name, "samples": n, "form": form, **row})
+            runs[-1].pop("P_estimate", None)
+            click.echo(f"  {_summary(runs[-1])}", err=True)
+            _save(out, runs + kept, figure=False)
+    _save(out, runs + kept)
 
 
 @main.command()
@@ -297,22 +471,32 @@ def _comparisons(sizes: list[int]) -> list[dict[str, Any]]:
 def _meta() -> dict[str, Any]:
     import casadi
 
+    from casmag.versions import versions
+
     return {
         "problem": str(WALK.relative_to(ROOT)),
         "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
         "casadi": casadi.__version__,
+        "versions": versions(),
     }
 
 
-def _save(out: Path, runs: list[dict[str, Any]]) -> None:
+def _save(out: Path, runs: list[dict[str, Any]], figure: bool = True) -> None:
     _write_json(out / "scale.json", {"meta": _meta(), "runs": runs})
-    _figure([r for r in runs if r["comparison"] == "scale"], out / "scale.png")
-    click.echo(f"wrote {out / 'scale.json'} and {out / 'scale.png'}", err=True)
+    if figure:
+        _figure([r for r in runs if r["comparison"] == "scale"], out / "scale.png")
+        click.echo(f"wrote {out / 'scale.json'} and {out / 'scale.png'}", err=True)
 
 
 def _summary(r: dict[str, Any]) -> str:
     if not r.get("success"):
-        return f"FAILED: {r.get('status')}"
+        done = ""
+        if "iterations_done" in r:
+            done = (
+                f" ({r['iterations_done']} it in {r['solve_seconds_done']:.0f} s, "
+                f"{r['seconds_per_iteration_last_stage']:.2f} s/it in its last stage)"
+            )
+        return f"FAILED: {r.get('status')}{done}"
     return (
         f"{r['status']}: {r['iterations_total']} it, {r['wall_seconds']:.1f} s wall, "
         f"{r['seconds_per_iteration_last_stage']:.2f} s/it, {r['peak_rss_gib']:.2f} GiB, "
