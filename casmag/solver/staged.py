@@ -1041,7 +1041,7 @@ class StagedMap:
     def __call__(self) -> tuple[Any, dict[str, Any]]:
         form, sol = self.form, self.final.sol
         structure = self.final.structure
-        basis = structure.grid if getattr(structure, "grid", None) is not None else structure.basis
+        basis = structure.grid if structure.tiled else structure.basis  # BoxOrTiles
         if sol.params is None:
             return None, {**form, "saved": False, "reason": "the solution records no parameters"}
         saved, record = saved_field_map(
