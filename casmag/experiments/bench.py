@@ -209,6 +209,11 @@ def progress_so_far(stderr: bytes | str | None) -> dict[str, Any]:
     }
 
 
+def _previous_runs(path: Path) -> list[dict[str, Any]]:
+    """The rows of an earlier benchmark file (none when it does not exist)."""
+    return json.loads(path.read_text()).get("runs", []) if path.exists() else []
+
+
 def _write_json(path: Path, data: Any) -> None:
     write_text_atomic(path, json.dumps(data, indent=2) + "\n")
 
@@ -304,13 +309,13 @@ def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str) -> 
     chosen = [_area(a, areas) for a in areas.split(",") if a]
     form_list = [f for f in forms.split(",") if f]
     out = Path(out_dir)
-    old = json.loads((out / "area.json").read_text()) if (out / "area.json").exists() else {}
     kept = [
         r
-        for r in old.get("runs", [])
+        for r in _previous_runs(out / "area.json")
         if not (tuple(r.get("area", ())) in chosen and r.get("form") in form_list)
     ]
     runs: list[dict[str, Any]] = []
+    both = kept
     for w, h in chosen:
         for form in form_list:
             click.echo(f"{w:g} x {h:g} m, {form} ...", err=True)
@@ -321,7 +326,7 @@ def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str) -> 
             click.echo(f"  {_summary(runs[-1])}", err=True)
             both = sorted(kept + runs, key=lambda r: (r["area"][0] * r["area"][1], r["form"]))
             _write_json(out / "area.json", {"meta": _meta(), "runs": both})
-    _area_figure(sorted(kept + runs, key=lambda r: r["area"][0] * r["area"][1]), out / "area.png")
+    _area_figure(both, out / "area.png")
     click.echo(f"wrote {out / 'area.json'} and {out / 'area.png'}", err=True)
 
 
@@ -406,10 +411,9 @@ def scale(out_dir: str, sizes: str, exact_sizes: str, names: str, timeout: float
         )
     out = Path(out_dir)
     exact_n = [int(v) for v in exact_sizes.split(",") if v]
-    old = json.loads((out / "scale.json").read_text()) if (out / "scale.json").exists() else {}
     kept = [
         r
-        for r in old.get("runs", [])
+        for r in _previous_runs(out / "scale.json")
         if not (r.get("comparison") == "exact_vs_reduced_rank" and exact_n)
         and not (r.get("comparison") == "scale" and r.get("set", "room") in chosen)
     ]
@@ -437,8 +441,8 @@ def exact(out_dir: str, sizes: str) -> None:
     """Exact against reduced rank at each N (:data:`COMPARISON`), replacing those rows of
     OUT/scale.json and keeping its scale rows."""
     out = Path(out_dir)
-    old = json.loads((out / "scale.json").read_text()) if (out / "scale.json").exists() else {}
-    kept = [r for r in old.get("runs", []) if r.get("comparison") != "exact_vs_reduced_rank"]
+    previous = _previous_runs(out / "scale.json")
+    kept = [r for r in previous if r.get("comparison") != "exact_vs_reduced_rank"]
     _save(out, _comparisons([int(v) for v in sizes.split(",") if v]) + kept)
 
 
