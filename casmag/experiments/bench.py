@@ -55,7 +55,20 @@ AREA_FIELD = [
 """``make bench-area``: the walk's 10,000 samples (the file's l = 0.35 m, growing warm start)
 over each area, in a field of dipoles under the floor (physics, not a GP draw;
 casmag.data.simulate.dipole_floor_field), solved with the curl-free map as one box and as
-tiles."""
+tiles (:data:`AREA_MAPS`)."""
+
+AREA_MAPS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "reduced_rank": ("reduced_rank", ()),
+    "bumps": ("tiled", ("model.gp.tile_basis=bumps",)),
+    "hilbert": ("tiled", ("model.gp.tile_basis=hilbert",)),
+}
+"""``make bench-area``'s maps, each a row's ``form``: the form and its overrides. One box;
+the tiled map with the bumps (the default basis of every motion model) or with a
+reduced-rank Hilbert basis per tile."""
+AREA_DEFAULT_MAPS = "reduced_rank,bumps"
+AREA_TILED_BEFORE = "hilbert"
+"""Rows of area.json written before the tiled map's basis was a row of its own say
+``tiled``: they were the Hilbert tiles, the translational default until 2026-12-06."""
 
 SCALE_SETS: dict[str, tuple[str, tuple[str, ...]]] = {
     "room": ("reduced_rank", ()),
@@ -292,7 +305,12 @@ def one(
 @main.command()
 @click.option("--out", "out_dir", default=str(ROOT / "results" / "bench"), type=click.Path())
 @click.option("--samples", default=AREA_SAMPLES, type=int)
-@click.option("--forms", default="reduced_rank,tiled", help="Comma-separated map forms.")
+@click.option(
+    "--forms",
+    default=AREA_DEFAULT_MAPS,
+    show_default=True,
+    help=f"Comma-separated maps of AREA_MAPS ({', '.join(AREA_MAPS)}).",
+)
 @TIMEOUT_OPTION
 @click.option(
     "--areas",
@@ -308,10 +326,19 @@ def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str) -> 
     OUT/area.png."""
     chosen = [_area(a, areas) for a in areas.split(",") if a]
     form_list = [f for f in forms.split(",") if f]
+    unknown = [f for f in form_list if f not in AREA_MAPS]
+    if unknown:
+        raise click.BadParameter(
+            f"{', '.join(unknown)}: not one of {', '.join(AREA_MAPS)}", param_hint="--forms"
+        )
     out = Path(out_dir)
+    earlier = [
+        {**r, "form": AREA_TILED_BEFORE} if r.get("form") == "tiled" else r
+        for r in _previous_runs(out / "area.json")
+    ]
     kept = [
         r
-        for r in _previous_runs(out / "area.json")
+        for r in earlier
         if not (tuple(r.get("area", ())) in chosen and r.get("form") in form_list)
     ]
     runs: list[dict[str, Any]] = []
@@ -319,9 +346,10 @@ def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str) -> 
     for w, h in chosen:
         for form in form_list:
             click.echo(f"{w:g} x {h:g} m, {form} ...", err=True)
-            sets = [f"simulation.trajectory.area=[{w}, {h}]", *AREA_FIELD]
-            args = [str(samples), "--form", form] + [a for s in sets for a in ("--set", s)]
-            runs.append({"area": [w, h], "form": form, **_spawn(args, timeout)})
+            kind, extra = AREA_MAPS[form]
+            sets = [f"simulation.trajectory.area=[{w}, {h}]", *AREA_FIELD, *extra]
+            args = [str(samples), "--form", kind] + [a for s in sets for a in ("--set", s)]
+            runs.append({"area": [w, h], **_spawn(args, timeout), "form": form})
             runs[-1].pop("P_estimate", None)
             click.echo(f"  {_summary(runs[-1])}", err=True)
             both = sorted(kept + runs, key=lambda r: (r["area"][0] * r["area"][1], r["form"]))

@@ -91,18 +91,22 @@ TILE_OMEGA = 3.5
 #: basin (4.74 m, flagged) where the Hilbert tiles took 1,909 s to 11.36 m (2026-11-29);
 #: the 120-sample walk of the tests, seeds 2 / 3: 0.0106 / 0.0104 m and mean 1-sigma
 #: 0.0131 / 0.0101 m against the exact GP's 0.0102 / 0.0105 m and 0.0132 / 0.0101 m.
-#: The translational model keeps the Hilbert tiles (:data:`TRANSLATIONAL_TILE_BASIS`): on
-#: walks over 6 x 6 m in the dipole field (``problems/bench/walk.yaml``, curl-free, l =
-#: 0.35 m) the bumps ended in worse optima, 4,000 samples RMSE 0.465 -> 0.0415 m (MAP cost
-#: odometry 2,660, magnetometer 11,725) against 0.0097 m (152, 5,411), 10,000 samples
-#: 1.303 -> 0.0193 m in 83 s against 0.0082 m in 191 s (2026-11-28), though both maps
-#: predict the field at the true positions equally (held-out RMS 0.1086 for both). From
-#: the dead reckoning that is the search (from the truth the bumps reach 0.0177 m at a
-#: lower cost; coarse-to-fine finds it); with the lengthscale from the data it is the
-#: lattice (BUMP_SPACING).
+#: Every motion model takes the bumps since 2026-12-06 (the translational model had kept
+#: the Hilbert tiles, on walks where the bumps' lattice was 0.75 l; :func:`bump_spacing`
+#: now lays it from the field's strength). Measured 2026-12-06, each run alone, 4,000
+#: samples over 6 x 6 m in the dipole field, RMSE after [m] bumps / Hilbert:
+#: ``problems/bench/walk.yaml`` (curl-free, the file's l = 0.35 m, no warm start) seeds
+#: 1 / 2 / 3 0.0093 / 0.0097, 0.0615 / 0.0881, 0.0132 / 0.0084 (16 / 16, 61 / 41, 46 / 45
+#: iterations; 1.9 against 1.3 GiB); ``casmag slam`` on ``casmag.experiments.dipolewalk``
+#: recordings (hyperparameters estimated) seeds 1 / 2 0.0251 / 0.0236 (Hilbert of
+#: 2026-12-02) and 0.0273 / 0.0514 m, 3:03 against 4:03-4:26 wall, 2.2-2.4 against 3.8-4.2
+#: GiB. Over 20 x 20 m (10,000 samples, its 4,000-sample stage) the bumps took 18.0 s per
+#: IPOPT iteration and 2.2 GiB, the Hilbert tiles 48.3 s: each point lies under four
+#: tiles of 166 functions coupled densely to their neighbours, and the KKT factor
+#: (93 % of an iteration there, IPOPT's timing statistics) fills accordingly.
+#: ``model.gp.tile_basis: hilbert`` keeps the Hilbert tiles.
 TILE_BASES = ("bumps", "hilbert")
 TILE_BASIS = "bumps"
-TRANSLATIONAL_TILE_BASIS = "hilbert"
 
 #: The bump lattice's spacing and the bumps' radius in lengthscales, where the taper
 #: starts (a fraction of R^2) and the cells of slack in the Hessian's pattern
@@ -120,8 +124,7 @@ TRANSLATIONAL_TILE_BASIS = "hilbert"
 #: ``library`` converged. Positions ask for more than the covariance shows: on 4,000-sample
 #: translational dipole walks (field 14 times the noise) ``casmag slam`` located at 0.098 /
 #: 0.236 m with h = 0.75 l, 0.076 m (seed 2) at 0.6 l, 0.045 m at 0.5 l, the Hilbert tiles
-#: 0.024 / 0.051 m (README, Tiled map), so the translational model keeps those tiles
-#: (TRANSLATIONAL_TILE_BASIS); the planar floor walk did not gain from 0.5 l (0.202 against
+#: 0.024 / 0.051 m (README, Tiled map); the planar floor walk did not gain from 0.5 l (0.202 against
 #: 0.165 m, 8 min against 64-65 s). BUMP_SPACING is now the coarsest lattice:
 #: :func:`bump_spacing` lays a finer one where the field is strong against the noise.
 BUMP_SPACING = 0.75

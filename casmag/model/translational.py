@@ -42,12 +42,7 @@ from casmag.model.builder import FieldModel, MotionModel, Pose, cached_slam, unc
 from casmag.model.field import ExactField, ReducedRankField, TiledField, WindowField
 from casmag.model.knots import Knots
 from casmag.model.rrmap import field_and_jacobians, make_basis
-from casmag.model.tiledmap import (
-    TRANSLATIONAL_TILE_BASIS,
-    home_points,
-    ridge_tile_weights,
-    tile_grid,
-)
+from casmag.model.tiledmap import home_points, ridge_tile_weights, tile_grid
 from casmag.nlp import NLP, NLPBuilder, Solution
 from casmag.problem.spec import Problem
 
@@ -91,7 +86,7 @@ class Structure:
                 problem.assumed_lengthscale,
                 m.gp.tile_spacing,
                 m.gp.margin,
-                m.gp.tile_basis or TRANSLATIONAL_TILE_BASIS,
+                m.gp.tile_basis,
                 field=(problem.assumed_sigma_f, problem.assumed_sigma_m),
             )
             home = home_points(tiles, X0)

@@ -126,9 +126,10 @@ class GPSpec(Strict):
     casmag.gp.tiles; each sample touches the tiles around it, for areas much larger than
     the lengthscale). tile_basis: ``bumps`` (casmag.gp.bumps: compactly supported bumps on a
     lattice, each sample touching the nodes within a few lengthscales) or ``hilbert`` (a
-    reduced-rank basis per tile) (null: casmag.model.tiledmap.TRANSLATIONAL_TILE_BASIS,
-    hilbert); tile_spacing:
-    the tiles' or lattice's spacing [m] (null: 4 l for hilbert, 0.75 l for bumps); margin
+    reduced-rank basis per tile) (null: casmag.model.tiledmap.TILE_BASIS, bumps, as for
+    every motion model); tile_spacing:
+    the tiles' or lattice's spacing [m] (null: 4 l for hilbert; for bumps
+    casmag.model.tiledmap.bump_spacing, 0.5-0.75 l from the field's strength); margin
     is then how far beyond the initial trajectory the tiles reach.
     num_basis, margin: reduced-rank basis size and box margin [m] (null: frequencies up to
     5 / l, margin 3 l). sigma_lin: prior standard deviation of a constant field added to the

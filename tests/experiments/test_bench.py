@@ -61,12 +61,12 @@ def test_area_keeps_the_rows_it_finished(tmp_path, monkeypatch):
 
     monkeypatch.setattr(bench, "_spawn", spawn)
     out = CliRunner().invoke(
-        bench.main, ["area", "--out", str(tmp_path), "--forms", "tiled", "--timeout", "5"]
+        bench.main, ["area", "--out", str(tmp_path), "--forms", "bumps", "--timeout", "5"]
     )
     assert out.exit_code == 0, out.output
     assert seen == list(range(1, len(bench.AREAS)))
     runs = json.loads((tmp_path / "area.json").read_text())["runs"]
-    assert [r["form"] for r in runs] == ["tiled"] * len(bench.AREAS)
+    assert [r["form"] for r in runs] == ["bumps"] * len(bench.AREAS)
 
 
 def _stand_in_row(args):
@@ -189,13 +189,47 @@ def test_area_runs_the_areas_asked_for_and_keeps_the_others(tmp_path, monkeypatc
     assert run(bench.main, ["area", "--out", str(tmp_path), "--samples", "50"]).exit_code == 0
     out = run(
         bench.main,
-        ["area", "--out", str(tmp_path), "--samples", "70", "--areas", "20x20", "--forms", "tiled"],
+        ["area", "--out", str(tmp_path), "--samples", "70", "--areas", "20x20", "--forms", "bumps"],
     )
     assert out.exit_code == 0, out.output
     runs = json.loads((tmp_path / "area.json").read_text())["runs"]
     assert len(runs) == 2 * len(bench.AREAS)
     walls = {(tuple(r["area"]), r["form"]): r["wall_seconds"] for r in runs}
-    assert walls[(20.0, 20.0), "tiled"] == 1.07
-    assert walls[(20.0, 20.0), "reduced_rank"] == walls[(6.0, 6.0), "tiled"] == 1.05
+    assert walls[(20.0, 20.0), "bumps"] == 1.07
+    assert walls[(20.0, 20.0), "reduced_rank"] == walls[(6.0, 6.0), "bumps"] == 1.05
     bad = run(bench.main, ["area", "--out", str(tmp_path), "--areas", "20by20"])
     assert bad.exit_code != 0 and "--areas" in bad.output
+
+
+def test_area_runs_each_tile_basis_as_a_map_of_its_own(tmp_path, monkeypatch):
+    """The tiled map's bases are rows of their own: ``hilbert`` and ``bumps`` each ask the
+    child for the tiled form with their basis; rows an earlier file calls ``tiled`` (the
+    Hilbert tiles, before the bases were told apart) are kept as ``hilbert``; an unknown
+    map is refused naming the option."""
+    calls = []
+
+    def spawn(args, timeout=None):
+        calls.append(args)
+        return _stand_in_row(args)
+
+    monkeypatch.setattr(bench, "_spawn", spawn)
+    earlier = {"area": [50.0, 70.0], "form": "tiled", "success": False, "status": "stopped"}
+    (tmp_path / "area.json").write_text(json.dumps({"runs": [earlier]}))
+    run = CliRunner().invoke
+    out = run(
+        bench.main,
+        ["area", "--out", str(tmp_path), "--samples", "50", "--areas", "6x6",
+         "--forms", "bumps,hilbert"],
+    )  # fmt: skip
+    assert out.exit_code == 0, out.output
+    assert [c[c.index("--form") + 1] for c in calls] == ["tiled", "tiled"]
+    assert ["model.gp.tile_basis=bumps" in c for c in calls] == [True, False]
+    assert ["model.gp.tile_basis=hilbert" in c for c in calls] == [False, True]
+    runs = json.loads((tmp_path / "area.json").read_text())["runs"]
+    assert sorted((tuple(r["area"]), r["form"]) for r in runs) == [
+        ((6.0, 6.0), "bumps"),
+        ((6.0, 6.0), "hilbert"),
+        ((50.0, 70.0), "hilbert"),
+    ]
+    bad = run(bench.main, ["area", "--out", str(tmp_path), "--forms", "tiled"])
+    assert bad.exit_code != 0 and "--forms" in bad.output and "tiled" in bad.output
