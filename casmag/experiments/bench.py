@@ -380,17 +380,18 @@ def _area_figure(runs: list[dict[str, Any]], path: Path) -> None:
 
     fig = Figure(figsize=(12, 4))
     axes = fig.subplots(1, 3)
-    for form in sorted({r.get("form") for r in runs if r.get("form")}):
+    for k, form in enumerate(sorted({r.get("form") for r in runs if r.get("form")})):
+        color = f"C{k}"
         ok = [r for r in runs if r.get("form") == form and r.get("success")]
         a = [r["area"][0] * r["area"][1] for r in ok]
-        line = axes[0].loglog(
-            a, [r["seconds_per_iteration_last_stage"] for r in ok], "o-", label=form
-        )[0]
-        color = line.get_color()
-        axes[1].loglog(a, [r["peak_rss_gib"] for r in ok], "o-", color=color, label=form)
-        axes[2].loglog(a, [r["rmse_after"] for r in ok], "o-", color=color, label=f"{form} after")
-        axes[2].loglog(a, [r["rmse_before"] for r in ok], "x:", color=color,
-                       label=f"{form} before")  # fmt: skip
+        if ok:
+            axes[0].loglog(a, [r["seconds_per_iteration_last_stage"] for r in ok], "o-",
+                           color=color, label=form)  # fmt: skip
+            axes[1].loglog(a, [r["peak_rss_gib"] for r in ok], "o-", color=color, label=form)
+            axes[2].loglog(a, [r["rmse_after"] for r in ok], "o-", color=color,
+                           label=f"{form} after")  # fmt: skip
+            axes[2].loglog(a, [r["rmse_before"] for r in ok], "x:", color=color,
+                           label=f"{form} before")  # fmt: skip
         part = [r for r in runs if r.get("form") == form and not r.get("success")]
         for ax, key in ((axes[0], "seconds_per_iteration_last_stage"), (axes[1], "peak_rss_gib")):
             shown = [r for r in part if r.get(key)]
@@ -398,9 +399,13 @@ def _area_figure(runs: list[dict[str, Any]], path: Path) -> None:
                 a_s = [r["area"][0] * r["area"][1] for r in shown]
                 ax.loglog(a_s, [r[key] for r in shown], "o", mfc="none", color=color,
                           label=f"{form}, stopped: so far")  # fmt: skip
+    every = [r["area"][0] * r["area"][1] for r in runs if r.get("area")]
     for ax, ylabel in zip(
         axes, ("s / iteration (last stage)", "peak RSS [GiB]", "position RMSE [m]"), strict=True
     ):
+        if every:  # the same area axis on every panel, whatever each one holds
+            ax.set_xscale("log")
+            ax.set_xlim(min(every) / 1.5, max(every) * 1.5)
         ax.set_xlabel("area [m^2]")
         ax.set_ylabel(ylabel)
         ax.grid(True, which="both", alpha=0.3)
