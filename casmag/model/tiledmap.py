@@ -102,8 +102,9 @@ TILE_OMEGA = 3.5
 #: 2026-12-02) and 0.0273 / 0.0514 m, 3:03 against 4:03-4:26 wall, 2.2-2.4 against 3.8-4.2
 #: GiB. Over 20 x 20 m (10,000 samples, its 4,000-sample stage) the bumps took 18.0 s per
 #: IPOPT iteration and 2.2 GiB, the Hilbert tiles 48.3 s: each point lies under four
-#: tiles of 166 functions coupled densely to their neighbours, and the KKT factor
-#: (93 % of an iteration there, IPOPT's timing statistics) fills accordingly.
+#: tiles of 166 functions coupled densely to their neighbours, and the KKT factor fills
+#: accordingly (IPOPT's timing statistics there: the linear solves 92 % of an iteration
+#: with the Hilbert tiles, 79 % with the bumps).
 #: ``model.gp.tile_basis: hilbert`` keeps the Hilbert tiles.
 TILE_BASES = ("bumps", "hilbert")
 TILE_BASIS = "bumps"
