@@ -167,8 +167,11 @@ BENCH_TIMEOUT ?= 3600
 bench-scale: $(STAMP) ## Scale benchmark: N = 1k..64k walk, one box in 6x6 m and tiles in 50x70 m, exact vs reduced rank; results/bench/scale.json, .png (hours)
 	$(PY) -m casmag.experiments.bench scale --timeout $(BENCH_TIMEOUT) --out results/bench
 
+# make bench-area AREA_STARTS=dead-reckoning,truth: each map also solved once from the true
+# positions (the model's optimum near the truth, apart from whether a start finds it).
+AREA_STARTS ?= dead-reckoning
 bench-area: $(STAMP) ## Same walk (10k samples) over 6x6, 20x20, 50x70 m, dipole field: one box vs tiles; results/bench/area.json, .png (hours)
-	$(PY) -m casmag.experiments.bench area --timeout $(BENCH_TIMEOUT) --out results/bench
+	$(PY) -m casmag.experiments.bench area --timeout $(BENCH_TIMEOUT) --starts $(AREA_STARTS) --out results/bench
 
 bench-exact: $(STAMP) ## Exact GP against reduced rank, N = 100..500; replaces those rows of results/bench/scale.json
 	$(PY) -m casmag.experiments.bench exact --out results/bench

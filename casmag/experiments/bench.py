@@ -67,6 +67,12 @@ the tiled map with the bumps (the default basis of every motion model) or with a
 reduced-rank Hilbert basis per tile."""
 AREA_DEFAULT_MAPS = "reduced_rank,bumps"
 AREA_TILED_BEFORE = "hilbert"
+AREA_STARTS = ("dead-reckoning", "truth")
+"""``make bench-area``'s starts, each a row's ``start``: the walk's own warm start from the
+dead reckoning, or one batch from the true positions (a diagnostic that needs the truth:
+the time per iteration and the error of the model's optimum near the truth, apart from
+whether a start finds it). Rows written before the starts were told apart say none: they
+started from the dead reckoning."""
 """Rows of area.json written before the tiled map's basis was a row of its own say
 ``tiled``: they were the Hilbert tiles, the translational default until 2026-12-06."""
 
@@ -91,9 +97,11 @@ def run_one(
     knot_every: int | None,
     comparison: bool = False,
     extra: tuple[str, ...] = (),
+    start: str = "dead-reckoning",
 ) -> dict[str, Any]:
     """Simulate the walk with ``samples`` samples and solve it; figures measured here.
-    ``extra``: more ``--set`` overrides (the area benchmark's area and field)."""
+    ``extra``: more ``--set`` overrides (the area benchmark's area and field). ``start``
+    (:data:`AREA_STARTS`): ``truth`` solves one batch from the true positions."""
     import numpy as np
 
     import casmag
@@ -125,7 +133,8 @@ def run_one(
         }
         print(PROGRESS + json.dumps(line), file=sys.stderr, flush=True)
 
-    result = casmag.solve(problem, data, progress)
+    initial = data.P_true if start == "truth" else None
+    result = casmag.solve(problem, data, progress, initial_positions=initial)
     wall = time.perf_counter() - t0
     stages = result.stages  # the growing warm start's prefixes, the last the final solve
     iters = sum(s["iterations"] for s in stages[:-1]) + result.iterations
@@ -136,6 +145,7 @@ def run_one(
     return {
         "samples": samples,
         "form": form,
+        "start": start,
         "knot_every": problem.spec.model.trajectory.knot_every,
         "num_basis": result.info["num_basis"],
         "tiles": result.info.get("tiles"),
@@ -295,11 +305,17 @@ def main() -> None:
 @click.option("--knot-every", type=int, default=None)
 @click.option("--comparison", is_flag=True, help="The exact-versus-reduced-rank set-up.")
 @click.option("--set", "extra", multiple=True, help="More overrides (key.path=value).")
+@click.option("--start", default=AREA_STARTS[0], type=click.Choice(AREA_STARTS))
 def one(
-    samples: int, form: str, knot_every: int | None, comparison: bool, extra: tuple[str, ...]
+    samples: int,
+    form: str,
+    knot_every: int | None,
+    comparison: bool,
+    extra: tuple[str, ...],
+    start: str,
 ) -> None:
     """Run one configuration and print its figures as one JSON line."""
-    click.echo(json.dumps(run_one(samples, form, knot_every, comparison, extra)))
+    click.echo(json.dumps(run_one(samples, form, knot_every, comparison, extra, start)))
 
 
 @main.command()
@@ -318,11 +334,17 @@ def one(
     show_default=True,
     help="Comma-separated areas WxH [m] to run; rows of other areas in OUT/area.json are kept.",
 )
-def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str) -> None:
+@click.option(
+    "--starts",
+    default=AREA_STARTS[0],
+    show_default=True,
+    help=f"Comma-separated starts of AREA_STARTS ({', '.join(AREA_STARTS)}).",
+)
+def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str, starts: str) -> None:
     """The same walk length over each area of :data:`AREAS` (:data:`AREA_FIELD`), each map
     form in its own process: wall time, time per iteration, peak memory, RMSE before and
     after. Writes OUT/area.json (again after every run, so a stopped benchmark keeps the
-    rows it finished; rows of areas and forms not run this time are kept) and
+    rows it finished; rows of areas, forms and starts not run this time are kept) and
     OUT/area.png."""
     chosen = [_area(a, areas) for a in areas.split(",") if a]
     form_list = [f for f in forms.split(",") if f]
@@ -331,31 +353,72 @@ def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str) -> 
         raise click.BadParameter(
             f"{', '.join(unknown)}: not one of {', '.join(AREA_MAPS)}", param_hint="--forms"
         )
+    start_list = [s for s in starts.split(",") if s]
+    odd = [s for s in start_list if s not in AREA_STARTS]
+    if odd or not start_list:
+        raise click.BadParameter(
+            f"{', '.join(odd) or starts!r}: not one of {', '.join(AREA_STARTS)}",
+            param_hint="--starts",
+        )
     out = Path(out_dir)
     earlier = [
-        {**r, "form": AREA_TILED_BEFORE} if r.get("form") == "tiled" else r
+        {
+            **r,
+            "form": AREA_TILED_BEFORE if r.get("form") == "tiled" else r.get("form"),
+            "start": r.get("start", AREA_STARTS[0]),
+        }
         for r in _previous_runs(out / "area.json")
     ]
     kept = [
         r
         for r in earlier
-        if not (tuple(r.get("area", ())) in chosen and r.get("form") in form_list)
+        if not (
+            tuple(r.get("area", ())) in chosen
+            and r.get("form") in form_list
+            and r["start"] in start_list
+        )
     ]
     runs: list[dict[str, Any]] = []
     both = kept
+    order = lambda r: (r["area"][0] * r["area"][1], r["form"], r["start"])  # noqa: E731
     for w, h in chosen:
         for form in form_list:
-            click.echo(f"{w:g} x {h:g} m, {form} ...", err=True)
-            kind, extra = AREA_MAPS[form]
-            sets = [f"simulation.trajectory.area=[{w}, {h}]", *AREA_FIELD, *extra]
-            args = [str(samples), "--form", kind] + [a for s in sets for a in ("--set", s)]
-            runs.append({"area": [w, h], **_spawn(args, timeout), "form": form})
-            runs[-1].pop("P_estimate", None)
-            click.echo(f"  {_summary(runs[-1])}", err=True)
-            both = sorted(kept + runs, key=lambda r: (r["area"][0] * r["area"][1], r["form"]))
-            _write_json(out / "area.json", {"meta": _meta(), "runs": both})
+            for start in start_list:
+                click.echo(f"{w:g} x {h:g} m, {form}, from the {start} ...", err=True)
+                kind, extra = AREA_MAPS[form]
+                sets = [f"simulation.trajectory.area=[{w}, {h}]", *AREA_FIELD, *extra]
+                args = [str(samples), "--form", kind, "--start", start]
+                args += [a for s in sets for a in ("--set", s)]
+                runs.append({"area": [w, h], **_spawn(args, timeout), "form": form})
+                runs[-1]["start"] = start
+                runs[-1].pop("P_estimate", None)
+                click.echo(f"  {_summary(runs[-1])}", err=True)
+                both = sorted(kept + runs, key=order)
+                _write_json(out / "area.json", {"meta": _meta(), "runs": both})
     _area_figure(both, out / "area.png")
     click.echo(f"wrote {out / 'area.json'} and {out / 'area.png'}", err=True)
+
+
+def _area_series(axes: Any, runs: list[dict[str, Any]], color: str, label: str, mk: str) -> None:
+    """One map and start's rows on the three panels of :func:`_area_figure` (``mk``: the
+    marker and line style of its finished runs; a stopped run is the marker, open)."""
+    ok = [r for r in runs if r.get("success")]
+    a = [r["area"][0] * r["area"][1] for r in ok]
+    if ok:
+        axes[0].loglog(a, [r["seconds_per_iteration_last_stage"] for r in ok], mk,
+                       color=color, label=label)  # fmt: skip
+        axes[1].loglog(a, [r["peak_rss_gib"] for r in ok], mk, color=color, label=label)
+        axes[2].loglog(a, [r["rmse_after"] for r in ok], mk, color=color,
+                       label=f"{label} after")  # fmt: skip
+        axes[2].loglog(a, [r["rmse_before"] for r in ok], "x:", color=color,
+                       label=f"{label} before")  # fmt: skip
+    part = [r for r in runs if not r.get("success")]
+    for ax, key in ((axes[0], "seconds_per_iteration_last_stage"), (axes[1], "peak_rss_gib")):
+        shown = [r for r in part if r.get(key)]
+        if shown:
+            a_s = [r["area"][0] * r["area"][1] for r in shown]
+            ax.loglog(a_s, [r[key] for r in shown], mk[0], mfc="none", color=color,
+                      label=f"{label}, stopped: so far")  # fmt: skip
 
 
 def _area(text: str, option: str) -> tuple[float, float]:
@@ -370,9 +433,10 @@ def _area(text: str, option: str) -> tuple[float, float]:
 
 
 def _area_figure(runs: list[dict[str, Any]], path: Path) -> None:
-    """Seconds per iteration, peak memory and RMSE against the area, a line per map form;
-    a run stopped or crashed part-way is an open marker at what it had reached (seconds per
-    iteration of its stage then, memory to then: lower bounds of the finished run's)."""
+    """Seconds per iteration, peak memory and RMSE against the area, a line per map form
+    and start (one colour per map, dashed from the truth); a run stopped or crashed
+    part-way is an open marker at what it had reached (seconds per iteration of its stage
+    then, memory to then: lower bounds of the finished run's)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -380,25 +444,12 @@ def _area_figure(runs: list[dict[str, Any]], path: Path) -> None:
 
     fig = Figure(figsize=(12, 4))
     axes = fig.subplots(1, 3)
+    own = AREA_STARTS[0]  # rows written before the starts were told apart started there
     for k, form in enumerate(sorted({r.get("form") for r in runs if r.get("form")})):
-        color = f"C{k}"
-        ok = [r for r in runs if r.get("form") == form and r.get("success")]
-        a = [r["area"][0] * r["area"][1] for r in ok]
-        if ok:
-            axes[0].loglog(a, [r["seconds_per_iteration_last_stage"] for r in ok], "o-",
-                           color=color, label=form)  # fmt: skip
-            axes[1].loglog(a, [r["peak_rss_gib"] for r in ok], "o-", color=color, label=form)
-            axes[2].loglog(a, [r["rmse_after"] for r in ok], "o-", color=color,
-                           label=f"{form} after")  # fmt: skip
-            axes[2].loglog(a, [r["rmse_before"] for r in ok], "x:", color=color,
-                           label=f"{form} before")  # fmt: skip
-        part = [r for r in runs if r.get("form") == form and not r.get("success")]
-        for ax, key in ((axes[0], "seconds_per_iteration_last_stage"), (axes[1], "peak_rss_gib")):
-            shown = [r for r in part if r.get(key)]
-            if shown:
-                a_s = [r["area"][0] * r["area"][1] for r in shown]
-                ax.loglog(a_s, [r[key] for r in shown], "o", mfc="none", color=color,
-                          label=f"{form}, stopped: so far")  # fmt: skip
+        for start in AREA_STARTS:
+            of = [r for r in runs if r.get("form") == form and r.get("start", own) == start]
+            label, mk = (form, "o-") if start == own else (f"{form} from the {start}", "s--")
+            _area_series(axes, of, f"C{k}", label, mk)
     every = [r["area"][0] * r["area"][1] for r in runs if r.get("area")]
     for ax, ylabel in zip(
         axes, ("s / iteration (last stage)", "peak RSS [GiB]", "position RMSE [m]"), strict=True
@@ -411,7 +462,10 @@ def _area_figure(runs: list[dict[str, Any]], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         if ax.lines:
             ax.legend(fontsize=7)
-    fig.suptitle("10,000-sample walk over growing areas, dipole field: one box against tiles")
+    fig.suptitle(
+        "10,000-sample walk over growing areas, dipole field: one box against tiles"
+        " (squares, dashed: from the true positions)"
+    )
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.png")
     fig.savefig(tmp, dpi=110)

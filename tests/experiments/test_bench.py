@@ -233,3 +233,58 @@ def test_area_runs_each_tile_basis_as_a_map_of_its_own(tmp_path, monkeypatch):
     ]
     bad = run(bench.main, ["area", "--out", str(tmp_path), "--forms", "tiled"])
     assert bad.exit_code != 0 and "--forms" in bad.output and "tiled" in bad.output
+
+
+def test_area_runs_each_start_as_a_row_of_its_own(tmp_path, monkeypatch):
+    """``--starts`` asks the child for each start (``--start truth``: one batch from the
+    true positions); rows carry their start, rows of an earlier file without one are kept as
+    started from the dead reckoning and not replaced by a truth row; an unknown start is
+    refused naming the option."""
+    calls = []
+
+    def spawn(args, timeout=None):
+        calls.append(args)
+        return _stand_in_row(args)
+
+    monkeypatch.setattr(bench, "_spawn", spawn)
+    earlier = {**_stand_in_row(["50", "--form", "bumps"]), "area": [6.0, 6.0], "form": "bumps",
+               "wall_seconds": 9.0}  # fmt: skip
+    (tmp_path / "area.json").write_text(json.dumps({"runs": [earlier]}))
+    run = CliRunner().invoke
+    out = run(
+        bench.main,
+        ["area", "--out", str(tmp_path), "--samples", "50", "--areas", "6x6",
+         "--forms", "bumps", "--starts", "truth"],
+    )  # fmt: skip
+    assert out.exit_code == 0, out.output
+    assert [c[c.index("--start") + 1] for c in calls] == ["truth"]
+    runs = json.loads((tmp_path / "area.json").read_text())["runs"]
+    assert sorted((r["form"], r["start"], r["wall_seconds"]) for r in runs) == [
+        ("bumps", "dead-reckoning", 9.0),
+        ("bumps", "truth", 1.05),
+    ]
+    assert (tmp_path / "area.png").stat().st_size > 0
+    bad = run(bench.main, ["area", "--out", str(tmp_path), "--starts", "oracle"])
+    assert bad.exit_code != 0 and "--starts" in bad.output and "oracle" in bad.output
+
+
+def test_one_solves_from_the_truth_when_asked(monkeypatch):
+    """``bench one --start truth`` hands the true positions to the solve as its start (one
+    batch); the default start hands none."""
+    import casmag
+
+    seen = []
+    real = casmag.solve
+
+    def solve(problem, data, progress=None, initial_positions=None):
+        seen.append(None if initial_positions is None else initial_positions.copy())
+        return real(problem, data, progress, initial_positions)
+
+    monkeypatch.setattr(casmag, "solve", solve)
+    sets = ["simulation.trajectory.area=[3.0, 3.0]", "solver.warm_start.strategy=none",
+            "solver.uncertainty=false"]  # fmt: skip
+    row = bench.run_one(120, "reduced_rank", None, extra=tuple(sets), start="truth")
+    assert row["start"] == "truth" and row["success"]
+    assert seen[0] is not None and seen[0].shape == (120, 2)
+    row = bench.run_one(120, "reduced_rank", None, extra=tuple(sets))
+    assert row["start"] == "dead-reckoning" and seen[1] is None
