@@ -67,14 +67,14 @@ the tiled map with the bumps (the default basis of every motion model) or with a
 reduced-rank Hilbert basis per tile."""
 AREA_DEFAULT_MAPS = "reduced_rank,bumps"
 AREA_TILED_BEFORE = "hilbert"
+"""Rows of area.json written before the tiled map's basis was a row of its own say
+``tiled``: they were the Hilbert tiles, the translational default until 2026-12-06."""
 AREA_STARTS = ("dead-reckoning", "truth")
 """``make bench-area``'s starts, each a row's ``start``: the walk's own warm start from the
 dead reckoning, or one batch from the true positions (a diagnostic that needs the truth:
 the time per iteration and the error of the model's optimum near the truth, apart from
 whether a start finds it). Rows written before the starts were told apart say none: they
 started from the dead reckoning."""
-"""Rows of area.json written before the tiled map's basis was a row of its own say
-``tiled``: they were the Hilbert tiles, the translational default until 2026-12-06."""
 
 SCALE_SETS: dict[str, tuple[str, tuple[str, ...]]] = {
     "room": ("reduced_rank", ()),
@@ -384,7 +384,8 @@ def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str, sta
     for w, h in chosen:
         for form in form_list:
             for start in start_list:
-                click.echo(f"{w:g} x {h:g} m, {form}, from the {start} ...", err=True)
+                where = start.replace("-", " ")
+                click.echo(f"{w:g} x {h:g} m, {form}, from the {where} ...", err=True)
                 kind, extra = AREA_MAPS[form]
                 sets = [f"simulation.trajectory.area=[{w}, {h}]", *AREA_FIELD, *extra]
                 args = [str(samples), "--form", kind, "--start", start]
