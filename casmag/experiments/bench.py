@@ -383,15 +383,15 @@ def area(out_dir: str, samples: int, forms: str, timeout: float, areas: str, sta
     order = lambda r: (r["area"][0] * r["area"][1], r["form"], r["start"])  # noqa: E731
     for w, h in chosen:
         for form in form_list:
+            kind, extra = AREA_MAPS[form]
+            sets = [f"simulation.trajectory.area=[{w}, {h}]", *AREA_FIELD, *extra]
             for start in start_list:
                 where = start.replace("-", " ")
                 click.echo(f"{w:g} x {h:g} m, {form}, from the {where} ...", err=True)
-                kind, extra = AREA_MAPS[form]
-                sets = [f"simulation.trajectory.area=[{w}, {h}]", *AREA_FIELD, *extra]
                 args = [str(samples), "--form", kind, "--start", start]
                 args += [a for s in sets for a in ("--set", s)]
-                runs.append({"area": [w, h], **_spawn(args, timeout), "form": form})
-                runs[-1]["start"] = start
+                row = _spawn(args, timeout)
+                runs.append({"area": [w, h], **row, "form": form, "start": start})
                 runs[-1].pop("P_estimate", None)
                 click.echo(f"  {_summary(runs[-1])}", err=True)
                 both = sorted(kept + runs, key=order)
