@@ -165,15 +165,19 @@ class TiledBasis:
         g = self.grid
         return np.floor((P - np.array(g.origin)) / g.spacing).astype(np.int64)
 
-    def tile_ids(self, cells: np.ndarray) -> np.ndarray:
-        """(N, 2^d) id of each corner tile of the cells (-1: no such tile in the map)."""
+    def ids_at(self, index: np.ndarray) -> np.ndarray:
+        """The tile id at each integer tile index (..., d) (-1: no such tile in the map)."""
         lut = self._lookup
-        j = (np.asarray(cells) - self._lo)[:, None, :] + self.corners[None, :, :]
-        ok = np.all((j >= 0) & (j < np.array(lut.shape)), axis=2)  # (N, corners)
+        j = np.asarray(index, dtype=np.int64) - self._lo
+        ok = np.all((j >= 0) & (j < np.array(lut.shape)), axis=-1)
         flat = np.ravel_multi_index(
-            tuple(np.moveaxis(np.where(ok[..., None], j, 0), 2, 0)), lut.shape
+            tuple(np.moveaxis(np.where(ok[..., None], j, 0), -1, 0)), lut.shape
         )
         return np.where(ok, lut.ravel()[flat], -1).astype(np.int64)
+
+    def tile_ids(self, cells: np.ndarray) -> np.ndarray:
+        """(N, 2^d) id of each corner tile of the cells (-1: no such tile in the map)."""
+        return self.ids_at(np.asarray(cells)[:, None, :] + self.corners[None, :, :])
 
     def inside(self, P: np.ndarray) -> np.ndarray:
         """(N,) bool: the position has every corner tile in the map (the blend is whole)."""

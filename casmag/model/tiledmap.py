@@ -3,18 +3,20 @@ Hessian of the magnetometer block with numpy, read in the map frame.
 
 Every sample touches the 2^d tiles at the corners of its grid cell, so the Hessian of the
 magnetometer block is sparse: the weight block holds an m x m block for each pair of
-neighbouring tiles (indices at most one apart along every axis), and the knot-weight border
-holds, for each knot, the tiles around its samples' starting positions. Its size grows with
-the number of tiles the path visits, not with the area of the box around the path, and
-neither does the time to fill it (one BLAS product per occupied grid cell).
+tiles near enough to share a point (for the Hilbert tiles, indices at most one apart
+along every axis) that some sample's pattern holds both of (:func:`shared_pairs`), and
+the knot-weight border holds, for each knot, the tiles around its samples' starting
+positions. Its size grows with the number of tiles the path visits, not with the area of
+the box around the path, and neither does the time to fill it (one BLAS product per
+occupied grid cell).
 
 The border's pattern is fixed when the NLP is built, from the samples' positions then
 (``home``: the nearest grid point of each sample): tiles within one index of it along every
 axis, so a sample can move at least h/2 in any direction within a solve and keep its
 Hessian entries. Entries of a sample that moved further are left out of the Gauss-Newton
 Hessian (the gradient stays exact, so IPOPT still converges, more slowly);
-:attr:`TiledGaussNewton.dropped` counts the (sample, tile, knot) terms left out per
-evaluation, and the solve's statistics carry the largest count
+:attr:`TiledGaussNewton.dropped` counts the (sample, tile, knot) terms and the tile pairs
+left out per evaluation, and the solve's statistics carry the largest count
 (``hessian_terms_dropped``).
 
 A thinner pattern, only the 2^d tiles of the cell each sample was in, makes a cheaper KKT
@@ -234,19 +236,49 @@ def in_pattern(keys: np.ndarray, key: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return pos, ok
 
 
-def home_tiles(tiles: TiledBasis, home: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+def home_tiles(tiles: TiledBasis, home: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The tiles a sample whose nearest grid point is ``home`` (N, d) touches from any
     point within h / 2 + s h of it (s the basis' ``home_slack``): the corner tiles of the
     (2 + 2 s)^d cells around that grid point (for the Hilbert tiles, s = 0: those within
-    one index along every axis). As (samples, tile ids) pairs of flat arrays, one per
-    cell, tiles the map lacks left out (a tile may come more than once)."""
-    out = []
+    one index along every axis; :func:`home_offsets`). As (samples, tile ids), flat
+    arrays, each pair once, tiles the map lacks left out."""
+    ids = tiles.ids_at(np.asarray(home, dtype=np.int64)[:, None, :] + home_offsets(tiles)[None])
+    k, o = np.nonzero(ids >= 0)
+    return k, ids[k, o]
+
+
+def home_offsets(tiles: TiledBasis) -> np.ndarray:
+    """(n, d) the tile index offsets from a sample's home grid point of the tiles
+    :func:`home_tiles` gives it, sorted."""
     s = tiles.home_slack
-    for e in product(range(-1 - s, s + 1), repeat=home.shape[1]):
-        ids = tiles.tile_ids(home + np.array(e))  # (N, corners)
-        k, o = np.nonzero(ids >= 0)
-        out.append((k, ids[k, o]))
-    return out
+    cells = np.array(list(product(range(-1 - s, s + 1), repeat=tiles.grid.dim)), dtype=np.int64)
+    return np.unique(
+        (cells[:, None, :] + tiles.corners[None, :, :]).reshape(-1, tiles.grid.dim), axis=0
+    )
+
+
+def shared_pairs(tiles: TiledBasis, home: np.ndarray) -> np.ndarray:
+    """(pairs, 2) tile ids t <= t', sorted: every tile with itself, and the pairs of tiles
+    that a sample's Hessian pattern (:func:`home_tiles`, homes ``home`` (N, d)) holds, near
+    enough to share a point (their index difference one of two corners'). The weight
+    block's pattern: a pair of :attr:`TiledBasis.neighbours` beyond every sample's pattern
+    is a structural zero that IPOPT's linear solver would factor all the same. Tile ids
+    are in the order of their sorted indices, so the pair's lexicographically smaller
+    index is its smaller id."""
+    d, T = tiles.grid.dim, tiles.num_tiles
+    near = np.unique((tiles.corners[:, None, :] - tiles.corners[None, :, :]).reshape(-1, d), axis=0)
+    ahead = near[[tuple(v) > (0,) * d for v in near]]
+    held = np.zeros(T, dtype=bool)
+    held[home_tiles(tiles, np.asarray(home, dtype=np.int64).reshape(-1, d))[1]] = True
+    t = np.flatnonzero(held)
+    keys = [np.arange(T) * (T + 1)]  # every tile with itself (each pair below once)
+    for off in ahead:
+        other = tiles.ids_at(tiles.tile_index[t] + off)
+        ok = other >= 0
+        ok[ok] = held[other[ok]]
+        keys.append(t[ok] * T + other[ok])
+    keys = np.sort(np.concatenate(keys))
+    return np.column_stack([keys // T, keys % T])
 
 
 def home_points(grid: TileGrid, P: np.ndarray) -> tuple[int, ...]:
@@ -410,8 +442,9 @@ class TiledGaussNewton(HessianCallback):
         self.tiles, self.knots, self.dim, self.lay = (
             model.tiles, model.knots, model.dim, model.lay
         )  # fmt: skip
-        self._border = self._border_pairs(np.array(home, dtype=np.int64).reshape(-1, self.dim))
-        self._pairs = self.tiles.neighbours
+        home_arr = np.array(home, dtype=np.int64).reshape(-1, self.dim)
+        self._border = self._border_pairs(home_arr)
+        self._pairs = shared_pairs(self.tiles, home_arr)
         self._pair_key = self._pairs[:, 0] * self.tiles.num_tiles + self._pairs[:, 1]
         self._pattern()
         self.construct(name, {})
@@ -427,12 +460,12 @@ class TiledGaussNewton(HessianCallback):
     def _border_pairs(self, home: np.ndarray) -> _Border:
         tiles, kn = self.tiles, self.knots
         T = tiles.num_tiles
-        keys = []
-        for k, ids in home_tiles(tiles, home):
-            for j in (kn.left[k], kn.left[k] + 1):
-                keys.append(j * T + ids)
-        k = np.unique(np.concatenate(keys))
-        return _Border(k, k // T, k % T)
+        # each knot's samples' homes once (a knot's samples mostly share a few)
+        at = np.column_stack([np.concatenate([kn.left, kn.left + 1]), np.vstack([home, home])])
+        at = np.unique(at, axis=0)
+        k, ids = home_tiles(tiles, at[:, 1:])
+        keys = np.unique(at[k, 0] * T + ids)
+        return _Border(keys, keys // T, keys % T)
 
     def _pattern(self) -> None:
         K, d, lay = self.knots.count, self.dim, self.lay
@@ -524,7 +557,7 @@ class TiledGaussNewton(HessianCallback):
                     shape=(bd.keys.size, int(ok.sum())),
                 )
                 border += (sel @ rows_a[kk[ok], oo[ok]].reshape(-1, d * m)).reshape(-1, d, m)
-            add_weight_pairs(WW, self._pair_key, T, ids, J)
+            dropped += add_weight_pairs(WW, self._pair_key, T, ids, J)
             if c_knot is not None:
                 j0, j1 = int(left[r.start]), int(left[r.stop - 1]) + 2
                 Ar = A[r][:, j0:j1]
@@ -543,12 +576,16 @@ class TiledGaussNewton(HessianCallback):
 
 def add_weight_pairs(
     WW: np.ndarray, pair_key: np.ndarray, T: int, ids: np.ndarray, J: np.ndarray
-) -> None:
+) -> int:
     """Add J^T J of samples with corner tiles ``ids`` (n, 2^d) and weight Jacobians J (n,
-    2^d, 3, m) to the blocks WW (pairs, m, m) of the neighbouring tile pairs whose keys
-    t * T + t' (t <= t') are ``pair_key``: one product per group of samples with the same
-    corner tiles. The field's rotation does not enter (R R^T = I)."""
+    2^d, 3, m) to the blocks WW (pairs, m, m) of the tile pairs whose keys t * T + t'
+    (t <= t') are ``pair_key`` (every tile with itself among them): one product per group
+    of samples with the same corner tiles. The field's rotation does not enter (R R^T =
+    I). A pair the pattern lacks (a sample beyond its home's tiles, :func:`shared_pairs`)
+    is left out and its two tiles' own products added again, which keeps the matrix
+    positive semi-definite (as :func:`add_own_tiles`); returns how many were left out."""
     m, n_c = J.shape[3], ids.shape[1]
+    left_out = 0
     groups, inverse = np.unique(ids, axis=0, return_inverse=True)
     inverse = inverse.ravel()
     order = np.argsort(inverse, kind="stable")
@@ -566,7 +603,13 @@ def add_weight_pairs(
         swap = t1[ok] > t2[ok]
         blk[swap] = blk[swap].transpose(0, 2, 1)
         lo, hi = np.minimum(t1[ok], t2[ok]), np.maximum(t1[ok], t2[ok])
-        WW[np.searchsorted(pair_key, lo * T + hi)] += blk  # distinct pairs within a group
+        at, held = in_pattern(pair_key, lo * T + hi)
+        WW[at[held]] += blk[held]  # distinct pairs within a group
+        if not held.all():
+            left_out += int(np.sum(~held))
+            for corner, tile in ((a[~held], t1[ok][~held]), (b[~held], t2[ok][~held])):
+                np.add.at(WW, np.searchsorted(pair_key, tile * (T + 1)), G[corner, :, corner, :])
+    return left_out
 
 
 def weight_pair_pattern(pairs: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -630,12 +673,12 @@ def tile_normal_equations(
     the same corner tiles (:func:`add_weight_pairs`) instead of a sparse product of the
     design with itself: 4,000 samples on 49 tiles took 25.8 s as a sparse product."""
     T, m = tiles.num_tiles, tiles.per_tile
-    pairs = tiles.neighbours
+    P, R = np.asarray(P, dtype=float), np.asarray(R, dtype=float)
+    pairs = shared_pairs(tiles, np.rint((P - np.array(tiles.grid.origin)) / tiles.grid.spacing))
     pair_key = pairs[:, 0] * T + pairs[:, 1]
     WW = np.zeros((pairs.shape[0], m, m))
     rhs = np.zeros((T, m))
     zero = np.zeros((T, m))
-    P, R = np.asarray(P, dtype=float), np.asarray(R, dtype=float)
     for s in range(0, P.shape[0], TiledMapModel.CHUNK):
         r = slice(s, s + TiledMapModel.CHUNK)
         _, ids, J, _ = tiles.evaluate(P[r], zero, positions=False)
@@ -883,9 +926,9 @@ class RotatedTiledGaussNewton(HessianCallback):
         self.local = np.hstack([self.lay.pos, self.lay.rot])  # (n, nl)
         home_arr = np.array(home, dtype=np.int64).reshape(-1, self.d)
         T = self.tiles.num_tiles
-        keys = [k * T + ids for k, ids in home_tiles(self.tiles, home_arr)]
-        self._keys = np.unique(np.concatenate(keys))
-        self._pairs = self.tiles.neighbours
+        k, ids = home_tiles(self.tiles, home_arr)
+        self._keys = np.unique(k * T + ids)
+        self._pairs = shared_pairs(self.tiles, home_arr)
         self._pair_key = self._pairs[:, 0] * T + self._pairs[:, 1]
         self._pattern()
         self.construct(name, {})
@@ -980,7 +1023,7 @@ class RotatedTiledGaussNewton(HessianCallback):
                 self._exact_rows(model, r, P, o, aux, W, c, Y, ids, LL, rows, c_loc, inv)
             dropped += int(np.sum(~ok))
             border[pos[ok]] += rows[kk[ok], oo[ok]]
-            add_weight_pairs(WW, self._pair_key, T, ids, J)
+            dropped += add_weight_pairs(WW, self._pair_key, T, ids, J)
             if not ok.all():  # each dropped product's factors' own (add_own_tiles)
                 np.add.at(LL, r.start + kk[~ok], gn_out)
                 add_own_tiles(WW, self._pair_key, T, ids, kk[~ok], oo[~ok], J)

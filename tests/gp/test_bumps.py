@@ -8,7 +8,7 @@ import pytest
 from casmag.gp.bumps import BumpBasis, smootherstep
 from casmag.gp.kernels import get_kernel
 from casmag.gp.localmaps import cached_tiles
-from casmag.model.tiledmap import BUMP_RADIUS, BUMP_SPACING, tile_grid
+from casmag.model.tiledmap import BUMP_RADIUS, BUMP_SPACING, home_points, shared_pairs, tile_grid
 
 ELL = 0.4
 
@@ -86,6 +86,35 @@ def test_neighbour_pairs_cover_every_shared_point():
         row = row[row >= 0]
         a, b = np.meshgrid(row, row)
         assert set((np.minimum(a, b) * tiles.num_tiles + np.maximum(a, b)).ravel()) <= keys
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_shared_pairs_hold_every_pair_a_sample_can_touch_within_its_home(dim):
+    """The weight block's pattern (casmag.model.tiledmap.shared_pairs): every pair of nodes
+    one point touches while it stays within h / 2 + s h of its home grid point (s the
+    pattern's slack) is in it, and it is a strict subset of the neighbour pairs along a
+    path (those hold nodes that no sample reaches)."""
+    rng = np.random.default_rng(11)
+    n, length = (150, 3.0) if dim == 2 else (30, 0.6)
+    X = np.cumsum(rng.normal(scale=0.05, size=(n, dim)), axis=0)
+    X[:, 0] += np.linspace(0.0, length, n)
+    tiles = _lattice(X)
+    home = np.array(home_points(tiles.grid, X)).reshape(-1, dim)
+    pairs = shared_pairs(tiles, home)
+    T = tiles.num_tiles
+    keys = pairs[:, 0] * T + pairs[:, 1]
+    near = tiles.neighbours
+    assert np.all(np.isin(keys, near[:, 0] * T + near[:, 1])) and keys.size < near.shape[0]
+    assert np.all(np.isin(np.arange(T) * (T + 1), keys))  # every node with itself
+    h = tiles.grid.spacing
+    reach = (0.5 + tiles.home_slack) * h * 0.999
+    origin = np.array(tiles.grid.origin)
+    for _ in range(4):  # points anywhere within the pattern's slack of their homes
+        Z = origin + home * h + rng.uniform(-reach, reach, size=home.shape)
+        ids = tiles.tile_ids(tiles.cells(Z))
+        a, b = np.broadcast_arrays(ids[:, :, None], ids[:, None, :])
+        on = (a >= 0) & (b >= 0)
+        assert np.all(np.isin(np.minimum(a, b)[on] * T + np.maximum(a, b)[on], keys))
 
 
 @pytest.mark.parametrize("dim", [2, 3])
