@@ -52,21 +52,25 @@ def _quiet_stdout() -> Iterator[None]:
         os.close(saved)
 
 
-def solve_spd(G: sps.spmatrix, b: np.ndarray) -> np.ndarray:
-    """x with G x = b for a sparse symmetric positive-definite G (both triangles given) and
-    a vector b: MUMPS (casadi's ``mumps`` Linsol, symmetric positive definite), or SuperLU
-    with COLAMD when this casadi has no such plugin."""
+def solve_spd(G: sps.spmatrix, b: np.ndarray, upper: bool = False) -> np.ndarray:
+    """x with G x = b for a sparse symmetric positive-definite G (both triangles given, or
+    with ``upper`` its upper triangle alone) and a vector b: MUMPS (casadi's ``mumps``
+    Linsol, symmetric positive definite), or SuperLU with COLAMD when this casadi has no
+    such plugin."""
     import casadi as ca
 
     b = np.asarray(b, dtype=float).ravel()
     if not ca.has_linsol("mumps"):
-        return spla.splu(sps.csc_matrix(G), permc_spec="COLAMD").solve(b)
-    upper = sps.triu(sps.csc_matrix(G)).tocsc()
-    upper.sort_indices()
-    n = upper.shape[0]
-    sp = ca.Sparsity(n, n, upper.indptr.tolist(), upper.indices.tolist())
+        full = sps.csc_matrix(G)
+        if upper:
+            full = (full + sps.triu(full, 1).T).tocsc()
+        return spla.splu(full, permc_spec="COLAMD").solve(b)
+    U = sps.csc_matrix(G if upper else sps.triu(sps.csc_matrix(G)))
+    U.sort_indices()
+    n = U.shape[0]
+    sp = ca.Sparsity(n, n, U.indptr.tolist(), U.indices.tolist())
     with _quiet_stdout():
         solver = ca.Linsol("spd", "mumps", sp, {"symmetric": True, "posdef": True})
-        x = np.asarray(solver.solve(ca.DM(sp, upper.data), ca.DM(b))).ravel()
+        x = np.asarray(solver.solve(ca.DM(sp, U.data), ca.DM(b))).ravel()
         del solver  # MUMPS's closing line goes to the null device too
     return x

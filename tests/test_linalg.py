@@ -24,11 +24,19 @@ def test_solve_spd_matches_a_dense_solve():
     assert np.allclose(x, np.linalg.solve(G.toarray(), b), rtol=1e-10, atol=1e-12)
 
 
+def test_solve_spd_from_the_upper_triangle_alone():
+    G = _spd(300, 4)
+    b = np.random.default_rng(5).normal(size=300)
+    x = solve_spd(sps.triu(G).tocsc(), b, upper=True)
+    assert np.allclose(x, np.linalg.solve(G.toarray(), b), rtol=1e-10, atol=1e-12)
+
+
 def test_solve_spd_without_the_mumps_plugin_falls_back_to_superlu(monkeypatch):
     G = _spd(120, 3)
     b = np.arange(120, dtype=float)
     monkeypatch.setattr(ca, "has_linsol", lambda name: False)
     assert np.allclose(G @ solve_spd(G, b), b, atol=1e-9)
+    assert np.allclose(G @ solve_spd(sps.triu(G).tocsc(), b, upper=True), b, atol=1e-9)
 
 
 def test_solve_spd_writes_nothing_to_standard_output(tmp_path):

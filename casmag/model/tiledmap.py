@@ -665,13 +665,14 @@ def add_constant_weights(c_w: np.ndarray, ids: np.ndarray, J: np.ndarray) -> Non
 
 
 def tile_normal_equations(
-    tiles: TiledBasis, P: np.ndarray, R: np.ndarray
+    tiles: TiledBasis, P: np.ndarray, R: np.ndarray, upper: bool = False
 ) -> tuple[sps.csc_matrix, np.ndarray]:
-    """A^T A (symmetric, both triangles) and A^T r of the field's design A at positions P
-    (N, d) against the residuals R (N, 3) (r component-major, as
-    :meth:`TiledBasis.design`), assembled from one dense product per group of samples with
-    the same corner tiles (:func:`add_weight_pairs`) instead of a sparse product of the
-    design with itself: 4,000 samples on 49 tiles took 25.8 s as a sparse product."""
+    """A^T A (symmetric: both triangles, or with ``upper`` its upper triangle alone) and
+    A^T r of the field's design A at positions P (N, d) against the residuals R (N, 3) (r
+    component-major, as :meth:`TiledBasis.design`), assembled from one dense product per
+    group of samples with the same corner tiles (:func:`add_weight_pairs`) instead of a
+    sparse product of the design with itself: 4,000 samples on 49 tiles took 25.8 s as a
+    sparse product."""
     T, m = tiles.num_tiles, tiles.per_tile
     P, R = np.asarray(P, dtype=float), np.asarray(R, dtype=float)
     pairs = shared_pairs(tiles, np.rint((P - np.array(tiles.grid.origin)) / tiles.grid.spacing))
@@ -691,10 +692,14 @@ def tile_normal_equations(
     shape = (pairs.shape[0], m, m)
     rows = np.broadcast_to(pairs[:, 0, None, None] * m + wm[None, :, None], shape)
     cols = np.broadcast_to(pairs[:, 1, None, None] * m + wm[None, None, :], shape)
-    lower = pairs[:, 0] != pairs[:, 1]  # the off-diagonal blocks again, transposed
-    vals = np.concatenate([WW.ravel(), WW[lower].ravel()])
-    i = np.concatenate([rows.ravel(), cols[lower].ravel()])
-    j = np.concatenate([cols.ravel(), rows[lower].ravel()])
+    if upper:  # a tile with itself: the block's upper triangle (t < t': all of it)
+        on = (rows <= cols).ravel()
+        vals, i, j = WW.ravel()[on], rows.ravel()[on], cols.ravel()[on]
+    else:
+        lower = pairs[:, 0] != pairs[:, 1]  # the off-diagonal blocks again, transposed
+        vals = np.concatenate([WW.ravel(), WW[lower].ravel()])
+        i = np.concatenate([rows.ravel(), cols[lower].ravel()])
+        j = np.concatenate([cols.ravel(), rows[lower].ravel()])
     AtA = sps.csc_matrix((vals, (i, j)), shape=(T * m, T * m))
     AtA.eliminate_zeros()  # neighbouring tiles no sample shares
     return AtA, rhs.ravel()
@@ -719,10 +724,10 @@ def ridge_tile_weights(
     samples over 20 x 20 m, 290 tiles, 264 s, 1.5 GiB) of the largest weight away from
     the solution; SuperLU took 6 s and 208 s (4.5 GiB) there. Preconditioned
     per tile instead, they needed 1,793 iterations (25 s) to 1e-8 at 49 tiles."""
-    AtA, Atr = tile_normal_equations(tiles, P, np.asarray(Y) - c0)
+    AtA, Atr = tile_normal_equations(tiles, P, np.asarray(Y) - c0, upper=True)
     S_t = np.tile(tiles.prior_variances(sigma_f, lengthscale), tiles.num_tiles)
     G = (AtA / sigma_m**2 + sps.diags(1.0 / S_t)).tocsc()
-    w = solve_spd(G, Atr / sigma_m**2)
+    w = solve_spd(G, Atr / sigma_m**2, upper=True)
     return w.reshape(tiles.num_tiles, tiles.per_tile).T
 
 

@@ -140,6 +140,8 @@ def test_ridge_weights_are_the_posterior_mean():
     ref = (A.T @ A).toarray()
     assert np.abs(AtA.toarray() - ref).max() < 1e-12 * np.abs(ref).max()
     np.testing.assert_allclose(Atr, A.T @ R.ravel(order="F"), rtol=1e-12, atol=1e-12)
+    upper = tile_normal_equations(tiles, P, R, upper=True)[0].toarray()
+    assert np.abs(upper - np.triu(ref)).max() < 1e-12 * np.abs(ref).max()
     c0, sigma_m, sigma_f = np.array([0.3, -0.2, 0.5]), 0.2, 1.5
     S = np.tile(tiles.prior_variances(sigma_f, ELL), tiles.num_tiles)
     G = ref / sigma_m**2 + np.diag(1.0 / S)
