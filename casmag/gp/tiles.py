@@ -144,21 +144,26 @@ class TiledBasis:
         """(pairs, 2) tile ids t <= t' of tiles that can share a point (their index
         difference is one between two of a cell's corner tiles: at most one along every
         axis here), sorted."""
-        lut = self._lookup
-        pairs = []
+        return self.pairs_among(np.ones(self.num_tiles, dtype=bool))
+
+    def pairs_among(self, held: np.ndarray) -> np.ndarray:
+        """(pairs, 2) tile ids t <= t', sorted: every tile with itself, and the pairs of
+        tiles that can share a point (:attr:`neighbours`) both ``held`` (T,) bool. Tile ids
+        are in the order of their sorted indices, so each such pair comes once, from the
+        difference of two corners that is lexicographically positive."""
+        d, T = self.grid.dim, self.num_tiles
         diffs = np.unique(
-            (self.corners[:, None, :] - self.corners[None, :, :]).reshape(-1, self.grid.dim), axis=0
+            (self.corners[:, None, :] - self.corners[None, :, :]).reshape(-1, d), axis=0
         )
-        for off in diffs:
-            j = self.tile_index + np.array(off) - self._lo
-            ok = np.all((j >= 0) & (j < np.array(lut.shape)), axis=1)
-            other = np.full(self.num_tiles, -1)
-            other[ok] = lut[tuple(j[ok].T)]
-            t = np.arange(self.num_tiles)
-            keep = (other >= 0) & (other >= t)
-            pairs.append(np.column_stack([t[keep], other[keep]]))
-        out = np.unique(np.concatenate(pairs), axis=0)
-        return out
+        t = np.flatnonzero(held)
+        keys = [np.arange(T) * (T + 1)]
+        for off in diffs[[tuple(v) > (0,) * d for v in diffs]]:
+            other = self.ids_at(self.tile_index[t] + off)
+            ok = other >= 0
+            ok[ok] = held[other[ok]]
+            keys.append(t[ok] * T + other[ok])
+        k = np.sort(np.concatenate(keys))
+        return np.column_stack([k // T, k % T])
 
     def cells(self, P: np.ndarray) -> np.ndarray:
         """(N, d) integer grid cell of each position (its lower corner's tile index)."""

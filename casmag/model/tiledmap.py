@@ -260,25 +260,12 @@ def home_offsets(tiles: TiledBasis) -> np.ndarray:
 def shared_pairs(tiles: TiledBasis, home: np.ndarray) -> np.ndarray:
     """(pairs, 2) tile ids t <= t', sorted: every tile with itself, and the pairs of tiles
     that a sample's Hessian pattern (:func:`home_tiles`, homes ``home`` (N, d)) holds, near
-    enough to share a point (their index difference one of two corners'). The weight
-    block's pattern: a pair of :attr:`TiledBasis.neighbours` beyond every sample's pattern
-    is a structural zero that IPOPT's linear solver would factor all the same. Tile ids
-    are in the order of their sorted indices, so the pair's lexicographically smaller
-    index is its smaller id."""
-    d, T = tiles.grid.dim, tiles.num_tiles
-    near = np.unique((tiles.corners[:, None, :] - tiles.corners[None, :, :]).reshape(-1, d), axis=0)
-    ahead = near[[tuple(v) > (0,) * d for v in near]]
-    held = np.zeros(T, dtype=bool)
-    held[home_tiles(tiles, np.asarray(home, dtype=np.int64).reshape(-1, d))[1]] = True
-    t = np.flatnonzero(held)
-    keys = [np.arange(T) * (T + 1)]  # every tile with itself (each pair below once)
-    for off in ahead:
-        other = tiles.ids_at(tiles.tile_index[t] + off)
-        ok = other >= 0
-        ok[ok] = held[other[ok]]
-        keys.append(t[ok] * T + other[ok])
-    keys = np.sort(np.concatenate(keys))
-    return np.column_stack([keys // T, keys % T])
+    enough to share a point (:meth:`TiledBasis.pairs_among`). The weight block's pattern:
+    a pair of :attr:`TiledBasis.neighbours` beyond every sample's pattern is a structural
+    zero that IPOPT's linear solver would factor all the same."""
+    held = np.zeros(tiles.num_tiles, dtype=bool)
+    held[home_tiles(tiles, np.asarray(home, dtype=np.int64).reshape(-1, tiles.grid.dim))[1]] = True
+    return tiles.pairs_among(held)
 
 
 def home_points(grid: TileGrid, P: np.ndarray) -> tuple[int, ...]:
@@ -675,7 +662,7 @@ def tile_normal_equations(
     sparse product."""
     T, m = tiles.num_tiles, tiles.per_tile
     P, R = np.asarray(P, dtype=float), np.asarray(R, dtype=float)
-    pairs = shared_pairs(tiles, np.rint((P - np.array(tiles.grid.origin)) / tiles.grid.spacing))
+    pairs = shared_pairs(tiles, np.array(home_points(tiles.grid, P)).reshape(P.shape))
     pair_key = pairs[:, 0] * T + pairs[:, 1]
     WW = np.zeros((pairs.shape[0], m, m))
     rhs = np.zeros((T, m))
