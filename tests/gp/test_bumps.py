@@ -4,11 +4,21 @@ within a few lengthscales."""
 import casadi as ca
 import numpy as np
 import pytest
+import scipy.sparse as sps
 
 from casmag.gp.bumps import BumpBasis, smootherstep
 from casmag.gp.kernels import get_kernel
 from casmag.gp.localmaps import cached_tiles
-from casmag.model.tiledmap import BUMP_RADIUS, BUMP_SPACING, home_points, shared_pairs, tile_grid
+from casmag.model.tiledmap import (
+    BUMP_RADIUS,
+    BUMP_SPACING,
+    PairSlots,
+    add_own_tiles,
+    add_weight_pairs,
+    home_points,
+    shared_pairs,
+    tile_grid,
+)
 
 ELL = 0.4
 
@@ -115,6 +125,68 @@ def test_shared_pairs_hold_every_pair_a_sample_can_touch_within_its_home(dim):
         a, b = np.broadcast_arrays(ids[:, :, None], ids[:, None, :])
         on = (a >= 0) & (b >= 0)
         assert np.all(np.isin(np.minimum(a, b)[on] * T + np.maximum(a, b)[on], keys))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_weight_pairs_fill_the_pattern_as_the_dense_products(dim):
+    """add_weight_pairs (the slots read from PairSlots' table) against J^T J summed densely
+    over the samples: every pair the pattern holds equal, the pairs it lacks (samples
+    moved beyond their homes) counted and their nodes' own products added, and the own
+    products of add_own_tiles in each node's slot with itself."""
+    rng = np.random.default_rng(5)
+    n, length = (120, 3.0) if dim == 2 else (30, 0.6)
+    X = np.cumsum(rng.normal(scale=0.05, size=(n, dim)), axis=0)
+    X[:, 0] += np.linspace(0.0, length, n)
+    tiles = _lattice(X)
+    T, m = tiles.num_tiles, tiles.per_tile
+    pairs = shared_pairs(tiles, np.array(home_points(tiles.grid, X)).reshape(-1, dim))
+    slots = PairSlots(tiles, pairs)
+    keys = pairs[:, 0] * T + pairs[:, 1]
+    h = tiles.grid.spacing
+    Z = X + rng.normal(scale=(1.0 + tiles.home_slack) * h, size=X.shape)  # some beyond
+    _, ids, J, _ = tiles.evaluate(Z, rng.normal(size=(T, m)), positions=False)
+    WW = np.zeros((pairs.shape[0], m, m))
+    left_out = add_weight_pairs(WW, slots, ids, J)
+    rows, cols, vals = [], [], []  # J as a sparse (3 n, T m) design
+    for k in range(n):
+        for o in np.flatnonzero(ids[k] >= 0):
+            for i in range(3):
+                rows += [3 * k + i] * m
+                cols += list(ids[k, o] * m + np.arange(m))
+                vals += list(J[k, o, i])
+    Jd = sps.csr_matrix((vals, (rows, cols)), shape=(3 * n, T * m))
+    full = (Jd.T @ Jd).tocsr()
+    held = set(keys.tolist())
+    own = np.zeros((T, m, m))  # what a pair the pattern lacks adds to its nodes
+    lost = 0
+    for k in range(n):
+        o = np.flatnonzero(ids[k] >= 0)
+        live = ids[k, o]
+        for i in range(live.size):
+            for j in range(i + 1, live.size):
+                t1, t2 = sorted((live[i], live[j]))
+                if t1 * T + t2 not in held:
+                    lost += 1
+                    for t, c in ((live[i], o[i]), (live[j], o[j])):
+                        own[t] += J[k, c].T @ J[k, c]
+    assert lost > 0 and left_out == lost
+    r = pairs[:, 0, None, None] * m + np.arange(m)[None, :, None]
+    c = pairs[:, 1, None, None] * m + np.arange(m)[None, None, :]
+    r, c = np.broadcast_arrays(r, c)
+    expect = np.asarray(full[r.ravel(), c.ravel()]).reshape(WW.shape)
+    expect[pairs[:, 0] == pairs[:, 1]] += own[pairs[pairs[:, 0] == pairs[:, 1], 0]]
+    np.testing.assert_allclose(WW, expect, rtol=1e-12, atol=1e-12 * np.abs(expect).max())
+    kk = np.arange(0, n, 3)
+    oo = np.array([np.flatnonzero(ids[k] >= 0)[0] for k in kk])
+    WW2 = np.zeros_like(WW)
+    add_own_tiles(WW2, slots, ids, kk, oo, J)
+    want = np.zeros((T, m, m))
+    for k, o in zip(kk, oo, strict=True):
+        want[ids[k, o]] += J[k, o].T @ J[k, o]
+    np.testing.assert_allclose(WW2[slots.self_slot], want, atol=1e-14)
+    assert np.count_nonzero(np.abs(WW2).sum(axis=(1, 2))) == np.count_nonzero(
+        np.abs(want).sum(axis=(1, 2))
+    )
 
 
 @pytest.mark.parametrize("dim", [2, 3])
