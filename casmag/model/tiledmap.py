@@ -578,11 +578,10 @@ class PairSlots:
 
     def __init__(self, tiles: TiledBasis, pairs: np.ndarray) -> None:
         T, C = tiles.num_tiles, tiles.corners
-        self.num_tiles = T
-        self.size = int(pairs.shape[0])
+        size = int(pairs.shape[0])
         # a tile's pair with itself is its first (the pairs are sorted, t <= t')
         self.self_slot = np.searchsorted(pairs[:, 0], np.arange(T))
-        got = pairs[np.minimum(self.self_slot, self.size - 1)]
+        got = pairs[np.minimum(self.self_slot, size - 1)]
         if not (np.array_equal(got[:, 0], np.arange(T)) and np.array_equal(got[:, 1], got[:, 0])):
             raise ValueError("the pattern lacks a tile's pair with itself")
         o1, o2 = np.triu_indices(C.shape[0])
@@ -617,7 +616,7 @@ class PairSlots:
         on = r >= 0  # all but the pairs with itself of tiles paired with none else
         if not np.all(inside & (col >= 0) | ~on):
             raise ValueError("the pattern holds a pair no grid cell's corners make")
-        index = np.int32 if self.size < np.iinfo(np.int32).max else np.int64
+        index = np.int32 if size < np.iinfo(np.int32).max else np.int64
         self.table = np.full((rows.size, offs.shape[0]), -1, dtype=index)
         self.table[r[on], col[on]] = np.flatnonzero(on)
 
