@@ -145,3 +145,38 @@ def test_ctrl_c_in_a_library_solve_stops_ipopt_then_raises_keyboard_interrupt():
     assert res.returncode == 0, res.stderr
     assert res.stdout.split()[:2] == ["KeyboardInterrupt", "after"], res.stdout
     assert int(res.stdout.split()[2]) <= 4
+
+
+def _one_residual_nlp(hessian, curvature):
+    """0.5 r^2 with r = x^2 - 2: at x = 1, J^T J = 4 and the exact Hessian 4 + 2 r = 2."""
+    b = NLPBuilder()
+    x = b.variable("x", (1, 1))
+    b.residual("r", x**2 - 2.0, curvature=curvature)
+    return b, b.build(SolverSpec(hessian=hessian), residuals=b.gauss_newton_residuals(hessian))
+
+
+def test_a_residual_block_keeps_its_curvature_unless_gauss_newton_is_asked_for():
+    """NLPBuilder.residual(curvature=True) (the planar and pose odometry): the exact Hessian
+    under auto, hybrid and exact, J^T J under gauss-newton; a residual declared without it
+    (the IMU's) is J^T J under everything but exact."""
+    for hessian in ("auto", "hybrid", "exact", "gauss-newton"):
+        for curvature in (True, False):
+            _, nlp = _one_residual_nlp(hessian, curvature)
+            H = nlp.hessian({"x": np.ones(1)}, {}).toarray()
+            exact = hessian == "exact" or (curvature and hessian != "gauss-newton")
+            assert H[0, 0] == (2.0 if exact else 4.0), (hessian, curvature)
+
+
+def test_the_planar_and_pose_odometry_keep_their_curvature():
+    """The odometry turns its increments by the estimated heading or attitude, so its
+    residual is not linear in the unknowns: J^T J alone made IPOPT converge linearly on a
+    1,500-sample planar floor walk (131 iterations against 22)."""
+    from casmag.model.planar import PlanarMotion
+    from casmag.model.pose import PoseMotion
+
+    for motion in (PlanarMotion(n=6), PoseMotion(n=6)):
+        b = NLPBuilder()
+        motion.declare(b)
+        assert "odometry" in b.curved
+        assert "odometry" not in b.gauss_newton_residuals("auto")
+        assert "odometry" in b.gauss_newton_residuals("gauss-newton")

@@ -166,7 +166,9 @@ def build_slam(motion: MotionModel, field: FieldModel, solver: SolverSpec) -> NL
     with memory.build_budget(memory.budget_bytes(solver.memory_budget)):
         hessian = field.declare(b, pose, solver)
     motion.close(b, pose)
-    residuals = b.residuals if solver.hessian in ("auto", "gauss-newton", "hybrid") else None
     return b.build(
-        solver, name=f"casmag_{motion.name}_{field.name}", gauss_newton=hessian, residuals=residuals
+        solver,
+        name=f"casmag_{motion.name}_{field.name}",
+        gauss_newton=hessian,
+        residuals=b.gauss_newton_residuals(solver.hessian),
     )

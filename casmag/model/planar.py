@@ -119,7 +119,7 @@ class PlanarMotion(MotionModel):
         E = f.map(n - S, "serial")(
             P0.T, P1.T, psi0.T, psi1.T, Uk.T, B.T, dtk.T, sig["sigma_disp"], sig["sigma_dyaw"]
         )
-        b.residual("odometry", E)
+        b.residual("odometry", E, curvature=True)
         firsts = [a - s for s, (a, _) in enumerate(bounds)]  # each session's first bias row
         if walk is not None:
             pairs = [j for s, (a, e) in enumerate(bounds) for j in range(a - s, e - 2 - s)]

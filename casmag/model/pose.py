@@ -12,7 +12,8 @@ vector d_k (the unknown: smooth, no norm constraint, as the IMU model's); a cons
 displacement bias b_p (3, per step, body frame) and a constant rotation-rate bias b_w (3,
 rad/s, gyroscope-like), each estimated or held at zero. Named cost blocks:
 
-- ``odometry`` (a residual, Gauss-Newton): per interval, the displacement
+- ``odometry`` (a residual; its exact Hessian unless ``solver.hessian`` is
+  ``gauss-newton``, casmag.nlp.NLPBuilder.residual): per interval, the displacement
   (R_k^T (p_{k+1} - p_k) - (dp_k - b_p)) / sigma_p and the rotation
   r(dq_k exp(-b_w dt_k))^-1 q_k^-1 q_{k+1}) / sigma_r, r the rotation residual
   2 w v / |q|^2 (the rotation vector to second order, independent of the sign of q);
@@ -130,7 +131,7 @@ class PoseMotion(MotionModel):
                 QREL[steps, :].T, U[steps, 0:3].T, U[steps, 3:7].T, per_step(bp),
                 per_step(bw), dt[steps].T, sig["sigma_p"], sig["sigma_r"],
             )  # fmt: skip
-        b.residual("odometry", E)
+        b.residual("odometry", E, curvature=True)
         b.cost(
             "bias_prior",
             0.5 * ca.sumsqr(bp / sig["sigma_bp"]) + 0.5 * ca.sumsqr(bw / sig["sigma_bw"]),

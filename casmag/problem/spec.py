@@ -374,10 +374,11 @@ class SolverSpec(Strict):
 
     hessian (one key for every motion model): the Hessian of the magnetometer block that a
     map read with numpy has (reduced rank, tiled, rotated or not; the other blocks' is
-    CasADi's exact one): ``gauss-newton`` J^T J alone; ``exact`` with the residuals'
-    second-order terms; ``hybrid`` Gauss-Newton while the block's cost falls fast, the exact
-    terms once it falls by less than 20 % an iteration (1 % through a rotation); ``auto``
-    the model's own choice
+    CasADi's exact one, except the IMU residuals and loop closures, J^T J unless ``exact``,
+    and under ``gauss-newton`` the planar and pose odometry too): ``gauss-newton`` J^T J
+    alone; ``exact`` with the residuals' second-order terms; ``hybrid`` Gauss-Newton
+    while the block's cost falls fast, the exact terms once it falls by less than 20 % an
+    iteration (1 % through a rotation); ``auto`` the model's own choice
     (translational and tiled maps ``hybrid``; planar ``model.curvature``, pose
     ``model.curvature``, IMU ``model.gp.curvature``). The exact GP takes CasADi's exact
     Hessian (``auto`` or ``exact``). ``limited-memory`` is IPOPT's L-BFGS (no Laplace
