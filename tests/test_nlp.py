@@ -152,7 +152,7 @@ def _one_residual_nlp(hessian, curvature):
     b = NLPBuilder()
     x = b.variable("x", (1, 1))
     b.residual("r", x**2 - 2.0, curvature=curvature)
-    return b, b.build(SolverSpec(hessian=hessian), residuals=b.gauss_newton_residuals(hessian))
+    return b.build(SolverSpec(hessian=hessian), residuals=b.gauss_newton_residuals(hessian))
 
 
 def test_a_residual_block_keeps_its_curvature_unless_gauss_newton_is_asked_for():
@@ -161,7 +161,7 @@ def test_a_residual_block_keeps_its_curvature_unless_gauss_newton_is_asked_for()
     (the IMU's) is J^T J under everything but exact."""
     for hessian in ("auto", "hybrid", "exact", "gauss-newton"):
         for curvature in (True, False):
-            _, nlp = _one_residual_nlp(hessian, curvature)
+            nlp = _one_residual_nlp(hessian, curvature)
             H = nlp.hessian({"x": np.ones(1)}, {}).toarray()
             exact = hessian == "exact" or (curvature and hessian != "gauss-newton")
             assert H[0, 0] == (2.0 if exact else 4.0), (hessian, curvature)
