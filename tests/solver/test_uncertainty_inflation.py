@@ -13,6 +13,7 @@ from scipy.stats import chi2
 from small_problems import tiny_walk
 
 import casmag
+from casmag import linalg
 from casmag.data.simulate import simulate_problem
 from casmag.model.translational import parameters
 from casmag.solver import uncertainty
@@ -214,7 +215,7 @@ def test_the_sparse_factor_gives_the_dense_covariance(overrides, monkeypatch):
 
 
 def test_dense_product_of_a_sparse_correction(monkeypatch):
-    """_dense_product gives S @ Z for a sparse S expanded in slabs of rows (forced here to
+    """dense_product gives S @ Z for a sparse S expanded in slabs of rows (forced here to
     two rows a slab), for a sparse S below the fill it expands (a diagonal) and for a
     dense S."""
     import scipy.sparse as sp
@@ -224,10 +225,32 @@ def test_dense_product_of_a_sparse_correction(monkeypatch):
     dense = rng.standard_normal((n, n))
     dense[np.abs(dense) < 0.5] = 0.0
     Z = rng.standard_normal((n, 4))
-    monkeypatch.setattr(uncertainty, "DENSE_SLAB_BYTES", 8 * n * 2)
+    monkeypatch.setattr(linalg, "DENSE_SLAB_BYTES", 8 * n * 2)
     for S in (sp.csr_matrix(dense), sp.diags(rng.standard_normal(n)).tocsc(), dense):
         want = (S.toarray() if hasattr(S, "toarray") else S) @ Z
-        np.testing.assert_allclose(uncertainty._dense_product(S, Z), want, rtol=1e-13)
+        np.testing.assert_allclose(linalg.dense_product(S, Z), want, rtol=1e-13)
+
+
+def test_the_knot_factor_gives_the_inverse_blocks():
+    """_KnotFactor (the dense Cholesky factor with the knot unknowns ordered last) gives
+    the knot block of H^-1, the columns H^-1 E and E^T H^-1 C of a random positive
+    definite H whose knot unknowns sit in its middle, as a plain inverse does."""
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(11)
+    n, k, position = 23, 7, 5
+    A = rng.standard_normal((n, n))
+    H = A @ A.T + n * np.eye(n)
+    C = rng.standard_normal((n, 2))
+    inv = np.linalg.inv(H)
+    cols = position + np.arange(k)
+    factor = uncertainty._KnotFactor(sp.csc_matrix(H), k, position)
+    np.testing.assert_allclose(factor.block, inv[np.ix_(cols, cols)], rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(factor.columns(), inv[:, cols], rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(factor.cross(C), inv[cols] @ C, rtol=1e-10, atol=1e-14)
+    H[0, 0] = -1.0
+    with pytest.raises(uncertainty.NotPositiveDefinite):
+        uncertainty._KnotFactor(sp.csc_matrix(H), k, position)
 
 
 def test_the_sandwich_reuses_the_plain_covariance_solve(monkeypatch):
@@ -243,7 +266,7 @@ def test_the_sandwich_reuses_the_plain_covariance_solve(monkeypatch):
     fresh = position_uncertainty(nlp, sol, params, s.knots, s.dim, params["sigma_o"], meat=meat)
     reuse: dict = {}
     plain = position_uncertainty(nlp, sol, params, s.knots, s.dim, params["sigma_o"], reuse=reuse)
-    assert "Z" in reuse
+    assert "factor" in reuse
 
     def no_hessian(*args, **kwargs):
         raise AssertionError("the Hessian was evaluated again")
