@@ -216,17 +216,19 @@ def test_the_sparse_factor_gives_the_dense_covariance(overrides, monkeypatch):
 
 def test_dense_product_of_a_sparse_correction(monkeypatch):
     """dense_product gives S @ Z for a sparse S expanded in slabs of rows (forced here to
-    two rows a slab), for a sparse S below the fill it expands (a diagonal) and for a
-    dense S."""
+    two rows a slab), for a sparse S below the fill it expands (a diagonal of 60, 1.7 %
+    filled: the sparse product) and for a dense S."""
     import scipy.sparse as sp
 
     rng = np.random.default_rng(3)
     n = 9
     dense = rng.standard_normal((n, n))
     dense[np.abs(dense) < 0.5] = 0.0
-    Z = rng.standard_normal((n, 4))
     monkeypatch.setattr(linalg, "DENSE_SLAB_BYTES", 8 * n * 2)
-    for S in (sp.csr_matrix(dense), sp.diags(rng.standard_normal(n)).tocsc(), dense):
+    diagonal = sp.diags(rng.standard_normal(60)).tocsc()
+    assert diagonal.nnz < linalg.DENSE_PRODUCT_FILL * 60 * 60
+    for S in (sp.csr_matrix(dense), diagonal, dense):
+        Z = rng.standard_normal((S.shape[1], 4))
         want = (S.toarray() if hasattr(S, "toarray") else S) @ Z
         np.testing.assert_allclose(linalg.dense_product(S, Z), want, rtol=1e-13)
 
