@@ -214,6 +214,21 @@ def test_the_sparse_factor_gives_the_dense_covariance(overrides, monkeypatch):
     assert np.all(np.linalg.eigvalsh(dense.cov) > 0)
 
 
+def test_an_unobservable_bias_is_refused_by_both_factors():
+    """Without a field (sigma_m 1e6) a free odometry bias is unobservable: the Hessian is
+    singular to machine precision, and the dense factor (the positions ordered last) and
+    the sparse one both say so instead of giving a covariance."""
+    prob = tiny_walk(["model.magnetometer.sigma_m=1.0e6"])
+    data = simulate_problem(prob)
+    sol, nlp, _, _, s = solve_translational(prob, data)
+    params = parameters(prob, data, s)
+    for dense_max in (None, 0):
+        with pytest.raises(uncertainty.NotPositiveDefinite, match="positive definite"):
+            position_uncertainty(
+                nlp, sol, params, s.knots, s.dim, params["sigma_o"], dense_max=dense_max
+            )
+
+
 def test_dense_product_of_a_sparse_correction(monkeypatch):
     """dense_product gives S @ Z for a sparse S expanded in slabs of rows (forced here to
     two rows a slab), for a sparse S below the fill it expands (a diagonal of 60, 1.7 %
@@ -253,6 +268,21 @@ def test_the_knot_factor_gives_the_inverse_blocks():
     H[0, 0] = -1.0
     with pytest.raises(uncertainty.NotPositiveDefinite):
         uncertainty._KnotFactor(sp.csc_matrix(H), k, position)
+    # singular to machine precision (rank n - 1): refused, also where LAPACK's
+    # factorisation in the factor's order goes on with a pivot at rounding level
+    perm = np.concatenate([np.setdiff1d(np.arange(n), cols), cols])
+    went_on = 0
+    for seed in range(10):
+        B = np.random.default_rng(seed).standard_normal((n, n - 1))
+        S = B @ B.T
+        try:
+            np.linalg.cholesky(S[np.ix_(perm, perm)])
+            went_on += 1
+        except np.linalg.LinAlgError:
+            pass
+        with pytest.raises(uncertainty.NotPositiveDefinite):
+            uncertainty._KnotFactor(sp.csc_matrix(S), k, position)
+    assert went_on > 0
 
 
 def test_the_sandwich_reuses_the_plain_covariance_solve(monkeypatch):
