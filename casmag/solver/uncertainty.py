@@ -233,7 +233,8 @@ class _KnotFactor:
     pairs of runs against the solve for the knot columns: 15.1-15.8 s -> 7.3-10.3 s
     (medians 15.3 -> 7.6 s), the same covariance to 3e-13. The columns Z = H^-1 E themselves
     (n x k: the sandwich covariance's Z^T B Z) are solved only when asked for
-    (:meth:`columns`). Raises NotPositiveDefinite when the factorisation fails."""
+    (:meth:`columns`). Raises NotPositiveDefinite when the factorisation fails or the
+    Hessian is singular to machine precision (:func:`_check_pivots`)."""
 
     def __init__(self, H: Any, k: int, position: int) -> None:
         n = H.shape[0]
