@@ -17,7 +17,7 @@ from casmag.errors import CasmagError, MemoryBudgetError
 from casmag.interrupt import Interrupted
 from casmag.nlp import MEMORY_STATUS
 from casmag.problem.spec import document_kind, read_yaml
-from casmag.result import Result, bias_table
+from casmag.result import Result, bias_table, evaluation_of
 from casmag.result.evaluation import ALIGNMENTS, evaluate_result
 from casmag.result.outdir import OutputError, check_output_dir
 
@@ -248,6 +248,9 @@ def summary_lines(result: Result) -> list[str]:
         line += f"; RMSE {result.rmse_before:.4f} -> {result.rmse_after:.4f} m"
         if result.motion == "translational":
             line += f", max {result.max_before:.4f} -> {result.max_after:.4f} m"
+        rigid = evaluation_of(result).get("rigid", {}).get("after", {}) if result.arrays else {}
+        if rigid.get("rmse") is not None:
+            line += f" ({rigid['rmse']:.4f} m after a rigid fit, {rigid['rotation_deg']:.1f} deg)"
     bias = result.odometry_bias
     if result.motion == "planar" and bias is not None and len(bias) == 1:
         line += f"; heading-rate bias {math.degrees(bias[0]):.4f} deg/s"

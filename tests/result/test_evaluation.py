@@ -179,3 +179,22 @@ def test_the_anchor_is_an_option_and_the_report_states_it(tmp_path, monkeypatch)
     assert "anchored at the origin, after alignment 'se'" in rep.output
     sessions = _invoke(["slam", rec, rec, "--out", tmp_path / "two", "--anchor", "origin"])
     assert sessions.exit_code == 2 and "several sessions" in sessions.output
+
+
+def test_the_rigid_fit_is_given_whatever_the_alignment():
+    """``evaluation["rigid"]`` is the se fit's errors beside the alignment asked for: a path
+    right in shape but turned about its start has a large RMSE and a rigid one near zero."""
+    rng = np.random.default_rng(3)
+    truth = np.cumsum(rng.normal(scale=0.1, size=(300, 2)), axis=0)
+    a = np.radians(8.0)
+    turned = truth @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]).T
+    odometry = truth + np.cumsum(rng.normal(scale=0.02, size=(300, 2)), axis=0)
+    arrays = {"P_estimate": turned, "P_true": truth, "P_odometry": odometry}
+    for align in ("none", "start", "se"):
+        e = evaluate(arrays, align)
+        assert e["rigid"] == evaluate(arrays, "se")["rigid"]
+        assert e["rigid"]["after"]["rmse"] < 1e-9
+        assert e["rigid"]["after"]["rotation_deg"] == pytest.approx(8.0)
+        assert e["rigid"]["before"] == evaluate(arrays, "se")["before"]
+    assert evaluate(arrays, "none")["after"]["rmse"] > 0.01
+    assert evaluate({"P_estimate": None, "P_true": truth}, "none")["rigid"]["after"]["rmse"] is None
