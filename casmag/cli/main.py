@@ -217,8 +217,8 @@ def _warn(line: str) -> None:
     default=None,
     metavar="SECONDS|auto",
     help="Remove this magnetometer lag behind the motion first (0 keeps the magnetometer "
-    "as recorded); 'auto' removes the one casmag estimates when it is clear (translational "
-    "and IMU recordings; the default for IMU recordings). Otherwise casmag estimates the lag "
+    "as recorded); 'auto' removes the one casmag estimates when it is clear (every kind of "
+    "recording; the default for IMU recordings). Otherwise casmag estimates the lag "
     "and warns (result.json info.magnetometer_lag).",
 )
 @click.option(

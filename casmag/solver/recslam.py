@@ -7,7 +7,6 @@ added one at a time, two starts kept by cost)."""
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -17,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from casmag.data.checks import announce, model_warnings, recording_warnings
-from casmag.data.clock import estimate_lag, lag_warning, shift_magnetometer
+from casmag.data.clock import estimate_lag, lag_warning, with_lag_removed
 from casmag.data.recording import Recording, read_recording
 from casmag.data.simulate import Dataset
 from casmag.errors import DataError, ProblemError
@@ -451,9 +450,11 @@ def slam(
     (casmag.data.clock) and recorded in ``info["magnetometer_lag"]``, with a warning when it is a
     sample or more; ``mag_lag`` [s] removes a lag (``casmag slam --mag-lag``; 0 keeps the
     magnetometer as recorded) before anything else; None: :data:`DEFAULT_MAG_LAG` (``auto``
-    for IMU recordings); ``mag_lag="auto"`` (translational and IMU recordings) removes the
-    estimated one when it is ``significant``, the problem made again on the shifted data
-    (IMU recordings: estimated on the IMU-only adjustment, casmag.solver.imurec.imu_lag).
+    for IMU recordings); ``mag_lag="auto"`` removes the estimated one when it is
+    ``significant``, the problem made again on the shifted data (every motion model; IMU
+    recordings: estimated on the IMU-only adjustment, casmag.solver.imurec.imu_lag; planar
+    and pose recordings: with the field turned along the dead-reckoned heading,
+    casmag.solver.oriented).
     ``refit_noise`` (translational recordings, sigma_m estimated): estimate sigma_m again
     where the path returns and solve again with it when that is clearly larger
     (:func:`refit_sigma_m`). Neither is the default: together they brought the right
@@ -496,7 +497,7 @@ def slam(
                 f"{recording}: an IMU recording is solved by the MAP estimate without a saved "
                 "map (--map and --method ekf are for other recordings)"
             )
-        refuse_translational_options(recording, None, refit_noise, rec.motion)
+        refuse_translational_options(recording, refit_noise, rec.motion)
         return slam_imu(rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag)
     if saved is not None and rec.motion in ("planar", "pose"):
         saved.require_box(str(map_file), f"locate a {rec.motion} recording")
@@ -509,7 +510,7 @@ def slam(
                 f"{map_file}: {how} locates translational recordings; a {rec.motion} one is "
                 "located by the MAP estimate, which updates the map"
             )
-        refuse_translational_options(recording, mag_lag, refit_noise, rec.motion)
+        refuse_translational_options(recording, refit_noise, rec.motion)
         return slam_oriented(
             rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag, method,
             saved, "" if map_file is None else str(map_file),
@@ -620,19 +621,12 @@ def _map_model(saved: SavedMap) -> dict[str, Any]:
 
 
 def refuse_translational_options(
-    recording: str | Path, mag_lag: float | str | None, refit_noise: bool, motion: str = "planar"
+    recording: str | Path, refit_noise: bool, motion: str = "planar"
 ) -> None:
-    """DataError for ``refit_noise`` on a recording that is not translational, and for
-    ``mag_lag="auto"`` on a planar or pose recording (translational and IMU recordings take
-    it)."""
+    """DataError for ``refit_noise`` on a recording that is not translational."""
     if refit_noise:
         raise DataError(
             f"{recording}: --refit-noise is for translational recordings; this one is {motion}"
-        )
-    if mag_lag == "auto":
-        raise DataError(
-            f"{recording}: --mag-lag auto is for translational and IMU recordings; this one "
-            f"is {motion}"
         )
 
 
@@ -719,21 +713,6 @@ def refit_sigma_m(
     second.stages = first.stages_named("start") + second.stages
     second.info["sigma_m_refit"] = {**rec, "kept": "refit"}
     return second
-
-
-def with_lag_removed(rec: Recording, mag_lag: float | None, how: str = "as asked") -> Recording:
-    """The recording with a magnetometer lag of ``mag_lag`` seconds removed (unchanged for
-    None or 0), the change noted as a warning."""
-    if not mag_lag:
-        return rec
-    note = {
-        "check": "magnetometer_lag",
-        "column": "mx,my,mz",
-        "reason": f"shifted by {mag_lag:g} s (a lag removed, {how})",
-    }
-    return dataclasses.replace(
-        rec, Y=shift_magnetometer(rec.t, rec.Y, mag_lag), notes=(*rec.notes, note)
-    )
 
 
 def _plausibility(rec: Recording, data: Dataset, prob: Problem) -> list[dict[str, str]]:

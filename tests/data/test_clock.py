@@ -10,8 +10,10 @@ from small_problems import tiny_walk
 
 from casmag.cli.main import main
 from casmag.data.clock import estimate_lag, shift_magnetometer
-from casmag.data.recording import dataset_to_recording_arrays, write_recording
+from casmag.data.realdata import planar_increments
+from casmag.data.recording import dataset_to_recording_arrays, read_recording, write_recording
 from casmag.data.simulate import simulate_problem
+from casmag.solver.oriented import _FRAMES, _planar_lag, _pose_lag, oriented_lag_removed
 from casmag.solver.recslam import slam
 
 
@@ -41,6 +43,87 @@ def test_the_lag_is_found_from_the_dead_reckoning(lag_samples):
     # Removing it leaves nothing to find.
     again = estimate_lag(t, P_dr, shift_magnetometer(t, Y, est.lag_seconds))
     assert abs(again.lag_seconds) <= 0.041 and not again.significant
+
+
+def _turning_walk(lag_samples: int, seed: int = 0, attitude_lags: bool = True):
+    """The walk of :func:`_walk` without drift, its heading along the path, the magnetometer
+    in the body frame lagging by ``lag_samples``: its field and attitude those of the earlier
+    time, or (``attitude_lags`` false) the earlier field in the row's own attitude.
+    (t, P, psi, Y_body)."""
+    t, P, _ = _walk(0, drift=0.0, seed=seed)
+    dP = np.gradient(P, axis=0)
+    psi = np.unwrap(np.arctan2(dP[:, 1], dP[:, 0]))
+    x, y = P[:, 0], P[:, 1]
+    F = np.column_stack(
+        [20 + 6 * np.sin(3.1 * x) * np.cos(2.7 * y), -5 + 5 * np.cos(2.3 * x), -40 + 4 * y]
+    )
+    k = np.clip(np.arange(t.size) - lag_samples, 0, t.size - 1)
+    h = psi[k] if attitude_lags else psi
+    c, s = np.cos(h), np.sin(h)
+    F = F[k]
+    body = np.column_stack([c * F[:, 0] + s * F[:, 1], -s * F[:, 0] + c * F[:, 1], F[:, 2]])
+    rng = np.random.default_rng(seed)
+    return t, P, psi, body + 0.05 * rng.standard_normal(body.shape)
+
+
+def _pose_increments(P: np.ndarray, psi: np.ndarray) -> np.ndarray:
+    """(N-1, 7) pose increments of a level path with heading psi: dp in the previous body
+    frame, dq the turn about z since it."""
+    dp = np.column_stack([planar_increments(P, psi)[:, :2], np.zeros(P.shape[0] - 1)])
+    half = 0.5 * np.diff(psi)
+    dq = np.column_stack([np.cos(half), np.zeros((half.size, 2)), np.sin(half)])
+    return np.column_stack([dp, dq])
+
+
+@pytest.mark.parametrize("motion", ["planar", "pose"])
+@pytest.mark.parametrize("attitude_lags", [True, False])
+def test_a_body_frame_lag_is_found_and_removed(tmp_path, motion, attitude_lags):
+    """Planar and pose recordings: the lag of a body-frame magnetometer, whether its
+    attitude lags with its position (a late sensor) or is its row's own (a late position),
+    is found along the dead reckoning, told apart, and removed: the field turned into the
+    world frame afterwards is the lag-free recording's."""
+    t, P, psi, Y = _turning_walk(3, attitude_lags=attitude_lags)
+    path = tmp_path / f"{motion}.csv"
+    if motion == "planar":
+        write_recording(path, t, Y, planar=planar_increments(P, psi), P_true=P, yaw_true=psi)
+    else:
+        write_recording(path, t, Y, pose=_pose_increments(P, psi), P_true=P)
+    rec = read_recording(path)
+    lag_of = _planar_lag if motion == "planar" else _pose_lag
+    est = lag_of(rec)
+    assert est.significant and est.lag_seconds == pytest.approx(0.3, abs=0.041)
+    assert est.attitude_lags is attitude_lags
+    fixed = oriented_lag_removed(rec, est, _FRAMES[motion])
+    again = lag_of(fixed)
+    assert not again.significant and abs(again.lag_seconds) <= 0.041
+    inside = slice(10, -10)  # two noise draws of 0.05 apart: at most about 0.3 over 3,500
+    assert np.abs(rec.Y - _turning_walk(0)[3])[inside].max() > 6.0
+    np.testing.assert_allclose(fixed.Y[inside], _turning_walk(0)[3][inside], atol=0.4)
+    t, P, psi, Y = _turning_walk(0)
+    write_recording(path, t, Y, planar=planar_increments(P, psi), P_true=P, yaw_true=psi)
+    assert not _planar_lag(read_recording(path)).significant
+
+
+@pytest.mark.slow
+def test_mag_lag_auto_removes_a_planar_recordings_lag(tmp_path):
+    """``--mag-lag auto`` on a planar recording removes the estimated lag before the solve
+    (one pipeline for every motion model), notes it and does not warn of it."""
+    t, P, psi, Y = _turning_walk(3)
+    path = tmp_path / "late.csv"
+    write_recording(path, t, Y, planar=planar_increments(P, psi), P_true=P, yaw_true=psi)
+    quick = {"max_iter": 1, "uncertainty": False}
+    lines: list[str] = []
+    r = slam(path, on_warning=lines.append, field_check=False, solver=quick, mag_lag="auto")
+    lag = r.info["magnetometer_lag"]
+    assert lag["removed_seconds"] == lag["estimate"]["lag_seconds"]
+    assert lag["removed_seconds"] == pytest.approx(0.3, abs=0.041)
+    assert any("estimated from the dead reckoning" in ln for ln in lines)
+    assert not any("appears to lag" in ln for ln in lines)
+    assert lag["estimate"]["attitude_lags"] is True
+    lines = []
+    r = slam(path, on_warning=lines.append, field_check=False, solver=quick)
+    assert r.info["magnetometer_lag"]["removed_seconds"] == 0.0
+    assert any("appears to lag the motion by 0.3" in ln for ln in lines)
 
 
 def test_too_short_a_recording_gives_no_estimate():

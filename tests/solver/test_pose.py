@@ -176,7 +176,7 @@ def test_slam_on_a_pose_recording_map_ekf_and_both(tmp_path: Path) -> None:
     [
         (["--set", "model.map_dim=4"], "model.map_dim"),
         (["--set", "model.sigma_p=-1"], "model.sigma_p"),
-        (["--mag-lag", "auto"], "this one is pose"),
+        (["--refit-noise"], "this one is pose"),
     ],
 )
 def test_slam_on_a_pose_recording_bad_settings_exit_2(
