@@ -93,9 +93,7 @@ def _pose_frame(rec: Recording) -> tuple[np.ndarray, Callable[[np.ndarray], np.n
     return P, frame
 
 
-def oriented_lag(
-    rec: Recording, frames: Callable[[Recording], tuple[np.ndarray, Callable]]
-) -> LagEstimate | None:
+def oriented_lag(rec: Recording) -> LagEstimate | None:
     """The magnetometer lag of a recording whose magnetometer turns with the body, against
     its dead-reckoned path, under the two ways a body-frame field can be late
     (LagEstimate.attitude_lags): turned into the world frame with the dead-reckoned attitude
@@ -106,7 +104,7 @@ def oriented_lag(
     the lagging attitude 0-0.08 s (gains 0-158); on a simulated turning walk whose body-frame
     magnetometer is 0.3 s late the lagging attitude finds 0.3 s, where the row's attitude
     runs to the end of the range searched (tests/data/test_clock.py)."""
-    P, frame = frames(rec)
+    P, frame = _FRAMES[rec.motion](rec)
     rows = np.arange(P.shape[0], dtype=float)
     own_row = estimate_lag(rec.t, P, np.einsum("nij,nj->ni", frame(rows), rec.Y))
     lagging = estimate_lag(rec.t, P, rec.Y, frame=frame)
@@ -117,21 +115,7 @@ def oriented_lag(
     return dataclasses.replace(own_row, attitude_lags=False)
 
 
-def _planar_lag(rec: Recording) -> LagEstimate | None:
-    """The magnetometer lag of a planar recording (:func:`oriented_lag`)."""
-    return oriented_lag(rec, _planar_frame)
-
-
-def _pose_lag(rec: Recording) -> LagEstimate | None:
-    """The magnetometer lag of a pose recording (:func:`oriented_lag`)."""
-    return oriented_lag(rec, _pose_frame)
-
-
-def oriented_lag_removed(
-    rec: Recording,
-    lag: LagEstimate,
-    frames: Callable[[Recording], tuple[np.ndarray, Callable]],
-) -> Recording:
+def oriented_lag_removed(rec: Recording, lag: LagEstimate) -> Recording:
     """The recording with an estimated lag removed: the body-frame magnetometer shifted in
     time (casmag.data.clock.with_lag_removed) and, when its attitude is its row's own
     (``lag.attitude_lags`` false), turned from the dead-reckoned attitude of the row it
@@ -141,7 +125,7 @@ def oriented_lag_removed(
         how += ", the attitude its row's own"
     out = with_lag_removed(rec, lag.lag_seconds, how)
     if lag.attitude_lags is False:
-        P, frame = frames(rec)
+        P, frame = _FRAMES[rec.motion](rec)
         rows = np.arange(P.shape[0], dtype=float)
         R = frame(rows)
         Rs = frame(rows + lag.lag_seconds / lag.sample_interval)
@@ -177,7 +161,7 @@ def slam_oriented(
     :func:`slam`. ``saved``: the recording is located against this saved map (read from
     ``map_source``) and updates it (casmag.solver.planar.solve_planar,
     casmag.solver.pose.solve_pose)."""
-    load, lag_of, odometry_only, solve_recording = _ORIENTED[rec.motion]
+    load, odometry_only, solve_recording = _ORIENTED[rec.motion]
     located = {} if saved is None else {"prior_map": saved, "map_source": map_source}
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(
@@ -185,11 +169,11 @@ def slam_oriented(
     )
     options = load(problem, overrides)
     constant = constant_magnetometer(rec.Y)
-    lag = None if constant else lag_of(rec)  # a constant field has no lag to find
+    lag = None if constant else oriented_lag(rec)  # a constant field has no lag to find
     removed = None if mag_lag == "auto" else mag_lag
     if mag_lag == "auto" and lag is not None and lag.significant:
         removed = lag.lag_seconds
-        rec = oriented_lag_removed(rec, lag, _FRAMES[rec.motion])
+        rec = oriented_lag_removed(rec, lag)
     found = [
         *rec.notes,
         *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
@@ -295,10 +279,10 @@ _FRAMES: dict[str, Callable[[Recording], tuple[np.ndarray, Callable]]] = {
 }
 
 #: The recordings whose magnetometer turns with the body, per motion input: (options
-#: loader, lag estimate, dead-reckoning result, solve) for :func:`slam_oriented`.
+#: loader, dead-reckoning result, solve) for :func:`slam_oriented`.
 _ORIENTED: dict[str, tuple[Callable[..., Any], ...]] = {
-    "planar": (load_planar_options, _planar_lag, planar_odometry_only, solve_planar_recording),
-    "pose": (load_pose_options, _pose_lag, pose_odometry_only, solve_pose_recording),
+    "planar": (load_planar_options, planar_odometry_only, solve_planar_recording),
+    "pose": (load_pose_options, pose_odometry_only, solve_pose_recording),
 }
 
 
@@ -372,7 +356,7 @@ def slam_oriented_sessions(
             f"{recs[0].path}: several sessions with one map take translational, planar or "
             f"pose recordings; the {motion} model solves one recording at a time"
         )
-    load, lag_of, _, _ = _ORIENTED[motion]
+    load, _, _ = _ORIENTED[motion]
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(overrides, f"casmag slam on {motion} recordings", STAGED_SOLVER_KEYS)
     options = load(problem, overrides)
@@ -387,7 +371,7 @@ def slam_oriented_sessions(
         own = [
             *rec.notes,
             *recording_warnings(rec.t, rec.increments, rec.Y, rec.motion),
-            *lag_warning(lag_of(rec)),
+            *lag_warning(oriented_lag(rec)),
         ]
         announce(rec.path, own, on_warning)
         found.extend({**w, "recording": str(rec.path)} for w in own)

@@ -13,7 +13,7 @@ from casmag.data.clock import estimate_lag, shift_magnetometer
 from casmag.data.realdata import planar_increments
 from casmag.data.recording import dataset_to_recording_arrays, read_recording, write_recording
 from casmag.data.simulate import simulate_problem
-from casmag.solver.oriented import _FRAMES, _planar_lag, _pose_lag, oriented_lag_removed
+from casmag.solver.oriented import oriented_lag, oriented_lag_removed
 from casmag.solver.recslam import slam
 
 
@@ -89,19 +89,18 @@ def test_a_body_frame_lag_is_found_and_removed(tmp_path, motion, attitude_lags):
     else:
         write_recording(path, t, Y, pose=_pose_increments(P, psi), P_true=P)
     rec = read_recording(path)
-    lag_of = _planar_lag if motion == "planar" else _pose_lag
-    est = lag_of(rec)
+    est = oriented_lag(rec)
     assert est.significant and est.lag_seconds == pytest.approx(0.3, abs=0.041)
     assert est.attitude_lags is attitude_lags
-    fixed = oriented_lag_removed(rec, est, _FRAMES[motion])
-    again = lag_of(fixed)
+    fixed = oriented_lag_removed(rec, est)
+    again = oriented_lag(fixed)
     assert not again.significant and abs(again.lag_seconds) <= 0.041
     inside = slice(10, -10)  # two noise draws of 0.05 apart: at most about 0.3 over 3,500
     assert np.abs(rec.Y - _turning_walk(0)[3])[inside].max() > 6.0
     np.testing.assert_allclose(fixed.Y[inside], _turning_walk(0)[3][inside], atol=0.4)
     t, P, psi, Y = _turning_walk(0)
     write_recording(path, t, Y, planar=planar_increments(P, psi), P_true=P, yaw_true=psi)
-    assert not _planar_lag(read_recording(path)).significant
+    assert not oriented_lag(read_recording(path)).significant
 
 
 @pytest.mark.slow
