@@ -19,6 +19,7 @@ the other (cheap, sparse) blocks.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -321,7 +322,8 @@ class HessianCallback(ca.Callback):
 
     ``mode``: ``gauss-newton`` (J^T J only), ``exact`` (plus the residuals' second-order
     terms) or ``hybrid``: Gauss-Newton while the block's cost falls fast, the exact Hessian
-    once it falls by less than :attr:`SWITCH` of itself between two Hessian evaluations,
+    once it falls by less than :attr:`SWITCH` of itself (and, where :attr:`SWITCH_UNITS` is
+    set, by less than that many units of the cost) between two Hessian evaluations,
     :attr:`SWITCH_AFTER` times in a row (Fletcher and Xu's switch): Gauss-Newton is the
     safer step far from the solution, where large residuals make the exact Hessian
     indefinite and IPOPT's regularisation crawls; near it the exact Hessian converges
@@ -331,6 +333,7 @@ class HessianCallback(ca.Callback):
     MODES = ("gauss-newton", "exact", "hybrid")
     SWITCH = 0.2
     SWITCH_AFTER = 1
+    SWITCH_UNITS = math.inf
 
     mode: str = "gauss-newton"
     exact_used: list[bool]
@@ -356,7 +359,7 @@ class HessianCallback(ca.Callback):
             exact = self.mode == "exact"
         else:
             last, self._last_cost = self._last_cost, cost
-            slow = last is not None and last - cost < self.SWITCH * last
+            slow = last is not None and last - cost < min(self.SWITCH * last, self.SWITCH_UNITS)
             self._slow = self._slow + 1 if slow else 0
             exact = self._slow >= self.SWITCH_AFTER
         self.exact_used.append(exact)

@@ -414,6 +414,18 @@ class TiledGaussNewton(HessianCallback):
     #: 135 s); the same positions. The global box went the other way on the real field
     #: (seq5-drift0.5: 46 -> 65 iterations), so it keeps one.
     SWITCH_AFTER = 2
+    #: hybrid: and by less than one unit of the cost (a nat of the posterior), as well as
+    #: less than 20 % of it. On a large map 20 % is reached at once: the cost is mostly the
+    #: noise's, and the first Gauss-Newton steps lower it by a few per cent, so the exact
+    #: terms came in at the third iteration, where they are indefinite (IPOPT regularised
+    #: at every iteration, 10^2 down to 10^-1.1, ||d|| 2e-3 to 0.5). Measured 2026-12-07,
+    #: each run alone, one batch from the dead reckoning (problems/bench/walk.yaml, the
+    #: tiles, curl-free): 2,000 samples over 50 x 70 m in the dipole field 87 -> 46
+    #: iterations (669 -> 269 s; Gauss-Newton alone stopped at 150, converging only
+    #: linearly); 4,000 samples over 6 x 6 m (dipoles) 16 iterations either
+    #: way, 49.7 -> 38.9 s solve; 2,000 samples over 6 x 6 m (Fourier field) 20 -> 13
+    #: iterations, 40.7 -> 15.7 s; the same positions.
+    SWITCH_UNITS = 1.0
 
     def __init__(
         self,

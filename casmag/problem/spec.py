@@ -378,7 +378,8 @@ class SolverSpec(Strict):
     and under ``gauss-newton`` the planar and pose odometry too): ``gauss-newton`` J^T J
     alone; ``exact`` with the residuals' second-order terms; ``hybrid`` Gauss-Newton
     while the block's cost falls fast, the exact terms once it falls by less than 20 % an
-    iteration (1 % through a rotation); ``auto`` the model's own choice
+    iteration (the translational tiles: and by less than 1 unit, twice in a row; 1 %
+    through a rotation); ``auto`` the model's own choice
     (translational and tiled maps ``hybrid``; planar ``model.curvature``, pose
     ``model.curvature``, IMU ``model.gp.curvature``). The exact GP takes CasADi's exact
     Hessian (``auto`` or ``exact``). ``limited-memory`` is IPOPT's L-BFGS (no Laplace

@@ -159,7 +159,7 @@ def test_hybrid_switch_counts_slow_evaluations(cls):
     Gauss-Newton), and a fast step starts the count again."""
     hess = cls.__new__(cls)
     hess.set_mode("hybrid")
-    costs = [100.0, 90.0, 50.0, 45.0, 44.0, 20.0, 19.0, 18.9]  # falls 10, 44, 10, 2, 55, 5, 0.5 %
+    costs = [10.0, 9.0, 5.0, 4.5, 4.4, 2.0, 1.9, 1.89]  # falls 10, 44, 10, 2, 55, 5, 0.5 %
     used = [hess._use_exact(c) for c in costs]
     if cls is HessianCallback:
         assert used == [False, True, False, True, True, False, True, True]
@@ -168,6 +168,21 @@ def test_hybrid_switch_counts_slow_evaluations(cls):
     assert hess.exact_used == used
     hess.reset()
     assert not hess._use_exact(18.0)  # a new solve starts with Gauss-Newton
+
+
+@pytest.mark.parametrize("cls", [HessianCallback, TiledGaussNewton])
+def test_hybrid_switch_of_the_tiles_waits_for_a_fall_under_one_unit(cls):
+    """A large cost that falls by a few per cent an evaluation (a large map, whose cost is
+    mostly the noise's) is slow for the global box's 20 % but not for the tiles, which also
+    ask for a fall under SWITCH_UNITS (one unit of the cost) before the exact terms."""
+    hess = cls.__new__(cls)
+    hess.set_mode("hybrid")
+    costs = [5000.0, 4900.0, 4850.0, 4849.5, 4849.2, 4800.0, 4799.9, 4799.8]
+    used = [hess._use_exact(c) for c in costs]  # falls 100, 50, 0.5, 0.3, 49.2, 0.1, 0.1
+    if cls is HessianCallback:
+        assert used == [False, True, True, True, True, True, True, True]
+    else:
+        assert used == [False, False, False, False, True, False, False, True]
 
 
 @pytest.mark.slow
