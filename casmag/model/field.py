@@ -131,7 +131,13 @@ def with_metis(solver: SolverSpec) -> SolverSpec:
     sample-weight border from filling the trajectory's chain. One factorisation of a
     4,000-knot x 650-weight arrow took 1.35 s against 7.0 s with MUMPS's default ordering
     (and AMD, AMF, PORD, QAMD); on a 747-sample handheld planar recording (752 basis
-    functions) the same iterates at 2.2 instead of 2.7 s per iteration."""
+    functions) the same iterates at 2.2 instead of 2.7 s per iteration. The tiles keep it
+    too (IPOPT's search directions over the first iterations, the same iterates, each run
+    alone, 2026-12-07): the planar floor walk (1,500 samples over 30 x 20 m, two solves of
+    8 iterations) 11.0 + 11.6 s with METIS against 14.9 + 20.0 (AMD) and 21.5 + 23.1 s
+    (QAMD); translational walks over 50 x 70 m favour AMD a little (2,000 samples, 8
+    iterations: 20.0 s against 16.0 AMD, 16.2 AMF, 16.1 QAMD, 19.6 PORD, 18.9 MUMPS's own
+    choice; 4,000 samples, 6 iterations: 24.1 s against 21.4 AMD, 22.0 QAMD)."""
     if solver.linear_solver == "mumps" and "mumps_pivot_order" not in solver.ipopt:
         return solver.model_copy(update={"ipopt": {**solver.ipopt, "mumps_pivot_order": 5}})
     return solver

@@ -689,7 +689,8 @@ class RecordingGPSpec(Strict):
     ``form`` ``auto`` (the default: the box, or the tiles where the box would be capped,
     too costly or over the memory budget, casmag.model.mapchoice; a kernel other than
     ``curl_free`` given here, or ``num_basis``, keeps the box), ``reduced_rank`` (one box
-    around the dead reckoning) or ``tiled`` (casmag.gp.tiles; kernel ``curl_free`` only);
+    around the dead reckoning) or ``tiled`` (casmag.gp.tiles; kernel ``curl_free``, taken
+    when none is given);
     ``kernel``; ``sigma_f``, ``lengthscale``:
     a value or ``estimate`` (the windowed marginal likelihood on the dead-reckoned path);
     ``sigma_lin``: the constant field's prior (None: from the data); ``num_basis``,
@@ -712,6 +713,8 @@ class RecordingGPSpec(Strict):
 
     @model_validator(mode="after")
     def _tiled_is_curl_free(self) -> RecordingGPSpec:
+        if self.form == "tiled" and "kernel" not in self.model_fields_set:
+            self.kernel = "curl_free"  # the tiles' kernel, as when form auto chooses them
         if self.form == "tiled" and self.kernel != "curl_free":
             raise ValueError(
                 "form tiled needs kernel: curl_free (the tiles blend a scalar potential)"

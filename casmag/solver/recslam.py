@@ -194,7 +194,8 @@ def recording_problem(
     for path in HYPER_PATHS.values():
         if _get(merged, path) == "estimate":
             _set(merged, path, None)
-    kernel = setting(("model", "gp", "kernel")) or "se"
+    # the tiles take the curl-free kernel unless another was given (as when auto chooses them)
+    kernel = kernel_given or ("curl_free" if setting(FORM_PATH) == "tiled" else "se")
     merged["model"].setdefault("gp", {})["kernel"] = kernel
     how: dict[str, Any] = {
         "odometry_sigma": "problem file"

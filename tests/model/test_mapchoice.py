@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import casmag
 from casmag.data.simulate import Dataset
 from casmag.gp.reduced_rank import MAX_NUM_BASIS
 from casmag.model.mapchoice import (
@@ -158,6 +159,13 @@ def test_a_wide_translational_recording_gets_the_tiles_with_a_constant_field():
     assert "model.gp.kernel se given" in how["map_choice"]["reason"]
     prob, how = recording_problem(data, times, "wide", None, given, box_only="a saved map")
     assert prob.spec.model.gp.form == "reduced_rank"
+    # The tiles asked for without a kernel take the curl-free one; with the SE kernel given
+    # the problem is refused.
+    tiled = [g for g in given if "kernel" not in g] + ["model.gp.form=tiled"]
+    prob, how = recording_problem(data, times, "wide", None, tiled)
+    assert (prob.spec.model.gp.form, prob.spec.model.gp.kernel) == ("tiled", "curl_free")
+    with pytest.raises(casmag.ProblemError, match=r"tiled needs model\.gp\.kernel: curl_free"):
+        recording_problem(data, times, "wide", None, [*tiled, "model.gp.kernel=se"])
 
 
 def test_a_small_translational_recording_keeps_the_box_by_default():
