@@ -32,7 +32,7 @@ from typing import Any
 #: OMP_CANCELLATION and OMP_PROC_BIND set, as it asks), over 6 x 6 m SPRAL's search
 #: directions took 20.0 s against MUMPS's 3.6 s, and over 50 x 70 m (87,794 unknowns,
 #: 26.7 million Hessian nonzeros) SPRAL stopped at the first with IPOPT's "Not enough
-#: memory" where MUMPS took 47.8 s for all three and 5.1 GB.
+#: memory" where MUMPS took 47.8 s for all three and a peak of 4.84 GiB.
 LINEAR_SOLVERS = ("mumps", "spral")
 
 #: Options casmag does not pass on: an option file would bypass these checks.
