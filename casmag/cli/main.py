@@ -290,10 +290,10 @@ def slam(
     odometry bias (casmag.solver.multisession; casmag.solver.staged.solve_sessions for planar
     and pose); result.json lists each session's errors and sessions.png shows them.
 
-    Every translational, planar and pose run with a reduced-rank box map writes map.npz, the
-    map with its posterior; --map MAP locates a later recording of those kinds (its first
-    position in the map's frame) against it and writes the map updated by it, and casmag map
-    MAP draws it.
+    Every translational, planar and pose run writes map.npz (a box or tiles, up to 6,000 map
+    unknowns), the map with its posterior; --map MAP locates a later recording of those
+    kinds (its first position in the map's frame) against it and writes the map updated by
+    it (the filter, --method ekf, needs a box map), and casmag map MAP draws it.
     """
     from casmag.solver.recslam import slam as run_slam
     from casmag.solver.recslam import slam_sessions
@@ -696,7 +696,9 @@ def map_command(map_file: Path, out_dir: Path, points: int, z: float | None) -> 
     above half the prior's, and the posterior standard deviation) and OUT/map_grid.csv (x, y
     [, z] [m], the field mx, my, mz, its posterior and prior standard deviations per
     component, in the map's field units) on a POINTS x POINTS grid over the map's box (a
-    tiled map's: over its tile centres, NaN where a point lacks one of its tiles).
+    tiled map's: over its tile centres, NaN where a point lacks one of its tiles). A map
+    saved as its mean alone (too many unknowns for a dense precision) is drawn without its
+    posterior standard deviation, NaN in the CSV.
     """
     from types import SimpleNamespace
 
@@ -707,8 +709,9 @@ def map_command(map_file: Path, out_dir: Path, points: int, z: float | None) -> 
     try:
         saved = load_map(map_file)
         grid = saved.grid(points, z)
+        drawn = grid if saved.has_posterior else {k: v for k, v in grid.items() if k != "map_std"}
         drawable = SimpleNamespace(
-            arrays=grid, info={"name": map_file.stem}, status="saved map", success=True
+            arrays=drawn, info={"name": map_file.stem}, status="saved map", success=True
         )
 
         def write(tmp: Path) -> None:

@@ -8,7 +8,9 @@ of one map, the accuracy a joint solve reaches.
     python -m casmag.experiments.locbench --seeds 5 --out results/bench/localise
 
 writes ``localise.json`` (every run) and ``localise.md`` (per model: the medians, and a row
-per seed) into --out. Runs one after the other in this process (timings are wall-clock
+per seed) into --out; ``--form tiled`` maps and locates on the tiled map
+(``model.gp.form=tiled`` in every run) and writes ``localise-tiled.json`` and
+``localise-tiled.md``. Runs one after the other in this process (timings are wall-clock
 seconds of each call, the NLP builds included).
 """
 
@@ -81,14 +83,18 @@ def _row(result: Result, seconds: float) -> dict[str, Any]:
     }
 
 
-def run(motion: str, seed: int) -> dict[str, Any]:
-    """One seed of one model: the map run, and the later recording three ways."""
-    problem = load_oriented_problem(ROOT / f"problems/{motion}/walk.yaml", [f"seed={seed}"])
+def run(motion: str, seed: int, form: str = "auto") -> dict[str, Any]:
+    """One seed of one model: the map run, and the later recording three ways; ``form``:
+    ``model.gp.form`` of every run (``auto``: the problem file's)."""
+    sets = [f"seed={seed}", *([] if form == "auto" else [f"model.gp.form={form}"])]
+    problem = load_oriented_problem(ROOT / f"problems/{motion}/walk.yaml", sets)
     rec, _ = simulate_oriented(problem)
     later = later_recording(rec, seed)
     first, t_first = _timed(lambda: slam_oriented(rec, problem.sections))
     saved = first.saved_map()
-    out: dict[str, Any] = {"motion": motion, "seed": seed, "samples": int(rec.t.size)}
+    out: dict[str, Any] = {
+        "motion": motion, "seed": seed, "samples": int(rec.t.size), "form": form,
+    }  # fmt: skip
     out["map_run"] = {**_row(first, t_first), "map": first.info["map"]}
     scratch, t = _timed(lambda: slam_oriented(later, problem.sections))
     out["scratch"] = _row(scratch, t)
@@ -103,7 +109,7 @@ def run(motion: str, seed: int) -> dict[str, Any]:
             out["located"]["map_std_ratio"] = float(updated.std(P).mean() / saved.std(P).mean())
     load = load_planar_options if motion == "planar" else load_pose_options
     sessions = solve_planar_sessions if motion == "planar" else solve_pose_sessions
-    joint, t = _timed(lambda: sessions([rec, later], load(problem.sections, [])))
+    joint, t = _timed(lambda: sessions([rec, later], load(problem.sections, sets[1:])))
     row = next(s for s in joint.info["sessions"] if s["name"] == later.path)
     out["joint"] = {"status": joint.status, "rmse_after": row["rmse_after"], "seconds": t}
     return out
@@ -118,8 +124,9 @@ def _f(v: Any, fmt: str = ".3f") -> str:
     return "-" if v is None else format(v, fmt)
 
 
-def table(runs: list[dict[str, Any]]) -> str:
-    lines = ["# Map once, locate later (planar and pose walks)", ""]
+def table(runs: list[dict[str, Any]], form: str = "auto") -> str:
+    title = "# Map once, locate later (planar and pose walks)"
+    lines = [title if form == "auto" else f"{title}, model.gp.form {form}", ""]
     head = (
         "| model | seed | RMSE before [m] | scratch [m] (s) | located [m] (s) | joint [m] (s) "
         "| located NEES | map std on path, updated / saved |"
@@ -151,12 +158,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--motion", nargs="+", default=["planar", "pose"])
     ap.add_argument("--out", type=Path, default=ROOT / "results/bench/localise")
+    ap.add_argument("--form", choices=["auto", "reduced_rank", "tiled"], default="auto")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    stem = "localise" if args.form == "auto" else f"localise-{args.form}"
     runs = []
     for motion in args.motion:
         for seed in range(1, args.seeds + 1):
-            runs.append(run(motion, seed))
+            runs.append(run(motion, seed, args.form))
             r = runs[-1]
             print(
                 f"{motion} seed {seed}: scratch {r['scratch']['rmse_after']:.3f}, located "
@@ -164,8 +173,8 @@ def main(argv: list[str] | None = None) -> None:
                 f"{r['joint']['rmse_after']:.3f} m",
                 flush=True,
             )
-            write_text_atomic(args.out / "localise.json", json.dumps(runs, indent=2) + "\n")
-    write_text_atomic(args.out / "localise.md", table(runs))
+            write_text_atomic(args.out / f"{stem}.json", json.dumps(runs, indent=2) + "\n")
+    write_text_atomic(args.out / f"{stem}.md", table(runs, args.form))
 
 
 if __name__ == "__main__":

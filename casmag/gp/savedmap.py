@@ -10,13 +10,16 @@ c when the model has one) as a mean and a precision matrix. A run with the tiled
 its tiles' weights (each tile's functions, tile after tile) and constant field, with the
 tile grid in place of the box (spacing, origin, tile indices, the tiles' basis; format
 :data:`TILED_FORMAT`; the precision stored as its upper triangle, ``precision_upper``,
-half the size of a dense one); it is drawn as a box map is and locates a translational
-recording (casmag.solver.localize); planar and pose recordings and the filter need a box
-(:meth:`SavedMap.require_box`). The map is the field in the map
-frame, m(p) + c, whatever the motion model: the planar, pose and IMU models read it through
-the body's rotation and solve for whitened weights, which are turned into W before it is
-saved. The precision is the Laplace approximation at the MAP, marginal over the path: the
-inverse of the z block of the inverse Hessian of the whole objective
+half the size of a dense one); it is drawn as a box map is and locates a translational,
+planar or pose recording (casmag.solver.localize, casmag.solver.staged.PriorMap); the
+filter needs a box (:meth:`SavedMap.require_box`). A map with more unknowns than a run
+saves a precision for (casmag.solver.uncertainty.MAP_MAX_UNKNOWNS: a dense matrix) is
+saved as its mean alone (``mean_only``): it is drawn (its standard deviation NaN), and
+cannot locate a recording (:meth:`SavedMap.require_posterior`). The map is the field in
+the map frame, m(p) + c, whatever the motion model: the planar, pose and IMU models read it
+through the body's rotation and solve for whitened weights, which are turned into W before
+it is saved. The precision is the Laplace approximation at the MAP, marginal over the
+path: the inverse of the z block of the inverse Hessian of the whole objective
 (casmag.nlp.NLP.hessian), so the uncertainty of the positions the map was made from is in
 it, not taken as known. Hyperparameters are taken as known.
 
@@ -90,7 +93,8 @@ class SavedMap:
     positions, whose potential lives on a 3-D box and is read at z = 0);
     num_basis: M; sigma_f, lengthscale [m], sigma_m: the hyperparameters it was solved
     with (field units but the lengthscale); constant_field: z ends with c (3,); mean (n_z,),
-    precision (n_z, n_z): the posterior of z; frame: what its origin is. ``tiles``: a tiled
+    precision (n_z, n_z): the posterior of z (None: the mean alone was saved, the map too
+    large for a dense precision); frame: what its origin is. ``tiles``: a tiled
     map's grid (casmag.gp.tiles, curl-free; :func:`tiled_map`), whose weights are each
     tile's functions tile after tile; center and half_width are then the box of its tile
     centres, num_basis the functions per tile."""
@@ -104,7 +108,7 @@ class SavedMap:
     sigma_m: float
     constant_field: bool
     mean: np.ndarray
-    precision: np.ndarray
+    precision: np.ndarray | None
     frame: str = ""
     position_dim: int | None = None
     tiles: TileGrid | None = None
@@ -131,10 +135,10 @@ class SavedMap:
                     f"{self.tiled_basis().per_tile} functions each"
                 )
         n_z = self.size
-        if self.mean.shape != (n_z,) or self.precision.shape != (n_z, n_z):
+        shape = None if self.precision is None else self.precision.shape
+        if self.mean.shape != (n_z,) or shape not in (None, (n_z, n_z)):
             raise ValueError(
-                f"mean {self.mean.shape} and precision {self.precision.shape} do not fit "
-                f"{n_z} unknowns"
+                f"mean {self.mean.shape} and precision {shape} do not fit {n_z} unknowns"
             )
 
     @property
@@ -154,6 +158,20 @@ class SavedMap:
             raise DataError(
                 f"{where or 'map'}: a tiled map ({self.tiled_basis().num_tiles} tiles); only "
                 f"a map of one box can {what} (casmag map draws this one)"
+            )
+
+    @property
+    def has_posterior(self) -> bool:
+        """Whether the precision was saved (else the mean alone: ``mean_only``)."""
+        return self.precision is not None
+
+    def require_posterior(self, where: str, what: str = "locate a recording") -> None:
+        """Raise DataError naming ``where`` (the map's file) when the map was saved as its
+        mean alone: ``what`` needs its uncertainty."""
+        if self.precision is None:
+            raise DataError(
+                f"{where or 'map'}: saved as its mean alone ({self.size:,} unknowns, too many "
+                f"for a dense precision), so it cannot {what} (casmag map draws its mean)"
             )
 
     @property
@@ -309,10 +327,12 @@ class SavedMap:
             out["map_z"] = np.array(height)
         shape = (*gx.shape, FIELD_DIM)
         inside = self.inside(pts) if self.tiles is not None else np.ones(pts.shape[0], bool)
-        for key, of in (("map_field", self.field), ("map_std", self.std),
+        std = self.std if self.has_posterior else None  # a mean-only map's: NaN
+        for key, of in (("map_field", self.field), ("map_std", std),
                         ("map_prior_std", self.prior_std)):  # fmt: skip
             values = np.full((pts.shape[0], FIELD_DIM), np.nan)
-            values[inside] = of(pts[inside])
+            if of is not None:
+                values[inside] = of(pts[inside])
             out[key] = values.reshape(shape)
         return out
 
@@ -323,6 +343,8 @@ class SavedMap:
 
     @cached_property
     def _factor(self) -> np.ndarray:
+        self.require_posterior("map", "give its standard deviation")
+        assert self.precision is not None
         try:
             return np.linalg.cholesky(0.5 * (self.precision + self.precision.T))
         except np.linalg.LinAlgError:
@@ -357,17 +379,21 @@ class SavedMap:
         reader never sees half a file."""
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp")
-        layout: dict[str, np.ndarray] = {"precision": self.precision}
+        layout: dict[str, np.ndarray] = {}
+        if self.precision is None:
+            layout["mean_only"] = np.array(True)
+        elif self.tiles is None:
+            layout["precision"] = self.precision
+        else:  # symmetric: its upper triangle, row by row, half the file of a dense one
+            layout["precision_upper"] = _upper(self.precision)
         if self.tiles is not None:
             g = self.tiles
-            layout = {
-                "tiles_spacing": np.array(float(g.spacing)),
-                "tiles_origin": np.asarray(g.origin, dtype=float),
-                "tiles_index": np.array(g.tiles, dtype=np.int64).reshape(-1, g.dim),
-                "tiles_basis": np.array(json.dumps(g.basis)),
-                # symmetric: its upper triangle, row by row, half the file of a dense one
-                "precision_upper": _upper(self.precision),
-            }
+            layout.update(
+                tiles_spacing=np.array(float(g.spacing)),
+                tiles_origin=np.asarray(g.origin, dtype=float),
+                tiles_index=np.array(g.tiles, dtype=np.int64).reshape(-1, g.dim),
+                tiles_basis=np.array(json.dumps(g.basis)),
+            )
         with open(tmp, "wb") as f:
             np.savez(
                 f,
@@ -393,12 +419,12 @@ def tiled_map(
     grid: TileGrid,
     hyper: dict[str, float],
     mean: np.ndarray,
-    precision: np.ndarray,
+    precision: np.ndarray | None,
     constant_field: bool,
     frame: str = "",
 ) -> SavedMap:
-    """The saved map of tiles on ``grid`` (mean and precision of z = [vec(W); c], W (m, T)):
-    its box the tile centres' bounding box."""
+    """The saved map of tiles on ``grid`` (mean and precision of z = [vec(W); c], W (m, T);
+    precision None: the mean alone): its box the tile centres' bounding box."""
     idx = np.array(grid.tiles, dtype=float).reshape(-1, grid.dim)
     centres = np.asarray(grid.origin) + grid.spacing * idx
     lo, hi = centres.min(axis=0), centres.max(axis=0)
@@ -449,6 +475,32 @@ def tiled_std_given_path(
     post, prior = (np.full((X.shape[0], FIELD_DIM), np.nan) for _ in range(2))
     post[inside], prior[inside] = given.std(X[inside]), given.prior_std(X[inside])
     return post, prior
+
+
+def _marginal_precision(
+    nlp: Any, x: dict[str, np.ndarray], params: dict[str, Any], names: list[str],
+    fixed: tuple[str, ...],
+) -> np.ndarray:  # fmt: skip
+    """The Schur complement H_zz - H_za H_aa^-1 H_az of the NLP's Hessian at x for the map
+    unknowns ``names`` (z), the variables ``fixed`` left out (:func:`map_from_solution`)."""
+    import scipy.sparse.linalg as spla
+
+    H = nlp.hessian(x, params).tocsr()
+
+    def indices(name: str) -> np.ndarray:
+        return nlp.x_layout.entries[name].offset + np.arange(nlp.x_layout.entries[name].size)
+
+    z = np.concatenate([indices(n) for n in names])
+    held = [indices(n) for n in fixed if n in nlp.x_layout.entries]
+    a = np.setdiff1d(np.arange(H.shape[0]), np.concatenate([z, *held]))
+    H_zz = H[z][:, z].toarray()
+    # The box's border is dense (every sample touches every weight): BLAS, not a sparse
+    # product (a 16,000-sample walk's 3,200 x 2,364 border: about 10 s as a scipy sparse
+    # product); a tiled map's is sparse (a sample touches the map around it), and its
+    # sparse product the faster (casmag.linalg.dense_product).
+    H_az = H[a][:, z]
+    X = spla.splu(H[a][:, a].tocsc()).solve(H_az.toarray())
+    return H_zz - dense_product(H_az.T, X)
 
 
 def _upper(A: np.ndarray) -> np.ndarray:
@@ -506,7 +558,8 @@ def load_map(path: str | Path) -> SavedMap:
         raise DataError(f"{path}: not a casmag map ({exc})") from None
     if "precision_upper" in data and "precision" not in data:
         data["precision"] = _from_upper(path, np.asarray(data["precision_upper"], dtype=float))
-    absent = [k for k in _FIELDS if k not in data]
+    mean_only = "mean_only" in data and bool(data["mean_only"])
+    absent = [k for k in _FIELDS if k not in data and not (mean_only and k == "precision")]
     if absent:
         raise DataError(f"{path}: not a casmag map (no {', '.join(absent)})")
     version = int(data["format"])
@@ -556,7 +609,7 @@ def load_map(path: str | Path) -> SavedMap:
             sigma_m=number("sigma_m"),
             constant_field=bool(data["constant_field"]),
             mean=np.asarray(data["mean"], dtype=float),
-            precision=np.asarray(data["precision"], dtype=float),
+            precision=None if mean_only else np.asarray(data["precision"], dtype=float),
             frame=str(data["frame"]),
             # absent from the maps of casmag before it: their positions were the box's
             position_dim=int(data["position_dim"]) if "position_dim" in data else None,
@@ -577,6 +630,7 @@ def map_from_solution(
     fixed: tuple[str, ...] = (),
     whitened: bool = False,
     position_dim: int | None = None,
+    posterior: bool = True,
 ) -> SavedMap:
     """The saved map of a solved NLP with a map-frame reduced-rank map (variables ``W`` and
     optionally ``c``; ``basis`` the box's key, or a TileGrid for tiles, whose ``W`` is (m,
@@ -590,27 +644,11 @@ def map_from_solution(
     not marginalised. whitened: the NLP's ``W`` holds the whitened weights V of the
     rotated magnetometer models (planar, pose: casmag.model.rotated), W = sqrt(S) V with S
     the prior variances; mean and precision are turned into those of W, the map's own.
-    position_dim: the positions the map is read at (default the box's dimension)."""
-    import scipy.sparse.linalg as spla
-
-    H = nlp.hessian(x, params).tocsr()
+    position_dim: the positions the map is read at (default the box's dimension).
+    posterior: False saves the mean alone (precision None; no Hessian is evaluated)."""
     names = ["W", *(["c"] if "c" in x else [])]
-
-    def indices(name: str) -> np.ndarray:
-        return nlp.x_layout.entries[name].offset + np.arange(nlp.x_layout.entries[name].size)
-
-    z = np.concatenate([indices(n) for n in names])
-    held = [indices(n) for n in fixed if n in nlp.x_layout.entries]
-    a = np.setdiff1d(np.arange(H.shape[0]), np.concatenate([z, *held]))
-    H_zz = H[z][:, z].toarray()
-    # The box's border is dense (every sample touches every weight): BLAS, not a sparse
-    # product (a 16,000-sample walk's 3,200 x 2,364 border: about 10 s as a scipy sparse
-    # product); a tiled map's is sparse (a sample touches the map around it), and its
-    # sparse product the faster (casmag.linalg.dense_product).
-    H_az = H[a][:, z]
-    X = spla.splu(H[a][:, a].tocsc()).solve(H_az.toarray())
-    precision = H_zz - dense_product(H_az.T, X)
     mean = np.concatenate([np.ravel(x[n], order="F") for n in names])
+    precision = _marginal_precision(nlp, x, params, names, fixed) if posterior else None
     if whitened:
         S = (
             cached_tiles(basis).prior_variances(hyper["sigma_f"], hyper["lengthscale"])
@@ -621,8 +659,10 @@ def map_from_solution(
         scale = np.ones(mean.size)
         scale[: rows * cols] = np.tile(np.sqrt(np.ravel(S)), cols)
         mean = scale * mean
-        precision = precision / np.outer(scale, scale)
-    precision = 0.5 * (precision + precision.T)
+        if precision is not None:
+            precision = precision / np.outer(scale, scale)
+    if precision is not None:
+        precision = 0.5 * (precision + precision.T)
     if isinstance(basis, TileGrid):
         return tiled_map(basis, hyper, mean, precision, "c" in x, frame)
     center, half, M = basis

@@ -327,10 +327,12 @@ class TiledField(FieldModel):
     (``hybrid``, casmag.model.tiledmap; ``solver.hessian`` ``gauss-newton`` or ``exact``
     keeps one of them throughout). Hyperparameters are parameters.
 
-    ``saved_prior``: the map of a saved map's update (casmag.solver.localize), read in the
-    map frame: block ``map_prior``, 0.5 (z - mu)^T Lambda (z - mu) on z = [vec(W); c] with
-    the saved posterior's mean ``map_mean`` (n_z, 1) and precision ``map_precision``
-    (n_z, n_z), in place of the GP prior on the weights and the constant field's."""
+    ``saved_prior``: the map of a saved map's update (casmag.solver.localize, and the
+    staged models' casmag.solver.staged.PriorMap): block ``map_prior``, 0.5 (z - mu)^T
+    Lambda (z - mu) on z = [vec(W); c] with the saved posterior's mean ``map_mean`` (n_z, 1)
+    and precision ``map_precision`` (n_z, n_z), in place of the GP prior on the weights and
+    the constant field's; read through a rotation, W are the whitened weights and the
+    caller gives the posterior in their units."""
 
     grid: TileGrid
     home: tuple[int, ...]
@@ -355,8 +357,6 @@ class TiledField(FieldModel):
         sigma_lin = b.parameter("sigma_lin", (1, 1)) if c is not None else None
         S = tiles.prior_variances(sigma_f, ell)  # (m, 1)
         if self.saved_prior:  # declared before the blocks' callbacks fix the sizes of p
-            if pose.rotation is not None:
-                raise ValueError("a saved tiled map's prior is read in the map frame")
             z = ca.vertcat(ca.vec(W), *([c] if c is not None else []))
             mu = b.parameter("map_mean", (z.numel(), 1))
             Lam = b.parameter("map_precision", (z.numel(), z.numel()))
@@ -421,8 +421,8 @@ class BoxOrTiles:
         return self.tiles().num_weights if self.tiled else self.hilbert_basis().num_basis
 
     def tiled_field(self, window: bool) -> TiledField:
-        """The tiles with a constant field (``window``: refused, a window's map is a box)."""
-        if window:
-            raise ValueError("sliding windows need the reduced-rank map, not tiles")
+        """The tiles with a constant field; ``window``: under a given Gaussian prior (block
+        ``map_prior``: a saved map's posterior, casmag.solver.staged.PriorMap) in place of
+        the GP prior. The sliding windows' carried prior stays the box's."""
         assert self.grid is not None
-        return TiledField(self.grid, self.home, constant_field=True)
+        return TiledField(self.grid, self.home, constant_field=True, saved_prior=window)

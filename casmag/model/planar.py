@@ -42,8 +42,10 @@ class PlanarStructure(BoxOrTiles):
     def field(self) -> ReducedRankField | TiledField:
         """The map with a constant field: the tiles (Gauss-Newton Hessian), or the
         reduced-rank box; with ``curvature`` its Hessian callback carries the second-order
-        terms from the start (exact), else Gauss-Newton. With ``window``, the box of a
-        sliding window, its prior carried from the earlier windows (a WindowField)."""
+        terms from the start (exact), else Gauss-Newton. With ``window``, the map under a
+        given Gaussian prior (block ``map_prior``): the box of a sliding window, its prior
+        carried from the earlier windows (a WindowField), or a saved map's box or tiles
+        (casmag.solver.staged.PriorMap)."""
         if self.tiled:
             return self.tiled_field(self.window)
         mode = "exact" if self.curvature else "gauss-newton"

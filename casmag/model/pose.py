@@ -164,8 +164,9 @@ class PoseStructure(BoxOrTiles):
     reduced-rank ``basis`` key (center, half width, number of functions) or, when the map
     is tiled, its tile ``grid`` with each sample's ``home`` grid point (which fixes the
     Hessian's pose-weight pattern), kernel, Hessian mode of the magnetometer block, the
-    solver settings as JSON; ``window``: the box of a sliding window, its prior carried
-    from the earlier windows (a WindowField)."""
+    solver settings as JSON; ``window``: the map under a given Gaussian prior (block
+    ``map_prior``): the box of a sliding window, its prior carried from the earlier windows
+    (a WindowField), or a saved map's box or tiles (casmag.solver.staged.PriorMap)."""
 
     n: int
     map_dim: int

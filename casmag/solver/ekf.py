@@ -692,6 +692,7 @@ def localise_filter(
 
     where = map_source or "map"
     saved.require_box(where)
+    saved.require_posterior(where)
     if saved.dim != data.dim:
         raise DataError(f"{where}: a {saved.dim}-D map cannot locate a {data.dim}-D recording")
     if data.n_sessions > 1:

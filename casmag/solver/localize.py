@@ -218,6 +218,7 @@ def localise(
     kernel and hyperparameters. ``update`` False: the map held (steps 1 and 2 only). A
     failed solve is returned with ``success`` False and IPOPT's status; a failed update
     keeps step 2's result, with a warning."""
+    saved.require_posterior(map_source)
     if saved.dim != data.dim:
         raise DataError(
             f"{map_source or 'map'}: a {saved.dim}-D map cannot locate a {data.dim}-D recording"

@@ -120,10 +120,11 @@ def solve_planar(
     ``session_names``.
 
     prior_map: locate the recording against a saved 2-D map (casmag.gp.savedmap, read from
-    ``map_source``) and update it: its box, kernel and hyperparameters, its posterior as the
-    prior of the map (:func:`localisation_options`); ``info["localisation"]`` says how much
-    of the estimate lies on ground the map has seen (casmag.solver.localize.covered),
-    flagged ``off_map`` below half. The result's map is the updated one."""
+    ``map_source``) and update it: its box or tiles, kernel and hyperparameters, its
+    posterior as the prior of the map (:func:`localisation_options`);
+    ``info["localisation"]`` says how much of the estimate lies on ground the map has seen
+    (casmag.solver.localize.covered), flagged ``off_map`` below half. The result's map is
+    the updated one."""
     options = options or PlanarOptions()
     if prior_map is not None:
         options = localisation_options(options, prior_map, map_source)
@@ -318,18 +319,22 @@ def solve_planar(
 def localisation_options(options: Any, saved: SavedMap, source: str, motion: str = "planar") -> Any:
     """The options (PlanarOptions, or the pose model's with ``motion`` ``pose``) of a
     recording located against a saved map: its kernel and hyperparameters, none estimated,
-    and (pose) its dimension. The box is the saved map's (the staged model's ``prior_map``);
-    the warm start stays the model's (growing prefixes by default: each prefix is located
-    against the saved map, not against what the recording alone would map)."""
+    and (pose) its dimension. The box or tiles are the saved map's (the staged model's
+    ``prior_map``); the warm start stays the model's (growing prefixes by default: each
+    prefix is located against the saved map, not against what the recording alone would
+    map)."""
     where = source or "map"
-    saved.require_box(where)
+    saved.require_posterior(where)
     if motion == "planar" and saved.dim != 2:
         raise DataError(f"{where}: a {saved.dim}-D map cannot locate a planar recording")
     form = getattr(options, "form", "reduced_rank")
-    if form not in ("reduced_rank", AUTO):
-        raise DataError(f"{where}: model.gp.form {form}: a recording is located on the saved box")
+    if form not in (saved.form, AUTO):
+        raise DataError(
+            f"{where}: model.gp.form {form}: a recording is located on the saved map, "
+            f"which is {'tiled' if saved.tiles is not None else 'one box (reduced_rank)'}"
+        )
     changes: dict[str, Any] = {
-        "form": "reduced_rank",
+        "form": saved.form,
         "kernel": saved.kernel, "sigma_f": saved.sigma_f, "lengthscale": saved.lengthscale,
         "sigma_m": saved.sigma_m,
     }  # fmt: skip
@@ -408,8 +413,9 @@ class PlanarStaged(StagedModel):
         """``starts``, ``anchors`` (S, 3: x, y, psi): several sessions, each from its own
         known start (``U`` row start - 1 not read); one session from ``p0``, ``psi0``.
         ``prior_map``: a saved map as the map's prior (localisation): every solve's map is
-        its box, held at its mean in a prefix, under its posterior instead of the GP prior
-        in the whole recording's solve (casmag.solver.staged.PriorMap.solve_inputs)."""
+        its box or tiles, held at its mean in a prefix (and in the turn search), under its
+        posterior instead of the GP prior in the whole recording's solve
+        (casmag.solver.staged.PriorMap.solve_inputs)."""
         self.progress = progress
         self.prior_map = prior_map
         self.options, self.U, self.dt, self.Y = options, U, dt, Y
@@ -658,10 +664,10 @@ class PlanarStaged(StagedModel):
             Y0 = sd.rotate(sd.quat_from_euler(0.0 * psi_0, 0.0 * psi_0, psi_0), self.Y[:k])
             x0["W"] = self._initial_map(s_k, start["P"], Y0, lengthscale)
             x0["c"] = self.c0.reshape(3, 1)
-        else:  # the saved map's box under its posterior
+        else:  # the saved map's box or tiles under its posterior
             s_k, prior_params, map0, held = self.prior_map.solve_inputs(
                 s_k, start["P"], heading_rotations(psi_0), self.Y[:k], self.sigma_f,
-                lengthscale, hold=k < self.n,
+                lengthscale, hold=k < self.n or coarse,
             )  # fmt: skip
             params_k.update(prior_params)
             x0.update(map0)

@@ -512,10 +512,10 @@ class PoseStaged(StagedModel):
                 )
                 x0["W"] = whiten(basis, kernel, sigma_f, lengthscale, w)
             x0["c"] = self.c0.reshape(3, 1)
-        else:  # the saved map's box under its posterior
+        else:  # the saved map's box or tiles under its posterior
             s_k, prior_params, map0, held = self.prior_map.solve_inputs(
                 s_k, P0[:, :dim], sd.quat_to_rotmat(Q0), self.Y[:k], sigma_f, lengthscale,
-                hold=k < self.n,
+                hold=k < self.n or coarse,
             )  # fmt: skip
             params_k.update(prior_params)
             x0.update(map0)

@@ -491,6 +491,8 @@ def slam(
     auto = mag_lag == "auto"
     rec = with_lag_removed(raw, None if auto else mag_lag)
     saved = None if map_file is None else load_map(map_file)
+    if saved is not None:
+        saved.require_posterior(str(map_file))
     given = None if saved is None else {"model": _map_model(saved)}
     if rec.motion == "imu":
         if saved is not None or method != "map":
@@ -500,8 +502,6 @@ def slam(
             )
         refuse_translational_options(recording, refit_noise, rec.motion)
         return slam_imu(rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag)
-    if saved is not None and rec.motion in ("planar", "pose"):
-        saved.require_box(str(map_file), f"locate a {rec.motion} recording")
     if saved is not None and method != "map":
         saved.require_box(str(map_file), f"locate a recording by --method {method}")
     if rec.motion in ("planar", "pose"):

@@ -431,31 +431,44 @@ def saved_field_map(
 ) -> tuple[Any, dict[str, Any]]:
     """The map of a solved reduced-rank NLP to save (casmag.gp.savedmap.map_from_solution,
     conditioned on the variables the solve held, ``sol.fixed``) and a record of it for a
-    result's ``info["map"]``: ``{"saved": True, "unknowns", "kernel"}``, or ``{"saved":
-    False, "reason"}`` for a failed solve, too many unknowns (the map's above
-    :data:`MAP_MAX_UNKNOWNS`, the NLP's above ``max_unknowns``) or a posterior that is not
-    positive definite. ``whitened``: the NLP solves for the whitened weights (planar, pose, IMU);
-    ``position_dim``: the positions the map is read at (default the box's dimension)."""
+    result's ``info["map"]``: ``{"saved": True, "posterior": True, "unknowns", "kernel"}``;
+    the mean alone (``"posterior": False`` and the ``reason``) when the map has more
+    unknowns than :data:`MAP_MAX_UNKNOWNS` or the NLP more than ``max_unknowns``, when it
+    builds no Hessian, or when the posterior is not positive definite; ``{"saved": False,
+    "reason"}`` for a failed solve. ``whitened``: the NLP solves for the whitened weights
+    (planar, pose, IMU); ``position_dim``: the positions the map is read at (default the
+    box's dimension)."""
     from casmag.errors import DataError
     from casmag.gp.savedmap import map_from_solution
 
     if not sol.success:
         return None, {"saved": False, "reason": "the solve failed"}
     n_z = sum(sol.x[n].size for n in ("W", "c") if n in sol.x)
-    if n_z > MAP_MAX_UNKNOWNS or nlp.x_layout.size > max_unknowns:
-        reason = f"{n_z} map unknowns, {nlp.x_layout.size} in all (limits {MAP_MAX_UNKNOWNS}, "
-        return None, {"saved": False, "reason": reason + f"{max_unknowns})"}
-    if (missing := without_hessian(nlp)) is not None:
-        return None, {"saved": False, "reason": missing["error"]}
     x = {n: sol.x[n] for n in nlp.x_layout.entries}
+    record = {"saved": True, "posterior": True, "unknowns": n_z, "kernel": kernel}
+
+    def mean_only(reason: str) -> tuple[Any, dict[str, Any]]:
+        saved = map_from_solution(
+            nlp, x, params, kernel, basis, hyper, frame, tuple(sol.fixed), whitened,
+            position_dim, posterior=False,
+        )  # fmt: skip
+        return saved, {**record, "posterior": False, "reason": f"mean alone: {reason}"}
+
+    if n_z > MAP_MAX_UNKNOWNS or nlp.x_layout.size > max_unknowns:
+        return mean_only(
+            f"{n_z} map unknowns, {nlp.x_layout.size} in all (limits {MAP_MAX_UNKNOWNS}, "
+            f"{max_unknowns}) for a dense precision"
+        )
+    if (missing := without_hessian(nlp)) is not None:
+        return mean_only(f"no precision ({missing['error']})")
     try:
         saved = map_from_solution(
             nlp, x, params, kernel, basis, hyper, frame, tuple(sol.fixed), whitened, position_dim
         )
         saved.cholesky()
     except (np.linalg.LinAlgError, RuntimeError, DataError) as exc:
-        return None, {"saved": False, "reason": f"posterior not positive definite ({exc})"}
-    return saved, {"saved": True, "unknowns": n_z, "kernel": kernel}
+        return mean_only(f"posterior not positive definite ({exc})")
+    return saved, record
 
 
 def without_hessian(nlp: NLP) -> dict[str, Any] | None:

@@ -45,3 +45,5 @@ def test_the_table_has_a_row_per_seed_and_the_medians():
     text = table(runs)
     assert text.count("| planar |") == 2
     assert "located 0.040 m in 9.0 s" in text
+    assert "model.gp.form" not in text.splitlines()[0]
+    assert table(runs, "tiled").splitlines()[0].endswith("model.gp.form tiled")

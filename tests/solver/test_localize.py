@@ -346,6 +346,43 @@ def test_a_tiled_run_saves_its_map_with_the_marginal_posterior(tiled_run, tmp_pa
         assert np.isnan(values[outside]).all() and np.isfinite(values[~outside]).all()
 
 
+def test_a_map_too_large_for_its_precision_is_saved_as_its_mean(mapped, tmp_path, monkeypatch):
+    """Above MAP_MAX_UNKNOWNS a run saves its map's mean alone: drawn and exported (its
+    posterior std NaN), and refused, in one line, as a map to locate against."""
+    from casmag.solver import uncertainty
+
+    problem, data, _, later, _ = mapped
+    monkeypatch.setattr(uncertainty, "MAP_MAX_UNKNOWNS", 10)
+    result = solve(problem, data)
+    saved = result.saved_map()  # computed on first use, with its record
+    record = result.info["map"]
+    assert record["saved"] is True and record["posterior"] is False
+    assert "mean alone" in record["reason"] and record["unknowns"] == saved.size > 10
+    P = result.arrays["P_estimate"]
+    np.testing.assert_allclose(saved.field(P), result.arrays["M_estimate"], atol=1e-10)
+    with pytest.raises(DataError, match="saved as its mean alone"):
+        saved.std(P)
+    result.save(tmp_path / "run")
+    back = load_map(tmp_path / "run")
+    assert back.precision is None and not back.has_posterior
+    np.testing.assert_array_equal(back.mean, saved.mean)
+    runner = CliRunner()
+    drawn = runner.invoke(main, ["map", str(tmp_path / "run"), "--out", str(tmp_path / "D")])
+    assert drawn.exit_code == 0, drawn.output
+    grid = np.loadtxt(tmp_path / "D" / "map_grid.csv", delimiter=",", skiprows=1)
+    assert np.isfinite(grid[:, 2:5]).all() and np.isnan(grid[:, 5:8]).all()
+    assert np.isfinite(grid[:, 8:11]).all()  # the prior's std
+    t = np.arange(later.n_samples) * 0.1
+    write_recording(tmp_path / "b.csv", t, later.Y, dxy=later.U, P_true=later.P_true)
+    args = ["slam", str(tmp_path / "b.csv"), "--map", str(tmp_path / "run")]
+    located = runner.invoke(main, [*args, "--out", str(tmp_path / "B")])
+    assert located.exit_code == 2
+    assert "saved as its mean alone" in located.output
+    assert len(located.output.strip().splitlines()) == 1 and not (tmp_path / "B").exists()
+    with pytest.raises(DataError, match="saved as its mean alone"):
+        localise(problem, later, back)
+
+
 def test_a_tiled_map_is_drawn_and_the_filter_refuses_it(tiled_run, tmp_path):
     _, data, result = tiled_run
     result.save(tmp_path / "run")
