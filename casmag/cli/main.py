@@ -710,8 +710,9 @@ def map_command(map_file: Path, out_dir: Path, points: int, z: float | None) -> 
         saved = load_map(map_file)
         grid = saved.grid(points, z)
         drawn = grid if saved.has_posterior else {k: v for k, v in grid.items() if k != "map_std"}
+        status = "saved map" if saved.has_posterior else "saved map, its mean alone"
         drawable = SimpleNamespace(
-            arrays=drawn, info={"name": map_file.stem}, status="saved map", success=True
+            arrays=drawn, info={"name": map_file.stem}, status=status, success=True
         )
 
         def write(tmp: Path) -> None:
