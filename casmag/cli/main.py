@@ -241,9 +241,8 @@ def _warn(line: str) -> None:
 @click.option(
     "--hold-map",
     is_flag=True,
-    help="With --map and the MAP estimate of a translational recording: locate against the "
-    "map held at its mean, without the update (faster, less accurate where the map is weak; "
-    "no map.npz is written).",
+    help="With --map and the MAP estimate: locate against the map held at its mean, without "
+    "the update (faster, less accurate where the map is weak; no map.npz is written).",
 )
 @click.option(
     "--method",

@@ -2,8 +2,9 @@
 or pose walk (problems/planar/walk.yaml, problems/pose/walk.yaml) is mapped, and a later
 recording of the same path and field, with another odometry bias and noise and new
 magnetometer noise, is (a) solved from scratch, (b) located against the saved map (which
-it updates: casmag slam REC --map MAP), (c) solved together with the first as two sessions
-of one map, the accuracy a joint solve reaches.
+it updates: casmag slam REC --map MAP), (c) located against the map held (``--hold-map``),
+(d) solved together with the first as two sessions of one map, the accuracy a joint solve
+reaches.
 
     python -m casmag.experiments.locbench --seeds 5 --out results/bench/localise
 
@@ -107,6 +108,12 @@ def run(motion: str, seed: int, form: str = "auto") -> dict[str, Any]:
         updated = loc.saved_map()
         if updated is not None:
             out["located"]["map_std_ratio"] = float(updated.std(P).mean() / saved.std(P).mean())
+        held, t = _timed(
+            lambda: slam_oriented(
+                later, problem.sections, saved=saved, map_source="map", hold_map=True
+            )
+        )
+        out["held"] = {**_row(held, t), "covered": held.info["localisation"]["covered"]}
     load = load_planar_options if motion == "planar" else load_pose_options
     sessions = solve_planar_sessions if motion == "planar" else solve_pose_sessions
     joint, t = _timed(lambda: sessions([rec, later], load(problem.sections, sets[1:])))
@@ -128,23 +135,25 @@ def table(runs: list[dict[str, Any]], form: str = "auto") -> str:
     title = "# Map once, locate later (planar and pose walks)"
     lines = [title if form == "auto" else f"{title}, model.gp.form {form}", ""]
     head = (
-        "| model | seed | RMSE before [m] | scratch [m] (s) | located [m] (s) | joint [m] (s) "
-        "| located NEES | map std on path, updated / saved |"
+        "| model | seed | RMSE before [m] | scratch [m] (s) | located [m] (s) | held [m] (s) "
+        "| joint [m] (s) | located NEES | held NEES | map std on path, updated / saved |"
     )
     for motion in sorted({r["motion"] for r in runs}):
         rows = [r for r in runs if r["motion"] == motion]
-        lines += [f"## {motion}", "", head, "|" + "---|" * 8]
+        lines += [f"## {motion}", "", head, "|" + "---|" * 10]
         for r in rows:
-            s, lo, j = r["scratch"], r.get("located", {}), r["joint"]
+            s, lo, h, j = r["scratch"], r.get("located", {}), r.get("held", {}), r["joint"]
             lines.append(
                 f"| {motion} | {r['seed']} | {_f(s['rmse_before'])} | {_f(s['rmse_after'])} "
                 f"({_f(s['seconds'], '.1f')}) | {_f(lo.get('rmse_after'))} "
-                f"({_f(lo.get('seconds'), '.1f')}) | {_f(j['rmse_after'])} "
+                f"({_f(lo.get('seconds'), '.1f')}) | {_f(h.get('rmse_after'))} "
+                f"({_f(h.get('seconds'), '.1f')}) | {_f(j['rmse_after'])} "
                 f"({_f(j['seconds'], '.1f')}) | {_f(lo.get('nees_mean'), '.2f')} "
-                f"| {_f(lo.get('map_std_ratio'), '.2f')} |"
+                f"| {_f(h.get('nees_mean'), '.2f')} | {_f(lo.get('map_std_ratio'), '.2f')} |"
             )
-        med = {k: _median(rows, k, "rmse_after") for k in ("scratch", "located", "joint")}
-        sec = {k: _median(rows, k, "seconds") for k in ("scratch", "located", "joint")}
+        keys = ("scratch", "located", "held", "joint")
+        med = {k: _median(rows, k, "rmse_after") for k in keys}
+        sec = {k: _median(rows, k, "seconds") for k in keys}
         lines += [
             "",
             "Medians: " + ", ".join(f"{k} {med[k]:.3f} m in {sec[k]:.1f} s" for k in med if med[k]),
@@ -167,9 +176,11 @@ def main(argv: list[str] | None = None) -> None:
         for seed in range(1, args.seeds + 1):
             runs.append(run(motion, seed, args.form))
             r = runs[-1]
+            nan = float("nan")
             print(
                 f"{motion} seed {seed}: scratch {r['scratch']['rmse_after']:.3f}, located "
-                f"{r.get('located', {}).get('rmse_after', float('nan')):.3f}, joint "
+                f"{r.get('located', {}).get('rmse_after', nan):.3f}, held "
+                f"{r.get('held', {}).get('rmse_after', nan):.3f}, joint "
                 f"{r['joint']['rmse_after']:.3f} m",
                 flush=True,
             )

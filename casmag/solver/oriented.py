@@ -146,6 +146,7 @@ def slam_oriented(
     method: str = "map",
     saved: SavedMap | None = None,
     map_source: str = "",
+    hold_map: bool = False,
 ) -> Result:
     """A recording whose magnetometer turns with the body: planar (``dfwd,dleft,dyaw``,
     the planar model with a heading-rate bias, casmag.solver.planar) or pose odometry
@@ -160,9 +161,12 @@ def slam_oriented(
     translational recording). ``method``: as for
     :func:`slam`. ``saved``: the recording is located against this saved map (read from
     ``map_source``) and updates it (casmag.solver.planar.solve_planar,
-    casmag.solver.pose.solve_pose)."""
+    casmag.solver.pose.solve_pose), or with ``hold_map`` is located against it held."""
     load, odometry_only, solve_recording = _ORIENTED[rec.motion]
-    located = {} if saved is None else {"prior_map": saved, "map_source": map_source}
+    located = (
+        {} if saved is None
+        else {"prior_map": saved, "map_source": map_source, "hold_map": hold_map}
+    )  # fmt: skip
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(
         overrides, f"casmag slam on a {rec.motion} recording", STAGED_SOLVER_KEYS

@@ -89,6 +89,7 @@ def solve_planar(
     session_names: list[str] | None = None,
     prior_map: SavedMap | None = None,
     map_source: str = "",
+    hold_map: bool = False,
 ) -> Result:
     """Planar odometry with heading plus magnetometer GP-SLAM from arrays.
 
@@ -124,7 +125,9 @@ def solve_planar(
     posterior as the prior of the map (:func:`localisation_options`);
     ``info["localisation"]`` says how much of the estimate lies on ground the map has seen
     (casmag.solver.localize.covered), flagged ``off_map`` below half. The result's map is
-    the updated one."""
+    the updated one. ``hold_map``: the map held at its mean in every solve (the whole
+    recording's with sigma_m widened by the map's standard deviation along the path,
+    casmag.solver.staged.PriorMap.held_noise), not updated, and no map written."""
     options = options or PlanarOptions()
     if prior_map is not None:
         options = localisation_options(options, prior_map, map_source)
@@ -196,7 +199,7 @@ def solve_planar(
     model = PlanarStaged(
         options, U, dt, Y, p0, psi0, P_dr, Y_local.mean(axis=0), sigma_m, float(sigma_f),
         float(ell), sigma_lin, progress, starts, anchors,
-        None if prior_map is None else PriorMap.of(prior_map),
+        None if prior_map is None else PriorMap.of(prior_map, held=hold_map),
     )  # fmt: skip
     ws = options.solver.warm_start
     duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
@@ -227,7 +230,8 @@ def solve_planar(
     P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
     sigma_b = displacement_bias_sigma(U[:, :2], options.displacement_bias, starts)
     u_summary, P_cov, P_cov_plain = uncertainty(
-        final, P_true, sigma_m, options.solver,
+        final, P_true, sigma_m if model.held_noise is None else model.held_noise[0],
+        options.solver,
         None if sigma_b is None
         else lambda f: displacement_bias_consider(f, U, options.sigma_disp, sigma_b, starts),
     )  # fmt: skip
@@ -312,7 +316,8 @@ def solve_planar(
     )
     result.map_maker = StagedMap(final, options.kernel, hyper, frame, structure_map_info(s), 2)
     if prior_map is not None:
-        located(result, prior_map, map_source, sol.x["P"] if sol.success else None)
+        P_located = sol.x["P"] if sol.success else None
+        located(result, prior_map, map_source, P_located, hold_map, model.held_noise)
     return result
 
 
@@ -343,15 +348,29 @@ def localisation_options(options: Any, saved: SavedMap, source: str, motion: str
     return dataclasses.replace(options, **changes)
 
 
-def located(result: Result, saved: SavedMap, source: str, P: np.ndarray | None) -> None:
+def located(
+    result: Result, saved: SavedMap, source: str, P: np.ndarray | None, held: bool = False,
+    noise: tuple[float, float] | None = None,
+) -> None:  # fmt: skip
     """``info["localisation"]`` (the map, its frame and size, the share of the estimate on
-    ground it has seen) and ``info["map"]["updated_from"]`` of a result located against a
-    saved map; the ``off_map`` flag when that share is below half."""
+    ground it has seen, whether the map was ``updated``) and ``info["map"]["updated_from"]``
+    of a result located against a saved map; the ``off_map`` flag when that share is below
+    half. ``held`` (``--hold-map``): no map is written; ``noise``: the widened sigma_m and
+    the map's std along the path it was widened by (casmag.solver.staged.PriorMap.held_noise;
+    None when the whole recording's solve was not reached)."""
     on_map = None if P is None else float(covered(saved, P[:, : saved.dim]).mean())
     result.info["localisation"] = {
         "map": source, "frame": saved.frame, "map_unknowns": saved.size, "covered": on_map,
+        "updated": not held,
     }  # fmt: skip
-    result.info["map"]["updated_from"] = source
+    if held:
+        if noise is not None:
+            result.info["localisation"].update(sigma_m_used=noise[0], map_std_on_path=noise[1])
+        form = result.map_maker.form if isinstance(result.map_maker, StagedMap) else {}
+        result.map_maker = None  # the saved map, unchanged: nothing new to write
+        result.info["map"] = {**form, "saved": False, "reason": "located against a saved map, held"}
+    else:
+        result.info["map"]["updated_from"] = source
     if isinstance(result.map_maker, StagedMap):  # the updated map, in the saved map's frame
         form = {**result.map_maker.form, "updated_from": source}
         result.map_maker = dataclasses.replace(result.map_maker, frame=saved.frame, form=form)
@@ -671,6 +690,8 @@ class PlanarStaged(StagedModel):
             )  # fmt: skip
             params_k.update(prior_params)
             x0.update(map0)
+            if self.prior_map.held and k == self.n:  # --hold-map: the map's noise added
+                params_k["sigma_m"] = self.held_sigma_m(start["P"])
         return StageProblem(s_k, cached_planar_nlp, params_k, x0, 2, tuple(held))
 
 
@@ -806,6 +827,7 @@ def solve_planar_recording(
     method: str = "map",
     prior_map: SavedMap | None = None,
     map_source: str = "",
+    hold_map: bool = False,
 ) -> Result:
     """Solve a planar recording (``dfwd,dleft,dyaw`` columns, ``casmag.data.recording``: a path,
     or a Recording already read); truth columns, when present, are used for evaluation
@@ -836,6 +858,7 @@ def solve_planar_recording(
         method=method,
         prior_map=prior_map,
         map_source=map_source,
+        hold_map=hold_map,
         **({"p0": np.zeros(2), "psi0": 0.0} if anchor == "origin" else {}),
     )
     if anchor == "origin":

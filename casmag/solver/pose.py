@@ -114,6 +114,7 @@ def solve_pose(
     session_names: list[str] | None = None,
     prior_map: SavedMap | None = None,
     map_source: str = "",
+    hold_map: bool = False,
 ) -> Result:
     """Pose odometry plus magnetometer GP-SLAM from arrays.
 
@@ -136,8 +137,8 @@ def solve_pose(
     by default the truth's; its own biases; added one at a time in the given order).
 
     prior_map: locate the recording against a saved map (read from ``map_source``) and
-    update it, as casmag.solver.planar.solve_planar does; the map's dimension is the saved
-    map's."""
+    update it, as casmag.solver.planar.solve_planar does (``hold_map``: held, not updated);
+    the map's dimension is the saved map's."""
     options = options or PoseOptions()
     if prior_map is not None:
         options = localisation_options(options, prior_map, map_source, "pose")
@@ -228,7 +229,7 @@ def solve_pose(
         return result
     model = PoseStaged(
         options, U, dt, Y, p0, q0, P_dr, Q_dr, c0, params, dim, height, progress, starts,
-        None if prior_map is None else PriorMap.of(prior_map),
+        None if prior_map is None else PriorMap.of(prior_map, held=hold_map),
     )  # fmt: skip
     duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
     biases = heading_bias_starts(options.starts, options.start_heading_deg, duration)
@@ -260,7 +261,8 @@ def solve_pose(
             flags.append(box)
     P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
     u_summary, P_cov, P_cov_plain = uncertainty(
-        final, P_true, sigma_m, options.solver,
+        final, P_true, sigma_m if model.held_noise is None else model.held_noise[0],
+        options.solver,
         consider_fixed=(held := displacement_bias_consider(U, options, starts)),
     )  # fmt: skip
     record_consider(u_summary, held and held["bias_p"], options.displacement_bias)
@@ -340,7 +342,8 @@ def solve_pose(
     )
     result.map_maker = StagedMap(final, options.kernel, hyper, frame, form, dim)
     if prior_map is not None:
-        located(result, prior_map, map_source, sol.x["P"] if sol.success else None)
+        P_located = sol.x["P"] if sol.success else None
+        located(result, prior_map, map_source, P_located, hold_map, model.held_noise)
     return result
 
 
@@ -519,6 +522,8 @@ class PoseStaged(StagedModel):
             )  # fmt: skip
             params_k.update(prior_params)
             x0.update(map0)
+            if self.prior_map.held and k == self.n:  # --hold-map: the map's noise added
+                params_k["sigma_m"] = self.held_sigma_m(start["P"])
         return StageProblem(s_k, cached_pose_nlp, params_k, x0, dim, (*self.fixed, *held))
 
     # ------------------------------------------------------------ sliding windows
@@ -636,6 +641,7 @@ def solve_pose_recording(
     method: str = "map",
     prior_map: SavedMap | None = None,
     map_source: str = "",
+    hold_map: bool = False,
 ) -> Result:
     """Solve a pose recording (``dpx,dpy,dpz,dqw,dqx,dqy,dqz`` columns: a path, or a
     Recording already read); truth columns (``x_true,y_true,z_true``,
@@ -657,6 +663,7 @@ def solve_pose_recording(
     result = solve_pose(
         rec.increments, rec.Y, options, truth=truth, t=rec.t, progress=progress,
         name=Path(rec.path).stem, method=method, prior_map=prior_map, map_source=map_source,
+        hold_map=hold_map,
         **start,
     )  # fmt: skip
     if anchor == "origin":

@@ -462,12 +462,13 @@ def slam(
     estimates on the real robot sequences about three times closer and made the wrong ones
     worse (casmag.data.clock, :func:`refit_sigma_m`).
 
-    map_file: a saved map (``map.npz`` of an earlier run, casmag.gp.savedmap; translational
-    and planar recordings): the recording is located against it and the map updated by it
-    (casmag.solver.localize.localise; ``hold_map``: located against the map held at its
+    map_file: a saved map (``map.npz`` of an earlier run, casmag.gp.savedmap; translational,
+    planar and pose recordings): the recording is located against it and the map updated by
+    it (casmag.solver.localize.localise; ``hold_map``: located against the map held at its
     mean, no update; with ``method`` ``ekf`` by the filter, which also updates the map:
-    casmag.solver.ekf.localise_filter; a planar recording by the sliding windows and one
-    solve under the map's posterior, casmag.solver.planar.solve_planar), with the map's
+    casmag.solver.ekf.localise_filter; a planar or pose recording by the model's growing
+    prefixes on the map held and one solve under the map's posterior,
+    casmag.solver.planar.solve_planar, casmag.solver.pose.solve_pose), with the map's
     kernel and hyperparameters, instead of mapped from scratch.
 
     method: ``map`` (default) the MAP estimate above; ``ekf`` the filter baseline
@@ -505,16 +506,15 @@ def slam(
     if saved is not None and method != "map":
         saved.require_box(str(map_file), f"locate a recording by --method {method}")
     if rec.motion in ("planar", "pose"):
-        if saved is not None and (method != "map" or hold_map):
-            how = "--hold-map" if hold_map else f"--method {method}"
+        if saved is not None and method != "map":
             raise DataError(
-                f"{map_file}: {how} locates translational recordings; a {rec.motion} one is "
-                "located by the MAP estimate, which updates the map"
+                f"{map_file}: --method {method} locates translational recordings; a "
+                f"{rec.motion} one is located by the MAP estimate"
             )
         refuse_translational_options(recording, refit_noise, rec.motion)
         return slam_oriented(
             rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag, method,
-            saved, "" if map_file is None else str(map_file),
+            saved, "" if map_file is None else str(map_file), hold_map,
         )  # fmt: skip
     data = rec.to_dataset(anchor)
     keep_box = box_needed(1, method, saved is not None)

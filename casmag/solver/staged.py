@@ -204,6 +204,22 @@ class StagedModel(ABC):
     #: vertical to turn), for :func:`best_turn`.
     turns: bool = False
 
+    #: A saved map the recording is located against (planar and pose models), or None.
+    prior_map: PriorMap | None = None
+    #: (sigma_m, s) of the whole recording located against a held saved map
+    #: (:meth:`PriorMap.held_noise`), fixed by its first problem (:meth:`held_sigma_m`).
+    held_noise: tuple[float, float] | None = None
+
+    def held_sigma_m(self, P: np.ndarray) -> float:
+        """The magnetometer noise of the whole recording located against the saved map held
+        at its mean, widened by the map's uncertainty along P, the first start of that
+        stage (every later problem of it, the turn search's trials too, keeps it, so their
+        costs compare)."""
+        assert self.prior_map is not None
+        if self.held_noise is None:
+            self.held_noise = self.prior_map.held_noise(P)
+        return self.held_noise[0]
+
     def turned(self, states: dict[str, np.ndarray], k: int, turn: float) -> dict[str, np.ndarray]:
         """States of the first k samples turned about the vertical, about the first
         position, by an angle growing linearly in time from 0 at the first sample to
@@ -348,7 +364,10 @@ class PriorMap:
     saved posterior of the NLP's map unknowns z = [vec(V); c] (whitened weights,
     casmag.model.rotated and casmag.model.tiledmap.RotatedTiledModel), mean and precision.
     A map saved without a constant field holds c at zero (a precision of
-    1 / (1e-9 sigma_m)^2)."""
+    1 / (1e-9 sigma_m)^2). ``held``: every solve holds the map at its mean (``--hold-map``:
+    the recording located, the map not updated), the whole recording's with the
+    magnetometer's noise widened by the map's own uncertainty (:meth:`held_noise`);
+    ``saved`` the SavedMap, for that."""
 
     basis: tuple | None
     kernel: str
@@ -356,9 +375,11 @@ class PriorMap:
     precision: np.ndarray
     sigma_m: float
     grid: Any = None  # casmag.gp.tiles.TileGrid of a tiled map
+    held: bool = False
+    saved: Any = None
 
     @classmethod
-    def of(cls, saved: Any) -> PriorMap:
+    def of(cls, saved: Any, held: bool = False) -> PriorMap:
         if saved.tiles is None:
             S = saved.basis().prior_variances(saved.kernel, saved.sigma_f, saved.lengthscale)
         else:  # every tile's functions have the same prior variances
@@ -373,12 +394,21 @@ class PriorMap:
         # W = sqrt(S) V: the mean divided by d, the precision scaled by d on both sides
         key = saved.basis_key if saved.tiles is None else None
         return cls(
-            key, saved.kernel, mean / d, d[:, None] * precision * d, saved.sigma_m, saved.tiles
-        )
+            key, saved.kernel, mean / d, d[:, None] * precision * d, saved.sigma_m, saved.tiles,
+            held, saved,
+        )  # fmt: skip
 
     @property
     def tiled(self) -> bool:
         return self.grid is not None
+
+    def held_noise(self, P: np.ndarray) -> tuple[float, float]:
+        """(sigma_m widened, s) for the whole recording located against the map held at its
+        mean: sqrt(sigma_m^2 + s^2), s the RMS of the map's posterior standard deviation at
+        positions P (k, d) (as casmag.solver.localize's step 2), so that a map that knows
+        little does not give a confident path."""
+        s = float(np.sqrt(np.mean(self.saved.std(P[:, : self.saved.dim]) ** 2)))
+        return float(np.hypot(self.sigma_m, s)), s
 
     def window_prior(self) -> WindowPrior:
         """The windows' prior (:func:`slide`), a copy each call (the windows update it)."""
@@ -407,7 +437,8 @@ class PriorMap:
         box or tiles, the parameters of its map block, the map's start and the map's
         unknowns to hold fixed.
 
-        ``hold`` (a prefix of the recording, :func:`solve_strategy`): the map is held at the
+        ``hold`` (a prefix of the recording, :func:`solve_strategy`; every solve when
+        :attr:`held`): the map is held at the
         saved mean (the structure's own GP prior is then a constant), so IPOPT factorises
         the path alone, and the NLP carries no dense block to build; the path is located
         against the map. Else (the whole recording) the block ``map_prior`` (a window
@@ -416,7 +447,7 @@ class PriorMap:
         positions P (k, d) with body-to-map rotations R (k, 3, 3), the tiles' from the
         saved mean. The map is updated by the recording (at the real field's 3,675
         unknowns the dense prior costs about 6 s an iteration)."""
-        if hold:
+        if hold or self.held:
             s = self._on_map(structure, P)
             per = s.tiles().per_tile if self.tiled else s.hilbert_basis().num_basis
             return s, {}, self._held(per), ("W", "c")

@@ -39,11 +39,12 @@ def test_the_table_has_a_row_per_seed_and_the_medians():
     row = {"rmse_before": 0.5, "rmse_after": 0.04, "seconds": 9.0, "nees_mean": 2.1}
     runs = [
         {"motion": "planar", "seed": s, "scratch": dict(row), "joint": dict(row),
-         "located": {**row, "map_std_ratio": 0.7}}
+         "located": {**row, "map_std_ratio": 0.7}, "held": {**row, "rmse_after": 0.05}}
         for s in (1, 2)
     ]  # fmt: skip
     text = table(runs)
     assert text.count("| planar |") == 2
-    assert "located 0.040 m in 9.0 s" in text
+    assert "located 0.040 m in 9.0 s" in text and "held 0.050 m in 9.0 s" in text
+    assert text.splitlines()[4].count("|") == 11  # ten columns
     assert "model.gp.form" not in text.splitlines()[0]
     assert table(runs, "tiled").splitlines()[0].endswith("model.gp.form tiled")

@@ -167,7 +167,6 @@ def test_a_planar_recording_is_located_against_a_planar_map_and_updates_it(walks
 @pytest.mark.parametrize(
     ("args", "needle"),
     [
-        (["--hold-map"], "--hold-map locates translational recordings"),
         (["--method", "ekf"], "--method ekf locates translational recordings"),
         (["--set", "model.gp.form=tiled"], "which is one box (reduced_rank)"),
     ],
@@ -183,6 +182,33 @@ def test_a_planar_recording_refuses_what_only_translational_localisation_has(
     assert res.exit_code == 2
     assert needle in res.output and len(res.output.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    "map_name", ["A", pytest.param("T", marks=pytest.mark.slow)], ids=["box", "tiles"]
+)
+def test_a_planar_recording_is_located_against_a_held_map(walks, map_name, request):
+    """--hold-map: the map held at its mean in every solve, the whole recording's with
+    sigma_m widened by the map's standard deviation along the path; no map written."""
+    if map_name == "T":
+        request.getfixturevalue("tiled_map")
+    saved = load_map(walks / map_name)
+    out = walks / f"H{map_name}"
+    res = CliRunner().invoke(
+        main,
+        ["slam", str(walks / "later.csv"), "--map", str(walks / map_name), "--hold-map",
+         "--out", str(out), "-q"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    located = Result.load(out)
+    assert located.success and not (out / MAP_FILE).exists()
+    assert located.info["map"]["saved"] is False and "held" in located.info["map"]["reason"]
+    loc = located.info["localisation"]
+    assert loc["updated"] is False and loc["covered"] > 0.9
+    assert loc["sigma_m_used"] == pytest.approx(np.hypot(saved.sigma_m, loc["map_std_on_path"]))
+    assert loc["map_std_on_path"] > 0.0
+    assert "map_prior" not in located.cost_blocks
+    assert located.rmse_after < 0.25 * located.rmse_before
 
 
 @pytest.fixture(scope="module")
