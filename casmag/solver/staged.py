@@ -438,15 +438,15 @@ class PriorMap:
         unknowns to hold fixed.
 
         ``hold`` (a prefix of the recording, :func:`solve_strategy`; every solve when
-        :attr:`held`): the map is held at the
-        saved mean (the structure's own GP prior is then a constant), so IPOPT factorises
-        the path alone, and the NLP carries no dense block to build; the path is located
-        against the map. Else (the whole recording) the block ``map_prior`` (a window
-        structure; the tiles' ``saved_prior``) puts the saved posterior in place of the GP
-        prior, and the map is free: the box's from its mean given the readings Y (k, 3) at
-        positions P (k, d) with body-to-map rotations R (k, 3, 3), the tiles' from the
-        saved mean. The map is updated by the recording (at the real field's 3,675
-        unknowns the dense prior costs about 6 s an iteration)."""
+        :attr:`held`): the map is held at the saved mean (the structure's own GP prior is
+        then a constant), so IPOPT factorises the path alone, and the NLP carries no dense
+        block to build; the path is located against the map. Else (the whole recording)
+        the block ``map_prior`` (a window structure; the tiles' ``saved_prior``) puts the
+        saved posterior in place of the GP prior, and the map is free: the box's from its
+        mean given the readings Y (k, 3) at positions P (k, d) with body-to-map rotations
+        R (k, 3, 3), the tiles' from the saved mean. The map is updated by the recording
+        (at the real field's 3,675 unknowns the dense prior costs about 6 s an
+        iteration)."""
         if hold or self.held:
             s = self._on_map(structure, P)
             per = s.tiles().per_tile if self.tiled else s.hilbert_basis().num_basis
