@@ -230,8 +230,7 @@ def solve_planar(
     P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
     sigma_b = displacement_bias_sigma(U[:, :2], options.displacement_bias, starts)
     u_summary, P_cov, P_cov_plain = uncertainty(
-        final, P_true, sigma_m if model.held_noise is None else model.held_noise[0],
-        options.solver,
+        final, P_true, model.final_sigma_m(sigma_m), options.solver,
         None if sigma_b is None
         else lambda f: displacement_bias_consider(f, U, options.sigma_disp, sigma_b, starts),
     )  # fmt: skip
@@ -317,7 +316,7 @@ def solve_planar(
     result.map_maker = StagedMap(final, options.kernel, hyper, frame, structure_map_info(s), 2)
     if prior_map is not None:
         P_located = sol.x["P"] if sol.success else None
-        located(result, prior_map, map_source, P_located, hold_map, model.held_noise)
+        located(result, prior_map, map_source, P_located, hold_map, model.noise_on_held_map)
     return result
 
 

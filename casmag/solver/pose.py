@@ -261,8 +261,7 @@ def solve_pose(
             flags.append(box)
     P_true = None if truth is None else np.asarray(truth["P"], dtype=float)
     u_summary, P_cov, P_cov_plain = uncertainty(
-        final, P_true, sigma_m if model.held_noise is None else model.held_noise[0],
-        options.solver,
+        final, P_true, model.final_sigma_m(sigma_m), options.solver,
         consider_fixed=(held := displacement_bias_consider(U, options, starts)),
     )  # fmt: skip
     record_consider(u_summary, held and held["bias_p"], options.displacement_bias)
@@ -343,7 +342,7 @@ def solve_pose(
     result.map_maker = StagedMap(final, options.kernel, hyper, frame, form, dim)
     if prior_map is not None:
         P_located = sol.x["P"] if sol.success else None
-        located(result, prior_map, map_source, P_located, hold_map, model.held_noise)
+        located(result, prior_map, map_source, P_located, hold_map, model.noise_on_held_map)
     return result
 
 

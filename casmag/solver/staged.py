@@ -208,7 +208,7 @@ class StagedModel(ABC):
     prior_map: PriorMap | None = None
     #: (sigma_m, s) of the whole recording located against a held saved map
     #: (:meth:`PriorMap.held_noise`), fixed by its first problem (:meth:`held_sigma_m`).
-    held_noise: tuple[float, float] | None = None
+    noise_on_held_map: tuple[float, float] | None = None
 
     def held_sigma_m(self, P: np.ndarray) -> float:
         """The magnetometer noise of the whole recording located against the saved map held
@@ -216,9 +216,15 @@ class StagedModel(ABC):
         stage (every later problem of it, the turn search's trials too, keeps it, so their
         costs compare)."""
         assert self.prior_map is not None
-        if self.held_noise is None:
-            self.held_noise = self.prior_map.held_noise(P)
-        return self.held_noise[0]
+        if self.noise_on_held_map is None:
+            self.noise_on_held_map = self.prior_map.held_noise(P)
+        return self.noise_on_held_map[0]
+
+    def final_sigma_m(self, sigma_m: float) -> float:
+        """The magnetometer noise of the whole recording's solve: :meth:`held_sigma_m`'s
+        when the map was held, else ``sigma_m``."""
+        held = self.noise_on_held_map
+        return sigma_m if held is None else held[0]
 
     def turned(self, states: dict[str, np.ndarray], k: int, turn: float) -> dict[str, np.ndarray]:
         """States of the first k samples turned about the vertical, about the first
@@ -359,24 +365,20 @@ class WindowPrior:
 
 @dataclass(frozen=True)
 class PriorMap:
-    """A saved map (casmag.gp.savedmap.SavedMap) as the prior of a staged model's map, to
-    locate a recording against it: the saved box's basis key or tile ``grid``, and the
-    saved posterior of the NLP's map unknowns z = [vec(V); c] (whitened weights,
-    casmag.model.rotated and casmag.model.tiledmap.RotatedTiledModel), mean and precision.
-    A map saved without a constant field holds c at zero (a precision of
-    1 / (1e-9 sigma_m)^2). ``held``: every solve holds the map at its mean (``--hold-map``:
-    the recording located, the map not updated), the whole recording's with the
-    magnetometer's noise widened by the map's own uncertainty (:meth:`held_noise`);
-    ``saved`` the SavedMap, for that."""
+    """A saved map (casmag.gp.savedmap.SavedMap, ``saved``: its box's basis key or tile
+    grid, kernel and sigma_m) as the prior of a staged model's map, to locate a recording
+    against it, and the saved posterior of the NLP's map unknowns z = [vec(V); c]
+    (whitened weights, casmag.model.rotated and casmag.model.tiledmap.RotatedTiledModel),
+    mean and precision. A map saved without a constant field holds c at zero (a precision
+    of 1 / (1e-9 sigma_m)^2). ``held``: every solve holds the map at its mean
+    (``--hold-map``: the recording located, the map not updated), the whole recording's
+    with the magnetometer's noise widened by the map's own uncertainty
+    (:meth:`held_noise`)."""
 
-    basis: tuple | None
-    kernel: str
+    saved: Any
     mean: np.ndarray
     precision: np.ndarray
-    sigma_m: float
-    grid: Any = None  # casmag.gp.tiles.TileGrid of a tiled map
     held: bool = False
-    saved: Any = None
 
     @classmethod
     def of(cls, saved: Any, held: bool = False) -> PriorMap:
@@ -392,15 +394,29 @@ class PriorMap:
         if not saved.constant_field:
             precision[n:, n:] = np.eye(3) * (1e-9 * saved.sigma_m) ** -2
         # W = sqrt(S) V: the mean divided by d, the precision scaled by d on both sides
-        key = saved.basis_key if saved.tiles is None else None
-        return cls(
-            key, saved.kernel, mean / d, d[:, None] * precision * d, saved.sigma_m, saved.tiles,
-            held, saved,
-        )  # fmt: skip
+        return cls(saved, mean / d, d[:, None] * precision * d, held)
+
+    @property
+    def basis(self) -> tuple | None:
+        """The saved box's basis key (None: tiles)."""
+        return None if self.tiled else self.saved.basis_key
+
+    @property
+    def grid(self) -> Any:
+        """The saved tiles' grid (casmag.gp.tiles.TileGrid; None: a box)."""
+        return self.saved.tiles
+
+    @property
+    def kernel(self) -> str:
+        return self.saved.kernel
+
+    @property
+    def sigma_m(self) -> float:
+        return self.saved.sigma_m
 
     @property
     def tiled(self) -> bool:
-        return self.grid is not None
+        return self.saved.tiles is not None
 
     def held_noise(self, P: np.ndarray) -> tuple[float, float]:
         """(sigma_m widened, s) for the whole recording located against the map held at its
@@ -422,10 +438,12 @@ class PriorMap:
             return dataclasses.replace(structure, basis=None, grid=self.grid, home=home, **changes)
         return dataclasses.replace(structure, basis=self.basis, **changes)
 
-    def _held(self, per_column: int) -> dict[str, np.ndarray]:
+    def _held(self) -> dict[str, np.ndarray]:
+        """The NLP's map unknowns at the saved mean: W (the box's functions, or each tile's,
+        a column per tile or field component) and c."""
         nv = self.mean.size - 3
         return {
-            "W": self.mean[:nv].reshape(per_column, -1, order="F"),
+            "W": self.mean[:nv].reshape(self.saved.num_basis, -1, order="F"),
             "c": self.mean[nv:].reshape(3, 1),
         }
 
@@ -448,13 +466,11 @@ class PriorMap:
         (at the real field's 3,675 unknowns the dense prior costs about 6 s an
         iteration)."""
         if hold or self.held:
-            s = self._on_map(structure, P)
-            per = s.tiles().per_tile if self.tiled else s.hilbert_basis().num_basis
-            return s, {}, self._held(per), ("W", "c")
+            return self._on_map(structure, P), {}, self._held(), ("W", "c")
         s = self._on_map(structure, P, window=True)
         params = {"map_mean": self.mean.reshape(-1, 1), "map_precision": self.precision}
         if self.tiled:
-            return s, params, self._held(s.tiles().per_tile), ()
+            return s, params, self._held(), ()
         basis = s.hilbert_basis()
         J = rotated_design(basis, self.kernel, P, R, sigma_f, lengthscale)
         return s, params, self.window_prior().start(J, np.reshape(Y, -1), basis.num_basis), ()

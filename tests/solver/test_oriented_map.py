@@ -240,7 +240,7 @@ def test_a_saved_tiled_map_is_the_prior_of_the_whitened_tiles(tiled_map):
     z = saved.mean + rng.standard_normal(saved.size) * 0.1
     r, rv = z - saved.mean, z / d - prior.mean
     assert rv @ prior.precision @ rv == pytest.approx(r @ saved.precision @ r, rel=1e-9)
-    held = prior._held(tiles.per_tile)
+    held = prior._held()
     W = sqrt_s[:, None] * held["W"]
     np.testing.assert_allclose(W, saved.unknowns()["W"], rtol=1e-12)
     np.testing.assert_allclose(held["c"], saved.unknowns()["c"], rtol=1e-12)
