@@ -158,9 +158,10 @@ bench-drift: $(STAMP) ## Planar and pose walks drifting beyond one batch's basin
 	$(VENV)/bin/casmag sweep problems/planar/drift.yaml problems/pose/drift.yaml --seeds 5 --figures first --out results/bench/drift
 	$(VENV)/bin/casmag report results/bench/drift --out results/bench/drift/report.md
 
-bench-localise: $(STAMP) ## Map once, locate later: planar and pose walks located against their saved map (box, then tiles), beside scratch and joint solves, 5 seeds -> results/bench/localise/localise.md, localise-tiled.md
+bench-localise: $(STAMP) ## Map once, locate later: planar and pose walks located against their saved map (box, then tiles), and IMU recordings (3 scenarios, 3 seeds), beside scratch and joint solves -> results/bench/localise/localise.md, localise-tiled.md, localise-imu.md
 	$(PY) -m casmag.experiments.locbench --seeds 5 --out results/bench/localise
 	$(PY) -m casmag.experiments.locbench --seeds 5 --form tiled --out results/bench/localise
+	$(PY) -m casmag.experiments.locbench --motion imu --seeds 3 --out results/bench/localise
 
 # make bench-scale / bench-area: seconds one run may take before it is stopped (its row then
 # says so, with the iterations, seconds per iteration and memory it had reached).

@@ -236,7 +236,8 @@ def _warn(line: str) -> None:
     "earlier run) instead of mapping from scratch, with the map's kernel and "
     "hyperparameters, and write the map updated by the recording (its posterior as the "
     "prior; translational recordings: casmag.solver.localize, with --method ekf the filter "
-    "does the same; planar and pose recordings: the model's warm start against the map).",
+    "does the same; planar and pose recordings: the model's warm start against the map; "
+    "IMU recordings: a box map, the anneal schedule against the map held, then updated).",
 )
 @click.option(
     "--hold-map",
@@ -290,9 +291,10 @@ def slam(
     and pose); result.json lists each session's errors and sessions.png shows them.
 
     Every translational, planar and pose run writes map.npz (a box or tiles, up to 6,000 map
-    unknowns), the map with its posterior; --map MAP locates a later recording of those
-    kinds (its first position in the map's frame) against it and writes the map updated by
-    it (the filter, --method ekf, needs a box map), and casmag map MAP draws it.
+    unknowns; an IMU run a box), the map with its posterior; --map MAP locates a later
+    recording of any of those kinds (its first position in the map's frame) against it and
+    writes the map updated by it (the filter, --method ekf, and IMU recordings need a box
+    map), and casmag map MAP draws it.
     """
     from casmag.solver.recslam import slam as run_slam
     from casmag.solver.recslam import slam_sessions

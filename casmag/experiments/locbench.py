@@ -11,7 +11,10 @@ reaches.
 writes ``localise.json`` (every run) and ``localise.md`` (per model: the medians, and a row
 per seed) into --out; ``--form tiled`` maps and locates on the tiled map
 (``model.gp.form=tiled`` in every run) and writes ``localise-tiled.json`` and
-``localise-tiled.md``. Runs one after the other in this process (timings are wall-clock
+``localise-tiled.md``. ``--motion imu`` does the same for IMU recordings of the
+problems/imu scenarios (``--scenarios``; :func:`run_imu`, as recordings through
+casmag.solver.imurec with its defaults) and writes ``localise-imu.json`` and
+``localise-imu.md``. Runs one after the other in this process (timings are wall-clock
 seconds of each call, the NLP builds included).
 """
 
@@ -20,6 +23,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -27,12 +31,14 @@ from typing import Any
 import numpy as np
 
 from casmag import strapdown as sd
-from casmag.data.recording import Recording
-from casmag.problem.imu import load_planar_options
+from casmag.data.imusim import simulate_imu
+from casmag.data.recording import Recording, read_recording, write_recording
+from casmag.problem.imu import load_imu_problem, load_planar_options
 from casmag.problem.oriented import load_oriented_problem
 from casmag.problem.pose import load_pose_options
 from casmag.result import Result
 from casmag.result.outdir import write_text_atomic
+from casmag.solver.imurec import slam_imu, slam_imu_sessions
 from casmag.solver.oriented import simulate_oriented, slam_oriented
 from casmag.solver.planar import solve_planar_sessions
 from casmag.solver.pose import solve_pose_sessions
@@ -122,6 +128,59 @@ def run(motion: str, seed: int, form: str = "auto") -> dict[str, Any]:
     return out
 
 
+#: The later IMU recording's biases (the scenario files': the gyroscope's [deg/s] and the
+#: accelerometer's [m/s^2]); its noise is drawn from seed + LATER_IMU_SEED.
+LATER_IMU = ["simulation.imu.gyro_bias=[-0.1, 0.06, -0.05]",
+             "simulation.imu.acc_bias=[-0.015, 0.02, -0.025]"]  # fmt: skip
+LATER_IMU_SEED = 1000
+
+
+def _imu_recording(problem: Any, folder: Path, name: str) -> Recording:
+    """A simulated IMU problem's data as a recording (written and read back as a user's)."""
+    data = simulate_imu(problem)
+    tr, path = data.truth, folder / f"{name}.csv"
+    write_recording(path, tr.t, data.Y, imu=np.hstack([data.dq, data.dv]), P_true=tr.P,
+                    q_true=tr.Q)  # fmt: skip
+    return read_recording(path)
+
+
+def run_imu(scenario: str, seed: int) -> dict[str, Any]:
+    """One seed of one IMU scenario (problems/imu/SCENARIO.yaml): the recording of ``seed``
+    mapped, and a later one of the same path and field (seed + :data:`LATER_IMU_SEED`, the
+    biases :data:`LATER_IMU`) solved from scratch, located against the saved map (updated
+    and held) and solved with the first as two sessions. Every solve is casmag.solver.imurec's
+    with its defaults (noise from the rest, hyperparameters estimated, the lag searched),
+    as ``casmag slam`` runs it."""
+    yaml = ROOT / f"problems/imu/{scenario}.yaml"
+    out: dict[str, Any] = {"motion": "imu", "scenario": scenario, "seed": seed}
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        rec = _imu_recording(load_imu_problem(yaml, [f"seed={seed}"]), folder, scenario)
+        later = _imu_recording(
+            load_imu_problem(yaml, [f"seed={seed + LATER_IMU_SEED}", *LATER_IMU]), folder,
+            f"{scenario}-later",
+        )  # fmt: skip
+        out["keyframes"] = None
+        first, t = _timed(lambda: slam_imu(rec, mag_lag="auto"))
+        out["keyframes"] = first.info["keyframes"]
+        saved = first.saved_map()
+        out["map_run"] = {**_row(first, t), "map": first.info["map"]}
+        scratch, t = _timed(lambda: slam_imu(later, mag_lag="auto"))
+        out["scratch"] = _row(scratch, t)
+        if saved is not None:
+            for key, hold in (("located", False), ("held", True)):
+                loc, t = _timed(
+                    lambda hold=hold: slam_imu(
+                        later, mag_lag="auto", saved=saved, map_source="map", hold_map=hold
+                    )
+                )
+                out[key] = {**_row(loc, t), "covered": loc.info["localisation"]["covered"]}
+        joint, t = _timed(lambda: slam_imu_sessions([rec, later], mag_lag="auto"))
+        row = next(r for r in joint.info["sessions"] if r["name"] == Path(later.path).stem)
+    out["joint"] = {"status": joint.status, "rmse_after": row["rmse_after"], "seconds": t}
+    return out
+
+
 def _median(runs: list[dict[str, Any]], key: str, field: str) -> float | None:
     vals = [r[key][field] for r in runs if key in r and r[key].get(field) is not None]
     return float(np.median(vals)) if vals else None
@@ -132,6 +191,8 @@ def _f(v: Any, fmt: str = ".3f") -> str:
 
 
 def table(runs: list[dict[str, Any]], form: str = "auto") -> str:
+    if runs and runs[0]["motion"] == "imu":
+        return imu_table(runs)
     title = "# Map once, locate later (planar and pose walks)"
     lines = [title if form == "auto" else f"{title}, model.gp.form {form}", ""]
     head = (
@@ -162,14 +223,84 @@ def table(runs: list[dict[str, Any]], form: str = "auto") -> str:
     return "\n".join(lines) + "\n"
 
 
+def mm(v: float | None) -> float | None:
+    """Metres in millimetres (None stays None: a failed run's RMSE)."""
+    return None if v is None else 1e3 * v
+
+
+def imu_table(runs: list[dict[str, Any]]) -> str:
+    """The IMU rows (:func:`run_imu`): per scenario a row per seed (the mapping run's RMSE,
+    the later recording's before any map and each way's after), then the medians and the
+    runs that did not succeed. The IMU model gives no covariance, so no NEES."""
+    lines = ["# Map once, locate later (IMU recordings)", ""]
+    head = (
+        "| scenario | seed | keyframes | map run [mm] | IMU-only [mm] | scratch [mm] (s) "
+        "| located [mm] (s) | held [mm] (s) | joint [mm] (s) |"
+    )
+    for scenario in dict.fromkeys(r["scenario"] for r in runs):
+        rows = [r for r in runs if r["scenario"] == scenario]
+        lines += [f"## {scenario}", "", head, "|" + "---|" * 9]
+        for r in rows:
+            s, lo, h, j = r["scratch"], r.get("located", {}), r.get("held", {}), r["joint"]
+            cells = [
+                f"{_f(mm(x.get('rmse_after')), '.1f')} ({_f(x.get('seconds'), '.0f')})"
+                for x in (s, lo, h, j)
+            ]
+            lines.append(
+                f"| {scenario} | {r['seed']} | {r['keyframes']} | "
+                f"{_f(mm(r['map_run']['rmse_after']), '.1f')} | "
+                f"{_f(mm(s['rmse_before']), '.1f')} | " + " | ".join(cells) + " |"
+            )
+        keys = ("scratch", "located", "held", "joint")
+        med = {k: _median(rows, k, "rmse_after") for k in keys}
+        sec = {k: _median(rows, k, "seconds") for k in keys}
+        lines += [
+            "",
+            "Medians: "
+            + ", ".join(f"{k} {1e3 * med[k]:.1f} mm in {sec[k]:.0f} s" for k in med if med[k]),
+            "",
+            "Not successful: "
+            + (
+                ", ".join(
+                    f"seed {r['seed']} {k} ({r[k]['status']})"
+                    for r in rows
+                    for k in keys
+                    if k in r and r[k]["status"] != "Solve_Succeeded"
+                )
+                or "none"
+            ),
+            "",
+        ]
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--motion", nargs="+", default=["planar", "pose"])
     ap.add_argument("--out", type=Path, default=ROOT / "results/bench/localise")
     ap.add_argument("--form", choices=["auto", "reduced_rank", "tiled"], default="auto")
+    ap.add_argument("--scenarios", nargs="+", default=["rectangle", "spiral", "handwriting"])
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    if "imu" in args.motion:
+        if args.motion != ["imu"] or args.form != "auto":
+            ap.error("--motion imu: alone, without --form (the IMU model maps one box)")
+        imu_runs = []
+        for scenario in args.scenarios:
+            for seed in range(1, args.seeds + 1):
+                imu_runs.append(run_imu(scenario, seed))
+                text = json.dumps(imu_runs, indent=2) + "\n"
+                write_text_atomic(args.out / "localise-imu.json", text)
+                r = imu_runs[-1]
+                said = [
+                    f"{k} {_f(mm(r.get(k, {}).get('rmse_after')), '.1f')} "
+                    f"({r.get(k, {}).get('status')})"
+                    for k in ("scratch", "located", "held", "joint")
+                ]
+                print(f"imu {scenario} seed {seed}: {', '.join(said)} mm", flush=True)
+        write_text_atomic(args.out / "localise-imu.md", imu_table(imu_runs))
+        return
     stem = "localise" if args.form == "auto" else f"localise-{args.form}"
     runs = []
     for motion in args.motion:

@@ -82,7 +82,11 @@ class ImuStructure:
     imu_hessian: str = "gauss-newton"  # or "exact": CasADi's Hessian of the imu block
     zero_centre: str = "start"  # or "free": the zero-position sphere's centre is estimated
     closures: tuple[tuple[int, int], ...] = ()  # form none: loop-closure pairs (LoopClosures)
-    window: bool = False  # a sliding window: anchored first state, map under a carried prior
+    #: The map under a Gaussian prior (``map_mean``, ``map_precision``) in place of the GP
+    #: prior: the one carried from earlier sliding windows, or a saved map's posterior
+    #: (casmag.solver.staged.PriorMap).
+    window: bool = False
+    anchored: bool = False  # a sliding window's first state under a prior (ImuMotion)
     #: The first keyframe of each session (ImuMotion ``starts``), cut to those below K.
     starts: tuple[int, ...] = (0,)
 
@@ -381,7 +385,7 @@ def imu_field(s: ImuStructure) -> FieldModel:
         return LoopClosures(s.closures) if s.closures else NoField()
     if s.form == "exact":
         return ExactField(s.kernel, s.jitter, constant_field=True)
-    if s.window:  # the map under the prior carried from the earlier windows
+    if s.window:  # the map under a prior: earlier windows' or a saved map's
         return WindowField(s.kernel, s.basis, constant_field=True, metis=False)
     # MUMPS's own ordering: the IMU solves were measured with it (METIS not measured here).
     return ReducedRankField(s.kernel, s.basis, constant_field=True, metis=False)
@@ -390,7 +394,7 @@ def imu_field(s: ImuStructure) -> FieldModel:
 def cached_imu_nlp(s: ImuStructure) -> NLP:
     """The built NLP for a structure, built once per process."""
     motion = ImuMotion(
-        s.K, s.n, s.T, s.bias, s.zero_position, s.zero_centre, s.imu_hessian, s.window,
+        s.K, s.n, s.T, s.bias, s.zero_position, s.zero_centre, s.imu_hessian, s.anchored,
         s.starts,
     )  # fmt: skip
     return cached_slam(motion, imu_field(s), s.solver)

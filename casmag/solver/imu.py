@@ -60,6 +60,7 @@ from casmag.result.metrics import rmse_and_max
 from casmag.solver.closures import magnetic_closures
 from casmag.solver.staged import (
     MAP_NOT_YET,
+    PriorMap,
     SessionsRun,
     Solved,
     StagedModel,
@@ -329,6 +330,7 @@ class ImuSolution:
     schedules: list[dict[str, Any]] = field(default_factory=list)
     closures: dict[str, Any] | None = None  # the loop closures' record (closure_start)
     closure_stage: ImuSolveStage | None = None  # GP-SLAM's start when closures were used
+    prior_map: PriorMap | None = None  # the saved map it was located against
 
 
 def structure_base(
@@ -370,8 +372,9 @@ def strapdown_keyframes(data: ImuData, kf: Keyframes, n: int) -> dict[str, np.nd
 
 
 def solve_imu_stages(
-    problem: ImuProblem, data: ImuData, progress: Progress | None = None
-) -> ImuSolution:
+    problem: ImuProblem, data: ImuData, progress: Progress | None = None,
+    prior_map: PriorMap | None = None,
+) -> ImuSolution:  # fmt: skip
     """Strapdown, then the IMU-only adjustment from it, then (unless the map form is
     ``none``) the loop closures' start (``model.gp.closures``) and GP-SLAM schedules from
     it (or from the IMU-only result without closures) with sigma_m scaled by
@@ -389,7 +392,10 @@ def solve_imu_stages(
     sessions added one at a time (:func:`_strategy_pass`). Measured on the rectangle
     scenario, seeds 1 + 2 and 3 + 4 as two sessions: the ladder together reached 3.8 and
     3.9 mm, 3.0 and 2.9 mm (each alone: 4.5 and 10.4 mm, 4.2 and 6.5 mm), while sessions
-    added one at a time, each a batch, stopped at the iteration limit."""
+    added one at a time, each a batch, stopped at the iteration limit.
+
+    ``prior_map``: the recording (one session) is located against a saved map after its
+    IMU-only adjustment (:func:`located_stages`) in place of the schedules."""
     spec = problem.spec
     m = spec.model
     n = problem.substeps
@@ -417,6 +423,13 @@ def solve_imu_stages(
     hyper = {"sigma_f": float("nan"), "lengthscale": float("nan"), "sigma_m": float("nan")}
     if not sol1.success or m.gp.form == "none":
         return ImuSolution(s1, kf, strap, st1, None, hyper, "none", None)
+    if prior_map is not None:  # located against a saved map: its hyperparameters and box
+        passes, hyper, record = located_stages(problem, data, kf, base, st1, prior_map, progress)
+        size = prior_map.saved.num_basis
+        return ImuSolution(
+            s1, kf, strap, st1, passes[-1], hyper, "the saved map", size, passes, None, False,
+            [record], prior_map=prior_map,
+        )  # fmt: skip
     # Hyperparameters once, on the IMU-only trajectory; then GP-SLAM passes with sigma_m
     # annealed (a softer magnetometer first widens the basin), each from the previous one.
     hyper, source, est, windows = _hyperparameters(problem, kf, st1, "IMU-only")
@@ -736,12 +749,18 @@ def _slam_setup(
             num_basis = min(full.num_basis, m.gp.max_num_basis)
         hb = make_basis(m.gp.kernel, P, hyper["lengthscale"], num_basis, m.gp.margin)
         basis_key = (tuple(hb.domain.center), tuple(hb.domain.half_width), hb.num_basis)
+    return basis_key, _hessian_mode(problem, hyper)
+
+
+def _hessian_mode(problem: ImuProblem, hyper: dict[str, float]) -> str:
+    """The magnetometer block's Hessian mode (:func:`_slam_setup`)."""
+    m = problem.spec.model
     variation = hyper["sigma_f"] / (hyper["lengthscale"] if m.gp.kernel == "curl_free" else 1.0)
     if m.gp.curvature == "auto":
         own = "exact" if variation < CURVATURE_BELOW * problem.sigma_m else "hybrid"
     else:
         own = "exact" if m.gp.curvature else "gauss-newton"
-    return basis_key, problem.spec.solver.hessian_mode(own)
+    return problem.spec.solver.hessian_mode(own)
 
 
 def _slam_solve(
@@ -872,6 +891,95 @@ def _slam_pass(
     )  # fmt: skip
     size = s2.hilbert_basis().num_basis if problem.spec.model.gp.form == "reduced_rank" else None
     return st2, s2, size
+
+
+def _located_solve(
+    problem: ImuProblem, data: ImuData, kf: Keyframes, base: dict[str, Any],
+    prior_map: PriorMap, hyper: dict[str, float], sigma_m: float, start: dict[str, Any],
+    hold: bool, progress: Progress | None,
+) -> ImuSolveStage:  # fmt: skip
+    """One GP-SLAM solve of the whole recording against a saved map (``prior_map``, a box),
+    from ``start``: with ``hold`` the map held at the saved mean (the path located against
+    it), else free under the saved posterior (block ``map_prior``) from its mean given the
+    keyframes' readings at the start's poses (casmag.solver.staged.PriorMap.solve_inputs)."""
+    s = ImuStructure(form="reduced_rank", basis=None, imu_hessian=IMU_HESSIAN_SLAM, **base)
+    s, prior_params, map0, held = prior_map.solve_inputs(
+        s, start["P"], sd.quat_to_rotmat(start["Q"]), kf.Y, hyper["sigma_f"],
+        hyper["lengthscale"], hold=hold,
+    )  # fmt: skip
+    nlp = cached_imu_nlp(s)
+    if isinstance(nlp.keep, tuple) and isinstance(nlp.keep[1], RotatedFieldGaussNewton):
+        nlp.keep[1].set_mode(_hessian_mode(problem, hyper))
+    params = _imu_params(problem, data, kf, s)
+    params.update(
+        Y=kf.Y, sigma_m=sigma_m, sigma_f=hyper["sigma_f"], lengthscale=hyper["lengthscale"],
+        sigma_lin=problem.spec.model.gp.sigma_lin, **prior_params,
+    )  # fmt: skip
+    x0 = {name: start[name] for name in ("P", "V", "Q", "BW", "BA", "zero_centre")} | map0
+    terms = _terms_of(kf, base["n"], base["T"])
+    sol, nominal = _solve_recentred(
+        nlp, params, x0, ("W", "c"), terms, progress, fixed=held, starts=s.starts
+    )
+    field_model = {
+        "basis": s.basis, "kernel": prior_map.kernel,
+        "hyper": {"sigma_f": hyper["sigma_f"], "lengthscale": hyper["lengthscale"],
+                  "sigma_m": sigma_m},
+    }  # fmt: skip
+    return ImuSolveStage(
+        solution=sol, nlp=nlp, sigma_m=sigma_m, field_model=field_model,
+        **_stage_estimates(sol, nominal, kf.idx.size, s.starts),
+    )  # fmt: skip
+
+
+def located_stages(
+    problem: ImuProblem, data: ImuData, kf: Keyframes, base: dict[str, Any],
+    imu_only: ImuSolveStage, prior_map: PriorMap, progress: Progress | None,
+) -> tuple[list[ImuSolveStage], dict[str, float], dict[str, Any]]:  # fmt: skip
+    """An IMU recording located against a saved map (a box): its hyperparameters (sigma_f,
+    lengthscale and kernel) are the map's, its magnetometer noise its own (sigma_m at
+    keyframes). From the IMU-only adjustment, the anneal schedule (``model.gp.anneal``)
+    with the map held at its saved mean: the path located against the map (the NLP has no
+    map unknowns to factor). Then, unless the map is held (``prior_map.held``), one solve
+    with the map free under its saved posterior from there: the map updated by the
+    recording. Held, the last pass's sigma_m is widened by the map's posterior standard
+    deviation along its start, sqrt(sigma_m^2 + s^2) (casmag.solver.staged.PriorMap.
+    held_noise), as the other motion models do. Returns the passes (the last is the
+    result), the hyperparameters and the schedule's record (``held_noise``: the widened
+    sigma_m and s, when held)."""
+    m = problem.spec.model
+    sigma_m = float(problem.sigma_m * kf.sigma_scale)
+    saved = prior_map.saved
+    hyper = {"sigma_f": saved.sigma_f, "lengthscale": saved.lengthscale, "sigma_m": sigma_m}
+    passes: list[ImuSolveStage] = []
+    prev, noise = imu_only, None
+    factors = list(m.gp.anneal)
+    for i, f in enumerate(factors):
+        sigma = sigma_m * f
+        if prior_map.held and i == len(factors) - 1:
+            s = prior_map.held_noise(prev.P)[1]
+            sigma = float(np.hypot(sigma, s))
+            noise = {"sigma_m_used": sigma, "map_std_on_path": s}
+        st = _located_solve(
+            problem, data, kf, base, prior_map, hyper, sigma, _start_from(prev, data), True,
+            progress,
+        )  # fmt: skip
+        passes.append(st)
+        if not st.solution.success:
+            break
+        prev = st
+    if passes[-1].solution.success and not prior_map.held:
+        start = _start_from(prev, data)
+        passes.append(
+            _located_solve(
+                problem, data, kf, base, prior_map, hyper, sigma_m, start, False, progress
+            )
+        )
+    names = [f"held, sigma_m x{f:g}" for f in factors][: len(passes)]
+    if len(passes) > len(factors):
+        names.append("updated")
+    record = {**_schedule_record("located", passes, kf.idx.size), "solves": names,
+              "held_noise": noise}  # fmt: skip
+    return passes, hyper, record
 
 
 def grow_sizes(K: int, fractions: list[float]) -> list[int]:
@@ -1131,7 +1239,7 @@ class ImuStaged(StagedModel):
         base = {**self.base, "K": k, "solver": solver.model_dump_json(), "zero_centre": "start"}
         return ImuStructure(
             form="reduced_rank", basis=basis_key, imu_hessian=IMU_HESSIAN_SLAM, window=True,
-            **base,
+            anchored=True, **base,
         )  # fmt: skip
 
     def window_prior(self) -> WindowPrior:
@@ -1370,17 +1478,20 @@ def _errors(P: np.ndarray | None, Q: np.ndarray | None, Pt: Any, Qt: Any) -> dic
 
 
 def solve_imu(
-    problem: ImuProblem | Any, data: ImuData | None = None, progress: Progress | None = None
-) -> Result:
+    problem: ImuProblem | Any, data: ImuData | None = None, progress: Progress | None = None,
+    prior_map: PriorMap | None = None,
+) -> Result:  # fmt: skip
     """Solve an IMU problem (an ImuProblem, a YAML path or a dictionary): simulate its data
     (unless given), run the stages, compare with the truth. A failed stage is reported with
     ``success = False`` and IPOPT's status, never as a result: the errors of the failed stage
-    and the stages after it are None."""
+    and the stages after it are None. ``prior_map``: locate the recording against a saved
+    map (:func:`located_stages`); the map written is the updated one, in the saved map's
+    frame."""
     problem = load_imu_problem(problem)
     if data is None and problem.simulation is None:
         raise ValueError(f"{problem.source}: a recording's IMU problem needs its data")
     data = simulate_imu(problem) if data is None else data
-    res = solve_imu_stages(problem, data, progress)
+    res = solve_imu_stages(problem, data, progress, prior_map)
     idx = res.keyframes.idx
     truth = data.truth
     Pt = truth.P[idx] if truth is not None and truth.P is not None else None
@@ -1489,6 +1600,8 @@ def solve_imu(
         info["map"] = dict(MAP_NOT_YET)
         anchor = info["anchor"]
         frame = f"anchored at the {anchor['kind']}: {anchor['position']}"
+        if prior_map is not None:
+            frame = prior_map.saved.frame
         map_maker = functools.partial(_imu_map, slam_map, frame)
     else:
         form = spec.model.gp.form
@@ -1667,7 +1780,6 @@ def _truth_start_cost(
         "BA": ba,
         "zero_centre": data.p0.reshape(1, 3),
     }
-    _, mode = _slam_setup(problem, slam.P, res.hyperparameters)
     base = {
         k: getattr(res.structure, k)
         for k in (
@@ -1675,6 +1787,14 @@ def _truth_start_cost(
             "starts",
         )
     }  # fmt: skip
+    if res.prior_map is not None:  # located: the last solve's map held or updated
+        hold = "map_prior" not in slam.solution.blocks_after
+        st = _located_solve(
+            problem, data, res.keyframes, {**base, "K": K}, res.prior_map, res.hyperparameters,
+            float(slam.sigma_m), start, hold, None,
+        )  # fmt: skip
+        return float(st.solution.objective), st.solution.status
+    _, mode = _slam_setup(problem, slam.P, res.hyperparameters)
     st, _ = _slam_solve(
         problem, data, res.keyframes, {**base, "K": K}, res.structure.basis, mode,
         res.hyperparameters, float(slam.sigma_m), start, None,

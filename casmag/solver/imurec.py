@@ -29,8 +29,12 @@ does not read the magnetometer, but drifts) and removes a significant one before
 is solved, then once more on the path solved, solving again when a lag is still clear
 there (one recording; several sessions get each one's estimate reported).
 
-Not done here: no filter baseline (``--method ekf``), no saved map, no Laplace covariance
-(casmag.solver.imu.IMU_NO_COVARIANCE)."""
+A recording is located against a saved map of one box (``casmag slam REC --map MAP``,
+casmag.solver.imu.located_stages): the map's kernel and hyperparameters, the recording's
+own noise; the map updated by it, or held at its mean (``--hold-map``).
+
+Not done here: no filter baseline (``--method ekf``), no tiled maps (the IMU model has
+none), no Laplace covariance (casmag.solver.imu.IMU_NO_COVARIANCE)."""
 
 from __future__ import annotations
 
@@ -48,6 +52,7 @@ from casmag.data.imurec import RestNoise, imu_data, rest_noise, rest_warnings
 from casmag.data.imusim import ImuData, stack_sessions
 from casmag.data.recording import Recording
 from casmag.errors import DataError
+from casmag.gp.savedmap import SavedMap
 from casmag.problem.imu import (
     IMU_SOLVER_KEYS,
     ImuProblem,
@@ -60,7 +65,9 @@ from casmag.problem.spec import as_overrides
 from casmag.result import Result
 from casmag.solver.imu import solve_imu
 from casmag.solver.oriented import constant_magnetometer, lag_record, refuse_constant_field
+from casmag.solver.planar import located
 from casmag.solver.sessions import require_first_poses
+from casmag.solver.staged import PriorMap
 
 #: The noise settings a recording's rest gives when the problem leaves them null: (section
 #: of ``model``, key; the estimate's field of casmag.data.imurec.RestNoise has the key's name).
@@ -181,18 +188,28 @@ def slam_imu(
     on_warning: Callable[[str], None] | None = None,
     anchor: str = "truth",
     mag_lag: float | str | None = None,
+    saved: SavedMap | None = None,
+    map_source: str = "",
+    hold_map: bool = False,
 ) -> Result:
     """GP-SLAM on an IMU recording (module docstring). A constant magnetometer carries no
     position information: the map is left out and the result is the IMU-only adjustment
     (with ``field_check`` off, DataError). ``anchor``: ``truth`` starts at the first true
     position and heading (when the recording has them; the errors are then against the
     truth), ``origin`` at position 0 and heading 0 (no errors). ``mag_lag``: seconds
-    already removed from ``rec`` (recorded), or ``auto`` (module docstring)."""
+    already removed from ``rec`` (recorded), or ``auto`` (module docstring). ``saved``:
+    locate the recording against this map (read from ``map_source``; its frame is the
+    recording's first true pose's, as the map's was), updated by it or, with
+    ``hold_map``, held at its mean."""
     overrides = as_overrides(overrides)
     refuse_unused_solver_keys(overrides, "casmag slam on an imu recording", IMU_SOLVER_KEYS)
     spec = load_recording_spec(ImuRecordingSpec, problem, overrides)
     source = str(problem) if isinstance(problem, (str, Path)) else "--set"
+    if saved is not None:
+        spec = _on_saved_map(spec, saved, map_source)
     constant = constant_magnetometer(rec.Y)
+    if constant and saved is not None:
+        raise DataError(f"{rec.path}: mx,my,mz: a constant magnetometer cannot be located")
     if constant:
         if not field_check:
             refuse_constant_field(rec.path)
@@ -231,12 +248,13 @@ def slam_imu(
     if auto and not constant:  # the IMU-only adjustment first: it does not read the field
         first = solve_imu(recording_imu_problem(_without_map(spec), source, 1.0 / data.T), data)
         remove(estimate(first, "IMU-only adjustment"))
-    result = solve_imu(prob, data, progress)
+    prior = None if saved is None else PriorMap.of(saved, held=hold_map)
+    result = solve_imu(prob, data, progress, prior)
     lag = None
     if not constant:  # on the path solved; auto: once more when a lag is still clear there
         lag = estimate(result, _final_path(result))
         if remove(lag):
-            result = solve_imu(prob, data, progress)
+            result = solve_imu(prob, data, progress, prior)
             lag = estimate(result, _final_path(result))
     if auto and removed:
         warn([_shifted(removed)])
@@ -255,9 +273,32 @@ def slam_imu(
     result.info["anchor"]["start"] = anchor  # truth: the first true pose; origin
     if constant:
         result.info["fallback"] = "constant magnetometer: the IMU-only adjustment, no map"
+    if saved is not None:
+        noise = (result.details.get("schedules") or [{}])[0].get("held_noise")
+        held = None if noise is None else (noise["sigma_m_used"], noise["map_std_on_path"])
+        located(result, saved, map_source, result.arrays.get("P_estimate"), hold_map, held)
     result.warnings = found + list(result.warnings or [])
     result.judge()  # again, with the lag left on the path solved
     return result
+
+
+def _on_saved_map(spec: ImuRecordingSpec, saved: SavedMap, where: str) -> ImuRecordingSpec:
+    """``spec`` with the map's kernel and hyperparameters (none estimated), after checking
+    that the map can locate an IMU recording: one box (the IMU model has no tiles), 3-D,
+    and a map form the model asked for (reduced_rank)."""
+    saved.require_posterior(where)
+    saved.require_box(where, "locate an IMU recording")
+    if saved.dim != 3:
+        raise DataError(f"{where}: a {saved.dim}-D map cannot locate an IMU recording (3-D)")
+    gp = spec.model.gp
+    if gp.form != "reduced_rank":
+        raise DataError(
+            f"{where}: model.gp.form {gp.form}: an IMU recording is located on the saved "
+            "map, which is one box (reduced_rank)"
+        )
+    change = {"kernel": saved.kernel, "sigma_f": saved.sigma_f, "lengthscale": saved.lengthscale}
+    gp = gp.model_copy(update=change)
+    return spec.model_copy(update={"model": spec.model.model_copy(update={"gp": gp})})
 
 
 def _session_lag(

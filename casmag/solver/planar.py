@@ -7,6 +7,7 @@ wrong-basin check, the result."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -347,6 +348,12 @@ def localisation_options(options: Any, saved: SavedMap, source: str, motion: str
     return dataclasses.replace(options, **changes)
 
 
+def _updated_from(maker: Callable[[], tuple[Any, dict[str, Any]]], source: str) -> tuple:
+    """A result's map maker whose record (``info["map"]``) names the map it updated."""
+    field_map, record = maker()
+    return field_map, {**record, "updated_from": source}
+
+
 def located(
     result: Result, saved: SavedMap, source: str, P: np.ndarray | None, held: bool = False,
     noise: tuple[float, float] | None = None,
@@ -373,6 +380,8 @@ def located(
     if isinstance(result.map_maker, StagedMap):  # the updated map, in the saved map's frame
         form = {**result.map_maker.form, "updated_from": source}
         result.map_maker = dataclasses.replace(result.map_maker, frame=saved.frame, form=form)
+    elif result.map_maker is not None:  # the IMU model's (its frame already the saved map's)
+        result.map_maker = functools.partial(_updated_from, result.map_maker, source)
     flag = None if on_map is None else off_map_flag(on_map)
     if flag is not None:
         result.flags.append(flag)

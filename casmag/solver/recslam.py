@@ -496,13 +496,16 @@ def slam(
         saved.require_posterior(str(map_file))
     given = None if saved is None else {"model": _map_model(saved)}
     if rec.motion == "imu":
-        if saved is not None or method != "map":
+        if method != "map":
             raise DataError(
-                f"{recording}: an IMU recording is solved by the MAP estimate without a saved "
-                "map (--map and --method ekf are for other recordings)"
+                f"{recording}: an IMU recording is solved by the MAP estimate (--method ekf "
+                "is for other recordings)"
             )
         refuse_translational_options(recording, refit_noise, rec.motion)
-        return slam_imu(rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag)
+        return slam_imu(
+            rec, problem, overrides, progress, field_check, on_warning, anchor, mag_lag, saved,
+            "" if map_file is None else str(map_file), hold_map,
+        )  # fmt: skip
     if saved is not None and method != "map":
         saved.require_box(str(map_file), f"locate a recording by --method {method}")
     if rec.motion in ("planar", "pose"):

@@ -48,3 +48,42 @@ def test_the_table_has_a_row_per_seed_and_the_medians():
     assert text.splitlines()[4].count("|") == 11  # ten columns
     assert "model.gp.form" not in text.splitlines()[0]
     assert table(runs, "tiled").splitlines()[0].endswith("model.gp.form tiled")
+
+
+def test_the_later_imu_recording_has_the_same_path_and_its_own_biases(tmp_path):
+    """The IMU rows' later recording (the scenario with another seed and LATER_IMU's biases)
+    traces the same path and reads the same field, with other sensor errors."""
+    import yaml
+
+    from casmag.experiments.locbench import LATER_IMU, _imu_recording
+    from casmag.problem.imu import load_imu_problem
+
+    scenario = ROOT / "problems/imu/rectangle.yaml"
+    first = _imu_recording(load_imu_problem(scenario, ["seed=1"]), tmp_path, "a")
+    later_problem = load_imu_problem(scenario, ["seed=1001", *LATER_IMU])
+    later = _imu_recording(later_problem, tmp_path, "b")
+    assert later.motion == first.motion == "imu"
+    np.testing.assert_array_equal(later.t, first.t)
+    np.testing.assert_allclose(later.P_true, first.P_true, atol=1e-12)
+    given = yaml.safe_load(scenario.read_text())["simulation"]["imu"]["gyro_bias"]
+    assert later_problem.simulation.imu.gyro_bias != given
+    assert not np.array_equal(later.increments, first.increments)
+
+
+def test_the_imu_table_has_a_row_per_seed_and_the_medians_in_millimetres():
+    row = {"status": "Solve_Succeeded", "rmse_before": 0.14, "rmse_after": 0.004, "seconds": 30.0}
+    runs = [
+        {"motion": "imu", "scenario": "rectangle", "seed": s, "keyframes": 239,
+         "map_run": {**row, "rmse_after": 0.005},
+         "scratch": dict(row), "joint": dict(row), "located": {**row, "rmse_after": 0.003},
+         "held": dict(row)}
+        for s in (1, 2)
+    ]  # fmt: skip
+    text = table(runs)
+    assert text.startswith("# Map once, locate later (IMU recordings)")
+    assert text.count("| rectangle |") == 2
+    assert "| 239 | 5.0 | 140.0 | 4.0 (30) | 3.0 (30) |" in text
+    assert "located 3.0 mm in 30 s" in text and "Not successful: none" in text
+    runs[1]["held"] = {**row, "status": "Maximum_Iterations_Exceeded", "rmse_after": None}
+    text = table(runs)
+    assert "| - (30) |" in text and "seed 2 held (Maximum_Iterations_Exceeded)" in text
