@@ -160,7 +160,6 @@ def run_imu(scenario: str, seed: int) -> dict[str, Any]:
             load_imu_problem(yaml, [f"seed={seed + LATER_IMU_SEED}", *LATER_IMU]), folder,
             f"{scenario}-later",
         )  # fmt: skip
-        out["keyframes"] = None
         first, t = _timed(lambda: slam_imu(rec, mag_lag="auto"))
         out["keyframes"] = first.info["keyframes"]
         saved = first.saved_map()

@@ -763,6 +763,14 @@ def _hessian_mode(problem: ImuProblem, hyper: dict[str, float]) -> str:
     return problem.spec.solver.hessian_mode(own)
 
 
+def _with_mode(nlp: NLP, mode: str) -> NLP:
+    """The NLP with its magnetometer block's Hessian mode set (:func:`_hessian_mode`; an
+    NLP without the rotated field's Gauss-Newton block is returned as it is)."""
+    if isinstance(nlp.keep, tuple) and isinstance(nlp.keep[1], RotatedFieldGaussNewton):
+        nlp.keep[1].set_mode(mode)
+    return nlp
+
+
 def _slam_solve(
     problem: ImuProblem,
     data: ImuData,
@@ -788,9 +796,7 @@ def _slam_solve(
         imu_hessian=IMU_HESSIAN_SLAM,
         **{**base, "K": K},
     )
-    nlp2 = cached_imu_nlp(s2)
-    if isinstance(nlp2.keep, tuple) and isinstance(nlp2.keep[1], RotatedFieldGaussNewton):
-        nlp2.keep[1].set_mode(hessian_mode)
+    nlp2 = _with_mode(cached_imu_nlp(s2), hessian_mode)
     params = _imu_params(problem, data, kf, s2)
     params.update(
         Y=kf.Y,
@@ -907,9 +913,7 @@ def _located_solve(
         s, start["P"], sd.quat_to_rotmat(start["Q"]), kf.Y, hyper["sigma_f"],
         hyper["lengthscale"], hold=hold,
     )  # fmt: skip
-    nlp = cached_imu_nlp(s)
-    if isinstance(nlp.keep, tuple) and isinstance(nlp.keep[1], RotatedFieldGaussNewton):
-        nlp.keep[1].set_mode(_hessian_mode(problem, hyper))
+    nlp = _with_mode(cached_imu_nlp(s), _hessian_mode(problem, hyper))
     params = _imu_params(problem, data, kf, s)
     params.update(
         Y=kf.Y, sigma_m=sigma_m, sigma_f=hyper["sigma_f"], lengthscale=hyper["lengthscale"],
@@ -1297,9 +1301,7 @@ class ImuStaged(StagedModel):
         a, k, start, bias, prior, solver = w.first, w.samples, w.start, w.bias, w.prior, w.solver
         problem, m = self.problem, self.problem.spec.model
         s = self._window_structure(k, solver)
-        nlp = cached_imu_nlp(s)
-        if isinstance(nlp.keep, tuple) and isinstance(nlp.keep[1], RotatedFieldGaussNewton):
-            nlp.keep[1].set_mode(self._window_setup()[1])
+        nlp = _with_mode(cached_imu_nlp(s), self._window_setup()[1])
         kfw = window_keyframes(self.kf, a, k)
         params: dict[str, Any] = {
             "LINV": kfw.LINV,
