@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test test-slow test-all test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-lag bench-imu-mag-rate bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-localise bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
+.PHONY: help install demo test test-slow test-all test-latest test-lowest lock lint docs clean bench-imu bench-imu-strategies bench-imu-recordings bench-imu-lag bench-imu-mag-rate bench-imu-latest bench-peers bench-peers-pose bench-walks bench-drift bench-localise bench-localise-real bench-real bench-real-ekf bench-scale bench-area bench-exact bench-convergence imu
 .PHONY: table1 table2 table3 table4 table5 tables truth-start
 
 help: ## List the targets
@@ -162,6 +162,9 @@ bench-localise: $(STAMP) ## Map once, locate later: planar and pose walks locate
 	$(PY) -m casmag.experiments.locbench --seeds 5 --out results/bench/localise
 	$(PY) -m casmag.experiments.locbench --seeds 5 --form tiled --out results/bench/localise
 	$(PY) -m casmag.experiments.locbench --motion imu --seeds 3 --out results/bench/localise
+
+bench-localise-real: $(STAMP) ## Map once, locate later on the real field (../shared/data): sequences 1, 2, 4 mapped, 3 and 5 located (held, updated) beside the sessions solved together -> results/bench/localise/localise-real.md (about 40 min)
+	$(PY) -m casmag.experiments.reallocate --pairs --out results/bench/localise
 
 # make bench-scale / bench-area: seconds one run may take before it is stopped (its row then
 # says so, with the iterations, seconds per iteration and memory it had reached).

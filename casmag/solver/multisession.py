@@ -117,6 +117,7 @@ def solve_sessions(
     result.info["session_order"] = order
     result.stages = stages + result.stages
     result.iterations += sum(st["iterations"] for st in stages)
+    result.solve_seconds += sum(st["solve_seconds"] for st in stages)
     return result, data, order
 
 
