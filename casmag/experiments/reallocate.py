@@ -64,8 +64,8 @@ def missing_data() -> str | None:
 
 
 def _child(args: list[str], log: Path) -> tuple[int, float, float]:
-    """Run ``casmag ARGS`` with its output in ``log``: (exit code, wall
-    seconds, peak resident memory of the child [GiB])."""
+    """Run ``casmag ARGS`` with its output in ``log``: (exit code, wall seconds, peak
+    resident memory of the child [GiB])."""
     t0 = time.perf_counter()
     with open(log, "w") as out:
         p = subprocess.Popen(
