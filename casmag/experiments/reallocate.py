@@ -26,8 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from casmag.experiments.realbench import load_real_problem, sequence_path
 from casmag.result.outdir import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,7 +55,7 @@ def missing_data() -> str | None:
         path = _problem(seq, drift)
         if not path.is_file():
             return f"{path}: not found"
-        prefix = path.parent / yaml.safe_load(path.read_text())["recording"]["sequence"]
+        prefix = sequence_path(load_real_problem(path), path)
         data = prefix.with_name(f"{prefix.name}-time.csv")
         if not data.is_file():
             return f"{path}: recording.sequence: {data} not found (../shared beside the clone)"

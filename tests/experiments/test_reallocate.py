@@ -56,7 +56,7 @@ def test_a_session_and_a_single_run_give_their_errors():
 
 def test_without_the_shared_data_it_says_what_is_missing(tmp_path, monkeypatch):
     problem = tmp_path / "seq1-drift0.5.yaml"
-    problem.write_text("recording:\n  sequence: ../nowhere/1\n")
+    problem.write_text("name: seq1-drift0.5\nrecording:\n  sequence: ../nowhere/1\n")
     monkeypatch.setattr(reallocate, "PROBLEMS", tmp_path)
     why = reallocate.missing_data()
     assert why is not None and why.startswith(f"{problem}: recording.sequence:")
