@@ -290,7 +290,7 @@ def row(
         "truth_start": result.info.get("truth_start"),
         "trusted": (result.verdict or {}).get("trusted"),
         "verdict_reasons": list((result.verdict or {}).get("reasons") or []),
-        "two_starts": [
+        "starts": [
             {k: st.get(k) for k in ("start", "cost", "kept", "iterations", "solve_seconds")}
             for st in result.stages_named("start")
         ],

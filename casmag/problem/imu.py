@@ -974,8 +974,11 @@ IMU_SOLVER_KEYS = tuple(
 
 
 #: The keys under :data:`UNUSED_SOLVER_KEYS` the planar and pose models read: the IMU
-#: model's and the Laplace covariance.
-STAGED_SOLVER_KEYS = (*IMU_SOLVER_KEYS, "solver.uncertainty", "solver.uncertainty_inflation")
+#: model's, the start of the field's evidence and the Laplace covariance.
+STAGED_SOLVER_KEYS = (
+    *IMU_SOLVER_KEYS, "solver.warm_start.evidence", "solver.uncertainty",
+    "solver.uncertainty_inflation",
+)  # fmt: skip
 
 
 def refuse_unused_solver_keys(

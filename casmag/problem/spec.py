@@ -281,6 +281,11 @@ class WarmStartSpec(Strict):
     ``turn`` (planar and pose models, one session): each prefix after the first starts
     turned about the vertical by the heading-rate correction of lowest MAP cost
     (casmag.solver.staged.best_turn).
+    ``evidence`` (``casmag slam`` on one translational recording of 801-4,000 samples, and
+    the planar and pose models on one session without a saved map): one more start, one
+    batch from the dead reckoning with the odometry bias the field's evidence chooses
+    removed (casmag.solver.biasscan), kept when its MAP cost is the lowest; ``false``
+    leaves it out (the strategy alone, as before 2026-12-07).
     ``coarse-to-fine``: ``lengthscale_stages`` batch solves with the lengthscale shrinking
     geometrically from ``lengthscale_start`` times the assumed one to the assumed one, each
     started from the previous (at most ``stage_max_iter`` iterations before the last); a
@@ -294,7 +299,8 @@ class WarmStartSpec(Strict):
     ``coarse-to-fine`` and ``sliding`` besides (its windows hold the biases at the IMU-only
     adjustment's; ``window_bias_prior`` does not apply to it).
 
-    Defaults: first_samples 4000, growth 4.0, stage_max_iter 25, turn true, window auto,
+    Defaults: first_samples 4000, growth 4.0, stage_max_iter 25, turn true, evidence true,
+    window auto,
     overlap auto, window_lengthscales 1.375, window_bias_prior laplace, unit samples,
     sample_period null, window_max_iter 50, lengthscale_start 3.0, lengthscale_stages 3.
     """
@@ -304,6 +310,7 @@ class WarmStartSpec(Strict):
     growth: Annotated[float, Field(gt=1)] = 4.0
     stage_max_iter: Annotated[int, Field(ge=1)] = 25
     turn: bool = True
+    evidence: bool = True
     window: PositiveFloat | Literal["auto"] = "auto"
     overlap: NonNegativeFloat | Literal["auto"] = "auto"
     window_lengthscales: PositiveFloat = 1.375

@@ -38,6 +38,7 @@ from casmag.problem.imu import PlanarOptions
 from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import heading_rms_deg, rmse_and_max
+from casmag.solver.biasscan import heading_start
 from casmag.solver.ekf import FilterMap, PlanarNav, filter_result, run_safely
 from casmag.solver.localize import covered, off_map_flag
 from casmag.solver.sessions import (
@@ -205,7 +206,12 @@ def solve_planar(
     ws = options.solver.warm_start
     duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
     biases = heading_bias_starts(options.starts, options.start_heading_deg, duration)
-    staged, strategy = solve_staged(model, ws, biases)
+    scan = heading_start(
+        model, duration, options.kernel, (sigma_f, ell, sigma_m),
+        prior_map is not None or not options.solver.warm_start.evidence,
+    )  # fmt: skip
+    # one more start, one batch: the heading-rate bias of the field's evidence
+    staged, strategy = solve_staged(model, ws, biases, None if scan is None else scan.bias)
     final = staged.final
     sol, nlp, s = final.sol, final.nlp, final.structure
     hyper = {"sigma_f": float(sigma_f), "lengthscale": float(ell), "sigma_m": sigma_m}
@@ -282,6 +288,7 @@ def solve_planar(
             "kernel": options.kernel,
             **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
             "warm_start": strategy,
+            "bias_scan": None if scan is None else scan.to_dict(),
             **({} if choice is None else {"map_choice": choice.to_dict()}),
         },
         convergence=[sol.trace("GP-SLAM")],
@@ -485,6 +492,12 @@ class PlanarStaged(StagedModel):
         S = len(self.sessions(k))
         P0, psi_0 = dead_reckon_sessions(U0, self.anchors[:S], self.session_starts[:S])
         return {"P": P0, "psi": psi_0, "bias": np.full((self._bias_rows(k), 1), bias)}
+
+    def world_readings(self, states: dict[str, np.ndarray]) -> np.ndarray:
+        """The readings turned by their heading: y = Rz(psi)^T (m + c)."""
+        psi = np.ravel(states["psi"])
+        zero = np.zeros_like(psi)
+        return sd.rotate(sd.quat_from_euler(zero, zero, psi), self.Y[: psi.size])
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
         x = solved.sol.x

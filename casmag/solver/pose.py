@@ -31,6 +31,7 @@ from casmag.problem.pose import PoseOptions
 from casmag.problem.spec import SolverSpec
 from casmag.result import Result
 from casmag.result.metrics import rmse_and_max
+from casmag.solver.biasscan import heading_start
 from casmag.solver.ekf import FilterMap, PoseNav, filter_result, run_safely
 from casmag.solver.planar import (
     hyperparameter_info,
@@ -233,8 +234,13 @@ def solve_pose(
     )  # fmt: skip
     duration = float(dt[: ends[0] - 1].sum())  # of the first session: its starts' biases
     biases = heading_bias_starts(options.starts, options.start_heading_deg, duration)
+    scan = heading_start(
+        model, duration, options.kernel, (sigma_f, ell, sigma_m),
+        prior_map is not None or not options.solver.warm_start.evidence,
+    )  # fmt: skip
     ws = options.solver.warm_start
-    staged, strategy = solve_staged(model, ws, biases)
+    # one more start, one batch: the heading-rate bias of the field's evidence
+    staged, strategy = solve_staged(model, ws, biases, None if scan is None else scan.bias)
     final = staged.final
     sol, nlp, s, Q_nom = final.sol, final.nlp, final.structure, final.nominal
     Q_est = orientations(Q_nom, sol.x["D"])
@@ -323,6 +329,7 @@ def solve_pose(
             "biases_estimated": [b for b in _BIASES if b not in fixed],
             **hyperparameter_info(estimated, sigma_lin, options.sigma_lin is not None),
             "warm_start": strategy,
+            "bias_scan": None if scan is None else scan.to_dict(),
             **({} if choice is None else {"map_choice": choice.to_dict()}),
         },
         convergence=[sol.trace("GP-SLAM")],
@@ -420,6 +427,11 @@ class PoseStaged(StagedModel):
             P, Q, _ = sd.turn_heading(P, Q, t, bias)
         S = len(self.sessions(k))
         return {"P": P, "Q": Q, "bias_p": np.zeros((S, 3)), "bias_w": np.zeros((S, 3))}
+
+    def world_readings(self, states: dict[str, np.ndarray]) -> np.ndarray:
+        """The readings turned by their attitude: y = R(q)^T m."""
+        Q = np.asarray(states["Q"])
+        return sd.rotate(Q, self.Y[: Q.shape[0]])
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
         x = solved.sol.x

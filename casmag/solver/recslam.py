@@ -47,8 +47,8 @@ from casmag.solver.localize import localise
 from casmag.solver.multisession import (
     FIRST_PREFIX,
     session_rows,
+    solve_recording_starts,
     solve_sessions,
-    solve_two_starts,
     stack,
 )
 from casmag.solver.oriented import (
@@ -355,24 +355,26 @@ def _set(d: dict[str, Any], path: tuple[str, ...], value: Any) -> None:
     d[path[-1]] = value
 
 
-def solve_from_two_starts(
+def solve_from_starts(
     problem: Problem,
     data: Dataset,
     progress: Callable[[int, float, float, float], None] | None = None,
 ) -> Result:
     """:func:`solve` with the growing warm start (``casmag slam``'s default) where that is
     one batch (at most ``solver.warm_start.first_samples`` samples): the batch from the dead
-    reckoning and growing prefixes from casmag.solver.multisession.FIRST_PREFIX samples are both
-    solved and the start with the lower MAP cost is kept
-    (:func:`casmag.solver.multisession.solve_two_starts`, casmag.solver.staged.solve_starts);
-    the final solve starts from its positions.
-    Neither start is right every time on the real field (sequence 5: the batch reached
-    0.012 m at 0.5 m drift where growing stopped at 0.418 m, growing 0.011 m at 1.5 m drift
-    where the batch stopped at 0.944 m), and the lower cost picked the right one in both.
-    Both starts are the first records of ``stages`` (name ``start``, with ``start``,
-    ``cost``, ``kept``); their iterations are added to ``iterations``. Other strategies,
-    longer recordings and recordings of at most 2 x FIRST_PREFIX samples are solved by
-    :func:`solve` as they are.
+    reckoning, growing prefixes from casmag.solver.multisession.FIRST_PREFIX samples and,
+    where the field's evidence chooses an odometry bias, the batch from the dead reckoning
+    with that bias removed (casmag.solver.biasscan) are all solved and the start with the
+    lowest MAP cost is kept (:func:`casmag.solver.multisession.solve_recording_starts`,
+    casmag.solver.staged.solve_starts); the final solve starts from its positions.
+    No start is right every time on the real field (sequence 5: the batch reached 0.012 m
+    at 0.5 m drift where growing stopped at 0.418 m, growing 0.011 m at 1.5 m drift where
+    the batch stopped at 0.944 m; sequences 2 and 3 at 1.5 m: only the evidence bias reached
+    the truth's basin), and the lowest cost picked the right one in each.
+    The starts are the first records of ``stages`` (name ``start``, with ``start``,
+    ``cost``, ``kept``; the evidence bias's with its ``scan``); their iterations are added
+    to ``iterations``. Other strategies, longer recordings and recordings of at most 2 x
+    FIRST_PREFIX samples are solved by :func:`solve` as they are.
     """
     ws = problem.spec.solver.warm_start
     if (
@@ -382,7 +384,7 @@ def solve_from_two_starts(
         or data.n_sessions > 1
     ):
         return solve(problem, data, progress)
-    P0, starts = solve_two_starts(problem, data)
+    P0, starts = solve_recording_starts(problem, data)
     batch = problem.with_overrides(["solver.warm_start.strategy=none"])
     result = solve(batch, data, progress, initial_positions=P0)
     result.stages = starts + result.stages
@@ -430,7 +432,7 @@ def slam(
     GP-SLAM has nothing to correct the drift with and can only add error (the paper's Table
     1 at sigma_f = 0.001), so the result is the odometry itself (:func:`odometry_only`),
     with ``info["fallback"]`` saying why. Otherwise the MAP is started twice
-    (:func:`solve_from_two_starts`).
+    (:func:`solve_from_starts`).
 
     Plausibility checks (casmag.data.checks: time unit, speed, field unit, sigma_m against the
     field's variation, lengthscale against the path) go to ``result.warnings``, and each
@@ -547,7 +549,7 @@ def slam(
     elif method == "ekf":
         result = translational_filter_result(prob, data, float(np.ptp(rec.t)))
     else:
-        result = solve_from_two_starts(prob, data, progress)
+        result = solve_from_starts(prob, data, progress)
         if refit_noise and "sigma_m" in how["estimated"]:
             result = refit_sigma_m(prob, data, result, progress)
         if anchor == "truth":

@@ -262,11 +262,19 @@ class TranslationalStaged(StagedModel):
             out[: b.shape[0]] = b
         return out
 
-    def start(self, k: int, bias: float = 0.0) -> dict[str, np.ndarray]:
-        if bias != 0.0:
+    def start(self, k: int, bias: float | np.ndarray = 0.0) -> dict[str, np.ndarray]:
+        """The dead reckoning of the first k samples with a per-step odometry ``bias``
+        ((d,) or one row per session, casmag.solver.biasscan) removed; a scalar must be 0
+        (the model has no heading to turn)."""
+        b = np.asarray(bias, dtype=float)
+        if b.ndim == 0 and b != 0.0:
             raise ValueError("the translational model has no heading to turn")
-        zero = self._bias(None, k)
-        return {"P": self._part(k, zero).dead_reckoning(), "bias": zero}
+        rows = self._bias(None if b.ndim == 0 else b, k)
+        return {"P": self._part(k, rows).dead_reckoning(), "bias": rows}
+
+    def world_readings(self, states: dict[str, np.ndarray]) -> np.ndarray:
+        """The readings of the samples ``states`` holds: the magnetometer does not turn."""
+        return self.data.Y[: np.shape(states["P"])[0]]
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
         if isinstance(solved.nominal, WindowSolve):  # the bias increment of the window

@@ -609,6 +609,7 @@ def test_planar_coarse_to_fine_lays_the_tiles_for_each_stage(monkeypatch):
         "solver.warm_start.strategy=coarse-to-fine",
         "solver.warm_start.lengthscale_start=2.0",
         "solver.warm_start.lengthscale_stages=2",
+        "solver.warm_start.evidence=false",  # the strategy's stages alone
     )
     assert r.status == "Solve_Succeeded"
     ell = r.hyperparameters["lengthscale"]
@@ -649,7 +650,7 @@ def test_growing_prefixes_lay_the_coarsest_lattice(monkeypatch, motion):
             "seed=2", "simulation.trajectory.samples=120", "model.gp.form=tiled",
             "model.gp.kernel=curl_free",
             "solver.warm_start.strategy=growing", "solver.warm_start.first_samples=40",
-            "solver.warm_start.growth=3.0",
+            "solver.warm_start.growth=3.0", "solver.warm_start.evidence=false",
         ],
     )  # fmt: skip
     r = casmag.solve(problem)
