@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
+from casmag.gp.kernels import get_kernel
 from casmag.gp.reduced_rank import Domain, HilbertBasis, default_num_basis
 
 #: The scan map's lengthscale in lengthscales of the problem's (module docstring).
@@ -263,9 +264,9 @@ def evidence_start(
 
 
 def field_sigma(kernel: str, sigma_f: float, lengthscale: float) -> float:
-    """The field's deviation per component: sigma_f, or sigma_f / l for the curl-free
-    kernel (sigma_f is its potential's)."""
-    return sigma_f / lengthscale if kernel == "curl_free" else sigma_f
+    """The field's prior deviation per component under the kernel (sigma_f for SE, sigma_f
+    / l for the curl-free kernel, whose sigma_f is its potential's)."""
+    return float(np.sqrt(get_kernel(kernel).variance(sigma_f, lengthscale)))
 
 
 def heading_start(
