@@ -10,7 +10,8 @@ defaults of ``casmag slam``::
       sequence: ../../../shared/data/magnetic-data/invensense/1  # relative to this file
       drift: 0.5          # final odometry drift [m]
       seed: 1
-      # rate: 10, noise: 0.01, motion: translational, field: recorded, align: true
+      # rate: 10, noise: 0.01, motion: translational (or planar, pose), field: recorded,
+      # align: true
     model: {}
     solver: {}
 
@@ -61,7 +62,7 @@ class RecordingSpec(Strict):
     drift: float = Field(0.5, ge=0)
     noise: float = Field(0.01, ge=0)
     seed: int = Field(0, ge=0)
-    motion: Literal["translational", "planar"] = "translational"
+    motion: Literal["translational", "planar", "pose"] = "translational"
     field: Literal["recorded", "constant"] = "recorded"
     constant_noise: float = Field(1.0, gt=0)
     align: bool = True

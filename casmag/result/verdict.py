@@ -59,6 +59,22 @@ so in their titles. The checks:
   (translational, planar and pose recordings) stays a warning: it is measured before the
   solve, on a path whose drift the solve corrects (casmag.data.clock).
 
+- ``starts`` (no truth needed): where the solve ran from several starts
+  (casmag.solver.staged.solve_starts; the record of each start's last solve carries
+  ``path_rms_from_kept``), another start's optimum whose path lies more than
+  :data:`STARTS_APART_LENGTHSCALES` lengthscale (RMS) from the kept one at a MAP cost less
+  than :data:`STARTS_Z` standard deviations of the magnetometer block's own value above
+  it: the data do not decide between two different estimates. That spread is E sqrt(2 tau
+  / k) for the block's value E = 0.5 sum (e / sigma_m)^2 over k residuals whose
+  correlation time is tau samples (the covariance's long-run estimate, 1 without it).
+  Measured on the real robot sequences (2026-12-07, ``make bench-real``): where another
+  start ended elsewhere and the kept estimate was right, that start was 17.4-51 standard
+  deviations above (sequences 1, 2, 3 and 5); on sequence 4 at both drifts (RMSE 0.29 m
+  kept) the start that reached the truth's neighbourhood ended 0.32 m away, 2.7 standard
+  deviations above; on sequence 5 as a planar recording (0.81 -> 0.84 m kept) the one
+  near the truth ended 0.82 m away, 3.4 above. Starts that reached the same optimum ended
+  within 0.014 m (0.05 lengthscale) of each other.
+
 A verdict is about what can be seen: a wrong estimate that explains the data as well as
 the right one (a drifted path with a map bent to match) passes the truth-free checks.
 """
@@ -102,6 +118,15 @@ MIN_REVISIT_FRACTION = 0.01
 #: (the MAP) and 9.9 and 12.3 (the filter on sequence 4 at 1.5 and 0.5 m of drift, no
 #: other check failed). 7 is about the geometric middle of the gap from 5.6 to 9.9.
 NEES_LIMIT_FACTOR = 7.0
+
+#: Two starts' optima are told apart when their MAP costs differ by this many standard
+#: deviations of the magnetometer block's value (module docstring: 2.7-3.4 measured where
+#: they were not, 17.4 and more where they were; 7 is about the geometric middle) ...
+STARTS_Z = 7.0
+#: ... and are different estimates when their paths lie this many lengthscales apart (RMS;
+#: measured: 0.05 at most between starts that reached one optimum, 1.3 and more between
+#: different ones).
+STARTS_APART_LENGTHSCALES = 0.5
 
 #: The paths (``info["magnetometer_lag"]["path"]``) whose lag estimate is the estimate's
 #: own: a significant lag there is judged (module docstring).
@@ -215,6 +240,16 @@ def verdict(result: Any) -> dict[str, Any]:
                 f"{100 * MIN_REVISIT_FRACTION:g} %): the map has no loop closure to correct "
                 "the drift with"
             )
+    starts = _starts_check(result) if solved else None
+    if starts is not None:
+        checks["starts"] = starts
+        reasons.extend(
+            f"another start ({o['start']}) ended {o['path_rms_m']:.3g} m (RMS) from this "
+            f"path at a MAP cost only {o['cost_above']:.3g} higher ({o['z']:.2g} standard "
+            f"deviations of the magnetometer fit, limit {STARTS_Z:g}): the data do not "
+            "decide between the two"
+            for o in starts["close"]
+        )
     lag = _lag_left(result)
     if lag is not None:
         checks["magnetometer_lag"] = lag
@@ -264,6 +299,72 @@ def verdict(result: Any) -> dict[str, Any]:
                 f"{nees['limit']:.3g})"
             )
     return {"trusted": not reasons, "reasons": reasons, "checks": checks}
+
+
+def _residual_tau(result: Any) -> float:
+    """The magnetometer residuals' correlation time [samples], the mean of the covariance's
+    long-run estimate (casmag.solver.uncertainty), at least 1; 1 without it."""
+    u = getattr(result, "uncertainty", None) or {}
+    u = u.get("computed", u)
+    tau = (u.get("inflation") or {}).get("tau")
+    if tau is None:
+        return 1.0
+    values = np.asarray(tau, dtype=float)
+    values = values[np.isfinite(values)]
+    return max(1.0, float(values.mean())) if values.size else 1.0
+
+
+def _start_name(stage: dict[str, Any]) -> str:
+    """A start's name (translational records), else its odometry bias (the planar and pose
+    models' heading-rate bias [rad/s])."""
+    if stage.get("start"):
+        return str(stage["start"])
+    bias = np.round(np.ravel(np.asarray(stage.get("bias", 0.0), dtype=float)), 5)
+    return "bias " + (f"{bias[0]:g}" if bias.size == 1 else str(bias.tolist()))
+
+
+def _starts_check(result: Any) -> dict[str, Any] | None:
+    """The ``starts`` check (module docstring), or None where it is not made: one start, no
+    start's path recorded, several sessions, no magnetometer block or lengthscale."""
+    stages = getattr(result, "stages", None) or []
+    if any((st.get("session") or 0) > 0 for st in stages):
+        return None
+    rec = [st for st in stages if st.get("path_rms_from_kept") is not None]
+    kept = [st for st in rec if st.get("kept")]
+    if len(rec) < 2 or len(kept) != 1 or kept[0].get("cost") is None:
+        return None
+    misfit = magnetometer_misfit(result)
+    ell = (getattr(result, "hyperparameters", None) or {}).get("lengthscale")
+    if misfit is None or ell is None or not np.isfinite(ell) or ell <= 0:
+        return None
+    value, samples = misfit
+    energy = 0.5 * value * 3 * samples  # the block's value
+    tau = _residual_tau(result)
+    sd = energy * float(np.sqrt(2.0 * tau / (3 * samples)))
+    others = []
+    for st in rec:
+        if st is kept[0] or st.get("cost") is None:
+            continue
+        above = float(st["cost"]) - float(kept[0]["cost"])
+        others.append(
+            {
+                "start": _start_name(st),
+                "path_rms_m": float(st["path_rms_from_kept"]),
+                "cost_above": above,
+                "z": above / sd if sd > 0 else float("inf"),
+            }
+        )
+    apart = STARTS_APART_LENGTHSCALES * float(ell)
+    close = [o for o in others if o["path_rms_m"] > apart and o["z"] < STARTS_Z]
+    return {
+        "passed": not close,
+        "others": others,
+        "close": close,
+        "fit_sd": sd,
+        "tau_samples": tau,
+        "limit_z": STARTS_Z,
+        "apart_m": apart,
+    }
 
 
 def _nees_check(result: Any) -> dict[str, Any] | None:

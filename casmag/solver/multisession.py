@@ -152,9 +152,10 @@ def _record(model: TranslationalStaged, st: StagedStage, name: str, **more: Any)
 
 def start_records(model: TranslationalStaged, run: StagedRun, names: list[str]) -> list[dict]:
     """One ``start`` record of each start of a run (its last solve: ``start``, ``cost``,
-    ``kept``)."""
+    ``kept``, ``path_rms_from_kept``: casmag.solver.staged.paths_apart)."""
+    apart = run.apart or [None] * len(run.runs)
     return [
-        _record(model, stages[-1], name, kept=i == run.kept)
+        _record(model, stages[-1], name, kept=i == run.kept, path_rms_from_kept=apart[i])
         for i, (name, stages) in enumerate(zip(names, run.runs, strict=True))
     ]
 

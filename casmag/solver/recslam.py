@@ -389,6 +389,7 @@ def solve_from_starts(
     result = solve(batch, data, progress, initial_positions=P0)
     result.stages = starts + result.stages
     result.iterations += sum(st["iterations"] for st in starts)
+    result.judge()  # again, with the starts (the verdict's ``starts`` check)
     return result
 
 

@@ -36,7 +36,7 @@ import dataclasses
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -812,11 +812,14 @@ def _record(st: Stage) -> dict[str, Any]:
 class StagedRun:
     """The strategy run from each start: ``runs[i]`` the stages from ``biases[i]``;
     ``kept`` the start whose last stage has the lowest MAP cost among the successful
-    ones (the first start when none succeeded)."""
+    ones (the first start when none succeeded); ``apart[i]``: the RMS distance [m] of
+    start i's estimated path from the kept one's (:func:`paths_apart`; None where start
+    i's last solve failed or did not solve every sample)."""
 
     biases: list[StartBias]
     runs: list[list[Stage]]
     kept: int
+    apart: list[float | None] = field(default_factory=list)
 
     @property
     def final(self) -> Solved:
@@ -832,13 +835,15 @@ class StagedRun:
         out = []
         for i, (bias, run) in enumerate(zip(self.biases, self.runs, strict=True)):
             for j, st in enumerate(run):
+                last = j == len(run) - 1
                 out.append(
                     {
                         "name": "start" if len(run) == 1 else st.kind,
                         "bias": float(bias) if np.ndim(bias) == 0 else np.ravel(bias).tolist(),
                         **_record(st),
-                        "kept": i == self.kept and j == len(run) - 1,
+                        "kept": i == self.kept and last,
                         **({"first": st.first} if st.kind == "window" else {}),
+                        **({"path_rms_from_kept": self.apart[i]} if last and self.apart else {}),
                     }
                 )
         return out
@@ -868,7 +873,31 @@ def solve_starts(
     if len(strategies) != len(biases):
         raise ValueError(f"{len(strategies)} strategies for {len(biases)} starts")
     runs = [solve_strategy(model, w, b, n) for w, b in zip(strategies, biases, strict=True)]
-    return StagedRun(list(biases), runs, _kept(runs, n))
+    kept = _kept(runs, n)
+    return StagedRun(list(biases), runs, kept, paths_apart(model, runs, kept, n))
+
+
+def paths_apart(
+    model: StagedModel, runs: list[list[Stage]], kept: int, n: int
+) -> list[float | None]:
+    """The RMS distance [m] between each run's estimated path (its last solve's positions)
+    and the kept run's: None for a run whose last solve failed or did not solve all n
+    samples, and for every run when the kept one's did not succeed. The verdict's
+    ``starts`` check (casmag.result.verdict) reads it: optima far apart at nearly the same
+    MAP cost mean the data do not decide between them."""
+    base = runs[kept][-1]
+    if not (base.samples == n and base.solved.sol.success):
+        return [None] * len(runs)
+    P0 = np.asarray(model.states(base.solved)["P"], dtype=float)
+    out: list[float | None] = []
+    for run in runs:
+        last = run[-1]
+        if not (last.samples == n and last.solved.sol.success):
+            out.append(None)
+            continue
+        P = np.asarray(model.states(last.solved)["P"], dtype=float)
+        out.append(float(np.sqrt(np.mean(np.sum((P - P0) ** 2, axis=1)))))
+    return out
 
 
 def _kept(runs: list[list[Stage]], n: int) -> int:

@@ -17,6 +17,8 @@ from casmag.result import plotting
 from casmag.result.verdict import (
     MISFIT_LIMIT,
     NEES_LIMIT_FACTOR,
+    STARTS_APART_LENGTHSCALES,
+    STARTS_Z,
     WORSE_RATIO,
     revisit_fraction,
     verdict,
@@ -74,6 +76,40 @@ def test_one_session_worse_than_its_dead_reckoning_is_not_trusted():
     assert verdict(_result(rmse_before=0.86, rmse_after=0.5, info={"sessions": sessions}))[
         "trusted"
     ]
+
+
+def _started(other_cost, other_apart, tau=None, sessions=False):
+    """A result of 100 samples (magnetometer block 150: its spread 150 sqrt(2 tau / 300))
+    solved from two starts, the kept one at cost 400."""
+    stages = [
+        {"name": "start", "start": "dead reckoning", "cost": 400.0, "kept": True,
+         "path_rms_from_kept": 0.0},
+        {"name": "start", "start": "evidence bias", "cost": other_cost, "kept": False,
+         "path_rms_from_kept": other_apart},
+    ]  # fmt: skip
+    if sessions:
+        stages.append({"name": "start", "session": 1, "cost": 500.0, "kept": True})
+    u = None if tau is None else {"inflation": {"tau": [[tau, tau, tau]]}}
+    return _result(stages=stages, hyperparameters={"lengthscale": 0.3}, uncertainty=u)
+
+
+def test_another_start_far_away_at_nearly_the_same_cost_is_not_trusted():
+    sd = 150.0 * np.sqrt(2.0 / 300.0)  # tau 1
+    far = 1.5 * STARTS_APART_LENGTHSCALES * 0.3
+    v = verdict(_started(400.0 + 0.5 * STARTS_Z * sd, far))
+    assert not v["trusted"] and v["checks"]["starts"]["passed"] is False
+    assert "do not decide between the two" in v["reasons"][0]
+    assert v["checks"]["starts"]["close"][0]["z"] == pytest.approx(0.5 * STARTS_Z)
+    # decided by the cost, or the same estimate
+    assert verdict(_started(400.0 + 1.5 * STARTS_Z * sd, far))["trusted"]
+    assert verdict(_started(400.0 + 0.5 * STARTS_Z * sd, 0.5 * far))["trusted"]
+    # correlated residuals widen the spread: tau 4 doubles it
+    v = verdict(_started(400.0 + 1.5 * STARTS_Z * sd, far, tau=4.0))
+    assert not v["trusted"] and v["checks"]["starts"]["tau_samples"] == 4.0
+    # one start, a failed start, or several sessions: not made
+    assert "starts" not in verdict(_result())["checks"]
+    assert verdict(_started(None, far))["checks"]["starts"]["others"] == []
+    assert "starts" not in verdict(_started(400.0, far, sessions=True))["checks"]
 
 
 def test_a_failed_solve_and_a_models_own_flags_are_reasons():

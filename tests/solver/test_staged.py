@@ -47,7 +47,8 @@ class StandIn(StagedModel):
         return {"k": np.array(k), "bias": np.array(bias), "from": np.array(-1)}
 
     def states(self, solved: Solved) -> dict[str, np.ndarray]:
-        return dict(solved.sol.x)
+        x = solved.sol.x  # a one-sample path at (bias, 0)
+        return {**x, "P": np.array([[float(x["bias"]), 0.0]])}
 
     def extend(self, states: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
         return {"k": np.array(k), "bias": states["bias"], "from": states["k"]}
@@ -110,6 +111,10 @@ def test_a_failed_stage_ends_the_strategy_and_its_start_is_not_kept() -> None:
     assert [r["name"] for r in records] == ["lengthscale", "batch"] * 3
     assert [r["kept"] for r in records] == [False] * 5 + [True]
     assert [r["bias"] for r in records][::2] == biases
+    # each start's last solve: how far its path lies from the kept one's
+    np.testing.assert_allclose(run.apart, [d, 2 * d, 0.0])
+    assert [r.get("path_rms_from_kept") for r in records][1::2] == run.apart
+    assert all("path_rms_from_kept" not in r for r in records[::2])
 
     class FailsOne(StandIn):
         def solve(self, k: int, start: dict, solver: SolverSpec, lengthscale: float) -> Solved:
@@ -123,6 +128,7 @@ def test_a_failed_stage_ends_the_strategy_and_its_start_is_not_kept() -> None:
     run = solve_starts(m, ws, biases)
     assert [len(r) for r in run.runs] == [2, 2, 1]
     assert run.kept == 1 and run.final.sol.objective == 3.0
+    assert run.apart[2] is None  # its last solve failed
     assert [r["name"] for r in run.records()][-1] == "start"  # one solve: named as a start
     # none succeeded: the first start is kept (the dead reckoning's), and says so
     m = StandIn(50, lambda k, b, ell: 1.0, fail=((50, 0.5),))
