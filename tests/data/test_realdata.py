@@ -179,12 +179,16 @@ def test_every_real_problem_file_loads(tmp_path):
     from casmag.experiments.realbench import load_real_problem, sequence_path
 
     files = sorted((ROOT / "problems/real").glob("*.yaml"))
-    assert len(files) == 14
+    assert len(files) == 29
+    motions = []
     for f in files:
         spec = load_real_problem(f)
+        motions += [r.motion for r in spec.recordings]
         for i in range(len(spec.recordings)):
             prefix = sequence_path(spec, f, i)
             assert prefix.with_name(f"{prefix.name}-time.csv").is_file(), f
+    # sequences 1-5 as planar odometry at two drifts and as pose odometry at one
+    assert (motions.count("planar"), motions.count("pose")) == (10, 5)
 
 
 def test_laplace_covariance_without_field_information_is_the_odometry_random_walk():
