@@ -138,7 +138,7 @@ docs: $(STAMP) ## API reference from the docstrings (pdoc, every casmag module; 
 clean: ## Remove the environment and caches
 	rm -rf $(VENV) $(LATEST) $(LOWEST) $(LOCKVENV) .pytest_cache .ruff_cache build *.egg-info
 
-bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences x 2 drifts + 2 homogeneous -> results/real/table.md
+bench-real: $(STAMP) ## Real field (../shared/data): 5 sequences as translational and planar (2 drifts each) and pose odometry, 2 homogeneous, 2 multi-session -> results/real/table.md
 	$(PY) -m casmag.experiments.realbench problems/real/*.yaml --out results/real
 
 bench-real-ekf: $(STAMP) ## The filter baseline on the same single recordings -> results/real-ekf/table.md
